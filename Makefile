@@ -1,0 +1,26 @@
+# Two commands for a new user: `make demo` and `make test`. Both set up .venv first.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: setup test demo bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+demo: $(STAMP)
+	$(BIN)/encoder-fleet bench-methods --png out/bench-methods.png --json out/bench-methods.json
+
+bench: $(STAMP)
+	$(BIN)/encoder-fleet bench-methods --png out/bench-methods.png --json out/bench-methods.json
+
+clean:
+	rm -rf $(VENV) out

@@ -1,0 +1,135 @@
+"""One correction form for every method, so an agent needs one function to apply any fit.
+
+    u1 = w1·d + w2                       (seed 000, eq. 10)
+    u2 = w3·q + w4 + w5·u1               (seed 000, eq. 11, plus a phase term w5)
+    θ0 = atan2(u2, u1)
+    θ  = θ0 + zero_offset + Σ_m (a_m·cos mθ0 + b_m·sin mθ0)
+
+Seed 000's weights are the special case w5 = 0, no zero offset, no harmonics.
+A set of corrections, one per temperature band, is interpolated linearly in temperature.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .physics import wrap_rad
+from .samples import InputError
+
+
+@dataclass
+class Correction:
+    w1: float = 1.0
+    w2: float = 0.0
+    w3: float = 1.0
+    w4: float = 0.0
+    w5: float = 0.0
+    zero_offset_rad: float = 0.0
+    harmonics: dict[int, tuple[float, float]] = field(default_factory=dict)  # m -> (a_m, b_m), rad
+    temp_c: float | None = None  # temperature this correction was fitted at (band mean)
+
+    def angle(self, d, q) -> np.ndarray:
+        d = np.asarray(d, dtype=float)
+        q = np.asarray(q, dtype=float)
+        u1 = self.w1 * d + self.w2
+        u2 = self.w3 * q + self.w4 + self.w5 * u1
+        theta0 = np.arctan2(u2, u1)
+        return wrap_rad(theta0 + self.zero_offset_rad + harmonic_sum(theta0, self.harmonics))
+
+    def to_dict(self) -> dict:
+        return {"w": [self.w1, self.w2, self.w3, self.w4], "w5": self.w5, "zero_offset_rad": self.zero_offset_rad,
+                "harmonics": [[m, a, b] for m, (a, b) in sorted(self.harmonics.items())],
+                "temp_c": self.temp_c}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Correction":
+        w = data["w"]
+        return cls(w1=w[0], w2=w[1], w3=w[2], w4=w[3], w5=data.get("w5", 0.0),
+                   zero_offset_rad=data.get("zero_offset_rad", 0.0),
+                   harmonics={int(m): (float(a), float(b)) for m, a, b in data.get("harmonics", [])},
+                   temp_c=data.get("temp_c"))
+
+    def params(self, orders: list[int]) -> np.ndarray:
+        row = [self.w1, self.w2, self.w3, self.w4, self.w5, self.zero_offset_rad]
+        for m in orders:
+            a, b = self.harmonics.get(m, (0.0, 0.0))
+            row += [a, b]
+        return np.array(row)
+
+
+def harmonic_sum(theta0, harmonics: dict[int, tuple[float, float]]) -> np.ndarray:
+    total = np.zeros_like(np.asarray(theta0, dtype=float))
+    for m, (a, b) in harmonics.items():
+        total = total + a * np.cos(m * theta0) + b * np.sin(m * theta0)
+    return total
+
+
+def from_inverse_matrix(g: np.ndarray, offset: np.ndarray) -> Correction:
+    """Correction for [cosθ, sinθ] = G·(p - offset), any G with det > 0.
+
+    G = R(θz)·L with L lower-triangular (the QL-type split): L gives w1..w5, R the zero offset.
+    """
+    g = np.asarray(g, dtype=float)
+    if not np.all(np.isfinite(g)) or np.linalg.det(g) <= 0:
+        raise InputError("fitted channel map is singular or mirrored (are d and q swapped?)")
+    lower = lower_factor(g.T @ g)
+    rot = g @ np.linalg.inv(lower)
+    theta_z = float(np.arctan2(rot[1, 0], rot[0, 0]))
+    m11, m21, m22 = lower[0, 0], lower[1, 0], lower[1, 1]
+    return Correction(w1=m11, w2=-m11 * offset[0], w3=m22, w4=-m22 * offset[1],
+                      w5=m21 / m11, zero_offset_rad=theta_z)
+
+
+def lower_factor(qform: np.ndarray) -> np.ndarray:
+    """Lower-triangular L with positive diagonal and L^T·L = qform (a 2x2 positive-definite form)."""
+    q11, q12, q22 = qform[0, 0], qform[0, 1], qform[1, 1]
+    if q22 <= 0:
+        raise InputError("fitted quadratic form is not positive definite")
+    m22 = np.sqrt(q22)
+    m21 = q12 / m22
+    rest = q11 - m21 * m21
+    if rest <= 0:
+        raise InputError("fitted quadratic form is not positive definite")
+    return np.array([[np.sqrt(rest), 0.0], [m21, m22]])
+
+
+@dataclass
+class BandedCorrection:
+    """Corrections at several temperatures, interpolated linearly between them (held flat outside)."""
+
+    bands: list[Correction]
+
+    def __post_init__(self):
+        if not self.bands:
+            raise InputError("no temperature band has a fit")
+        if len(self.bands) > 1 and any(b.temp_c is None for b in self.bands):
+            raise InputError("every band of a banded correction needs its temperature")
+        self.bands = sorted(self.bands, key=lambda b: b.temp_c if b.temp_c is not None else 0.0)
+
+    def angle(self, d, q, temp_c=None) -> np.ndarray:
+        if len(self.bands) == 1 or temp_c is None:
+            if temp_c is None and len(self.bands) > 1:
+                raise InputError("temperature is needed to pick among several temperature bands")
+            return self.bands[0].angle(d, q)
+        d = np.asarray(d, dtype=float)
+        q = np.asarray(q, dtype=float)
+        temp = np.broadcast_to(np.asarray(temp_c, dtype=float), d.shape)
+        orders = sorted({m for b in self.bands for m in b.harmonics})
+        table = np.array([b.params(orders) for b in self.bands])
+        temps = np.array([b.temp_c for b in self.bands])
+        p = np.column_stack([np.interp(temp, temps, table[:, k]) for k in range(table.shape[1])])
+        u1 = p[:, 0] * d + p[:, 1]
+        u2 = p[:, 2] * q + p[:, 3] + p[:, 4] * u1
+        theta0 = np.arctan2(u2, u1)
+        theta = theta0 + p[:, 5]
+        for i, m in enumerate(orders):
+            theta = theta + p[:, 6 + 2 * i] * np.cos(m * theta0) + p[:, 7 + 2 * i] * np.sin(m * theta0)
+        return wrap_rad(theta)
+
+    def to_dict(self) -> dict:
+        return {"bands": [b.to_dict() for b in self.bands]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "BandedCorrection":
+        return cls([Correction.from_dict(b) for b in data["bands"]])

@@ -1,0 +1,157 @@
+"""Reference-free fit from window statistics: a direct ellipse fit, then harmonics from sample density.
+
+The ellipse (Fitzgibbon's direct least-squares conic fit, in Halir & Flusser's numerically
+stable split) gives offsets, gains and phase: the 5 numbers the locus of (d, q) can show.
+
+The locus cannot show harmonics: a 3rd harmonic and an amplitude imbalance make the same shape
+to first order (seed 001 eq. 8 and 18 both give a cos 2θ radius ripple) but opposite angle
+errors. What does show them, without a reference, is where along the circle the samples fall.
+A drive that turns, sampled asynchronously, visits every true angle equally often, so the
+cumulative share of samples below a corrected angle φ is the true angle: θ(φ) = 2π·F(φ) + c.
+The difference φ - θ(φ), fitted with a few Fourier orders, is the remaining angle error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .correction import Correction, from_inverse_matrix
+from .samples import InputError
+from .stats import N_BINS, WindowStats, bin_edges
+
+_DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
+MIN_SAMPLES = 32
+MIN_DENSITY_SAMPLES = 1000
+NOISE_ORDERS = (10, 20)  # density orders used only to measure its noise
+# amplitude of a pure-noise order is Rayleigh: P(amp > k·rms) = exp(-k²), 0.2 % per order at k = 2.5
+SIGNIFICANCE = 2.5
+
+
+@dataclass
+class EllipseFit:
+    center: np.ndarray  # in normalised units
+    qform: np.ndarray  # (p - c)^T Q (p - c) = 1 on the ellipse
+    conic: np.ndarray  # a..f scaled so that the conic value is r² - 1 of the corrected point
+    residual_rms: float  # rms of (r - 1) over the samples, from the 4th-order sums
+
+
+def scatter_matrix(stats: WindowStats) -> np.ndarray:
+    s = np.empty((6, 6))
+    for a, (ia, ja) in enumerate(_DESIGN):
+        for b, (ib, jb) in enumerate(_DESIGN):
+            s[a, b] = stats.moment(ia + ib, ja + jb)
+    return s
+
+
+def fit_ellipse(stats: WindowStats) -> EllipseFit:
+    """Direct ellipse fit from the moment sums alone."""
+    if stats.n < MIN_SAMPLES:
+        raise InputError(f"too few samples for an ellipse fit: {stats.n}, need at least {MIN_SAMPLES}")
+    occupied = int(np.count_nonzero(stats.bins[:, 0]))
+    if occupied < N_BINS // 2:
+        raise InputError(f"too little angle coverage for an ellipse fit: samples in {occupied} of {N_BINS} "
+                         f"angle bins, need at least {N_BINS // 2}")
+    s = scatter_matrix(stats)
+    s1, s2, s3 = s[:3, :3], s[:3, 3:], s[3:, 3:]
+    try:
+        t = -np.linalg.solve(s3, s2.T)
+    except np.linalg.LinAlgError as exc:
+        raise InputError("degenerate statistics: the samples do not span a plane") from exc
+    m = s1 + s2 @ t
+    c1_inv = np.array([[0.0, 0.0, 0.5], [0.0, -1.0, 0.0], [0.5, 0.0, 0.0]])
+    eigval, eigvec = np.linalg.eig(c1_inv @ m)
+    eigvec = np.real(eigvec)
+    cond = 4 * eigvec[0] * eigvec[2] - eigvec[1] ** 2
+    good = np.flatnonzero(cond > 0)
+    if good.size == 0:
+        raise InputError("the samples do not lie on an ellipse")
+    a1 = eigvec[:, good[np.argmin(np.abs(np.real(eigval[good])))]]
+    conic = np.concatenate([a1, t @ a1])
+    a, b, c, d, e, f = conic
+    center = np.linalg.solve(np.array([[2 * a, b], [b, 2 * c]]), np.array([-d, -e]))
+    f_center = f + 0.5 * (d * center[0] + e * center[1])
+    qform = np.array([[a, b / 2], [b / 2, c]]) / -f_center
+    if np.linalg.eigvalsh(qform).min() <= 0:
+        raise InputError("the samples do not lie on an ellipse")
+    conic = conic / -f_center  # its value at a point is now (that point's corrected radius)² - 1
+    mean_sq = float(conic @ s @ conic) / stats.n
+    residual = 0.5 * np.sqrt(max(mean_sq, 0.0))
+    return EllipseFit(center=center, qform=qform, conic=conic, residual_rms=residual)
+
+
+def ellipse_correction(stats: WindowStats, fit: EllipseFit) -> Correction:
+    """The fit as raw-unit weights, with q as the zero reference.
+
+    The locus fixes the map to a circle only up to a rotation. Seed 001 (eq. 10) puts the phase
+    error on the cos channel d, so the sin channel q is taken as true: u = U·(p - c) with U upper
+    triangular (u2 depends on q alone); Correction expresses that as weights plus a zero offset.
+    """
+    upper = np.linalg.cholesky(fit.qform).T
+    g = upper / stats.scale
+    offset = np.array([stats.center_d, stats.center_q]) + stats.scale * fit.center
+    return from_inverse_matrix(g, offset)
+
+
+def density_harmonics(stats: WindowStats, fit: EllipseFit, orders=range(1, 7)) -> dict[int, tuple[float, float]]:
+    """Angle-error harmonics left after the ellipse, from where the samples fall (uniform true angle)."""
+    counts = stats.bins[:, 0]
+    total = counts.sum()
+    if total < MIN_DENSITY_SAMPLES:
+        return {}
+    upper = np.linalg.cholesky(fit.qform).T
+    edges = bin_edges()[:-1]
+    v = np.column_stack([np.cos(edges), np.sin(edges)])
+    qc = fit.qform @ fit.center
+    vqv = np.einsum("ij,jk,ik->i", v, fit.qform, v)
+    vqc = v @ qc
+    cqc = fit.center @ qc
+    disc = vqc**2 - vqv * (cqc - 1.0)
+    if cqc >= 1.0 or np.any(disc <= 0):
+        return {}  # the origin of the binning lies outside the fitted ellipse: bins are not angles
+    rho = (vqc + np.sqrt(disc)) / vqv
+    u = (v * rho[:, None] - fit.center) @ upper.T
+    phi = np.unwrap(np.arctan2(u[:, 1], u[:, 0]))
+    cdf = np.concatenate(([0.0], np.cumsum(counts)[:-1])) / total
+    err = phi - phi[0] - 2 * np.pi * cdf
+    # Fit far more orders than we keep: the high ones carry no signal, only the sampling noise of the
+    # density (for random angles each order's amplitude scatters as ~sqrt(2/N)/m; a uniform sweep is
+    # much quieter), so they measure the noise, and an order is kept only when it stands clear of it.
+    fitted = range(1, NOISE_ORDERS[1] + 1)
+    design = [np.ones_like(phi)]
+    for m in fitted:
+        design += [np.cos(m * phi), np.sin(m * phi)]
+    coef, *_ = np.linalg.lstsq(np.column_stack(design), err, rcond=None)
+    amp = {m: (coef[2 * m - 1], coef[2 * m]) for m in fitted}
+    noise = np.sqrt(np.mean([m * m * (a * a + b * b) for m, (a, b) in amp.items() if m >= NOISE_ORDERS[0]]))
+    kept = {}
+    for m in orders:
+        a, b = amp[m]
+        if np.hypot(a, b) > SIGNIFICANCE * noise / m:
+            kept[m] = (-float(a), -float(b))
+    return kept
+
+
+def radius_ripple_rms(stats: WindowStats, correction_fit: EllipseFit) -> float:
+    """RMS of (corrected radius - 1) over angle bins: a reference-free quality number (≈ radians)."""
+    q, c = correction_fit.qform, correction_fit.center
+    counts = stats.bins[:, 0]
+    ok = counts > 0
+    mean = stats.bins[ok, 1:3] / counts[ok, None]
+    second = stats.bins[ok, 3:6] / counts[ok, None]
+    r2 = (q[0, 0] * second[:, 0] + 2 * q[0, 1] * second[:, 1] + q[1, 1] * second[:, 2]
+          - 2 * mean @ (q @ c) + c @ q @ c)
+    dev = np.sqrt(np.maximum(r2, 0.0)) - 1.0
+    return float(np.sqrt(np.average(dev**2, weights=counts[ok])))
+
+
+def fit_from_stats(stats: WindowStats, *, harmonics_from_density: bool = True) -> tuple[Correction, dict]:
+    """Reference-free correction from window statistics, with its quality numbers."""
+    fit = fit_ellipse(stats)
+    corr = ellipse_correction(stats, fit)
+    if harmonics_from_density:
+        corr.harmonics = density_harmonics(stats, fit)
+    corr.temp_c = stats.temp_mean if stats.temp_n else None
+    quality = {"samples": stats.n, "residual_rms_rad": fit.residual_rms,
+               "radius_ripple_rad": radius_ripple_rms(stats, fit)}
+    return corr, quality

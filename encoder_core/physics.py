@@ -1,0 +1,42 @@
+"""Hall signals to angle (seed 000, eq. 1-3) and the angle-error helpers every part shares."""
+from __future__ import annotations
+
+import numpy as np
+
+ADC_BITS = 12
+ADC_MAX = 2**ADC_BITS - 1
+ADC_MID = 2 ** (ADC_BITS - 1)
+REFERENCE_TEMP_C = 20.0  # seed 000's target temperature: the +20 °C table
+
+
+def halls_to_dq(a_plus, a_minus, b_plus, b_minus) -> tuple[np.ndarray, np.ndarray]:
+    """Differential pairs (seed 000, eq. 1-2): d = B+ - B-, q = A+ - A-."""
+    d = np.asarray(b_plus, dtype=float) - np.asarray(b_minus, dtype=float)
+    q = np.asarray(a_plus, dtype=float) - np.asarray(a_minus, dtype=float)
+    return d, q
+
+
+def angle(d, q) -> np.ndarray:
+    """Electrical angle in radians (seed 000, eq. 3), four-quadrant."""
+    return np.arctan2(np.asarray(q, dtype=float), np.asarray(d, dtype=float))
+
+
+def wrap_rad(x) -> np.ndarray:
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(x, dtype=float) + np.pi) % (2 * np.pi) - np.pi
+
+
+def angle_error_deg(theta_est, theta_ref) -> np.ndarray:
+    """Signed error est - ref in degrees, wrapped to [-180, 180)."""
+    return np.degrees(wrap_rad(np.asarray(theta_est) - np.asarray(theta_ref)))
+
+
+def rms(x) -> float:
+    x = np.asarray(x, dtype=float)
+    return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
+
+
+def error_summary(theta_est, theta_ref) -> dict:
+    """RMS and max absolute angle error in degrees."""
+    err = angle_error_deg(theta_est, theta_ref)
+    return {"rms_error_deg": rms(err), "max_error_deg": float(np.max(np.abs(err))) if err.size else float("nan")}

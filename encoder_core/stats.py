@@ -1,0 +1,135 @@
+"""Additive window statistics: what an agent ships instead of samples.
+
+Channels are normalised first (x = (d - center_d)/scale, same for q) because raw 12-bit counts
+to the 4th power lose precision in a sum. A window holds
+
+- sums of the 15 monomials x^i·y^j with i + j <= 4: the scatter matrix of a conic fit;
+- per raw-angle bin (64 bins of atan2(y, x)): count, Σx, Σy, Σx², Σxy, Σy², which give the
+  sample density along the circle and the radius of any later affine correction per bin;
+- temperature count, Σ, Σ², min, max.
+
+Two windows with the same normalisation merge by addition, in any order.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .samples import InputError
+
+MONOMIALS: tuple[tuple[int, int], ...] = tuple((i, k - i) for k in range(5) for i in range(k, -1, -1))
+N_BINS = 64
+BIN_COLUMNS = ("count", "sx", "sy", "sxx", "sxy", "syy")
+
+
+@dataclass
+class WindowStats:
+    scale: float
+    center_d: float = 0.0
+    center_q: float = 0.0
+    moments: np.ndarray = field(default_factory=lambda: np.zeros(len(MONOMIALS)))
+    bins: np.ndarray = field(default_factory=lambda: np.zeros((N_BINS, len(BIN_COLUMNS))))
+    temp_n: int = 0
+    temp_sum: float = 0.0
+    temp_sq_sum: float = 0.0
+    temp_min: float = float("inf")
+    temp_max: float = float("-inf")
+    rejected: int = 0  # samples kept out: clipped, non-finite or implausible radius
+
+    @property
+    def n(self) -> int:
+        return int(round(self.moments[0]))
+
+    @property
+    def temp_mean(self) -> float:
+        return self.temp_sum / self.temp_n if self.temp_n else float("nan")
+
+    def normalise(self, d, q) -> tuple[np.ndarray, np.ndarray]:
+        return (np.asarray(d, float) - self.center_d) / self.scale, (np.asarray(q, float) - self.center_q) / self.scale
+
+    def add(self, d, q, temp_c=None) -> "WindowStats":
+        """Accumulate samples in place; returns self."""
+        x, y = self.normalise(d, q)
+        powers_x = [np.ones_like(x), x, x * x, x * x * x, (x * x) ** 2]
+        powers_y = [np.ones_like(y), y, y * y, y * y * y, (y * y) ** 2]
+        self.moments = self.moments + np.array([np.dot(powers_x[i], powers_y[j]) for i, j in MONOMIALS])
+        idx = angle_bin(x, y)
+        cols = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+        binned = np.zeros_like(self.bins)
+        np.add.at(binned, idx, cols)
+        self.bins = self.bins + binned
+        if temp_c is not None:
+            temp = np.asarray(temp_c, float)
+            if temp.size:
+                self.temp_n += int(temp.size)
+                self.temp_sum += float(temp.sum())
+                self.temp_sq_sum += float(np.dot(temp, temp))
+                self.temp_min = min(self.temp_min, float(temp.min()))
+                self.temp_max = max(self.temp_max, float(temp.max()))
+        return self
+
+    def merge(self, other: "WindowStats") -> "WindowStats":
+        """A new statistics object holding both: addition, so order does not matter."""
+        if (self.scale, self.center_d, self.center_q) != (other.scale, other.center_d, other.center_q):
+            raise InputError("cannot merge window statistics with different normalisation "
+                             f"({self.scale}, {self.center_d}, {self.center_q}) vs "
+                             f"({other.scale}, {other.center_d}, {other.center_q})")
+        return WindowStats(scale=self.scale, center_d=self.center_d, center_q=self.center_q,
+                           moments=self.moments + other.moments, bins=self.bins + other.bins,
+                           temp_n=self.temp_n + other.temp_n, temp_sum=self.temp_sum + other.temp_sum,
+                           temp_sq_sum=self.temp_sq_sum + other.temp_sq_sum,
+                           temp_min=min(self.temp_min, other.temp_min), temp_max=max(self.temp_max, other.temp_max),
+                           rejected=self.rejected + other.rejected)
+
+    def moment(self, i: int, j: int) -> float:
+        return float(self.moments[MONOMIALS.index((i, j))])
+
+    def to_dict(self) -> dict:
+        finite = self.temp_n > 0
+        return {"scale": self.scale, "center_d": self.center_d, "center_q": self.center_q,
+                "moments": self.moments.tolist(), "bins": self.bins.tolist(),
+                "temp_n": self.temp_n, "temp_sum": self.temp_sum, "temp_sq_sum": self.temp_sq_sum,
+                "temp_min": self.temp_min if finite else None, "temp_max": self.temp_max if finite else None,
+                "rejected": self.rejected}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "WindowStats":
+        moments = np.asarray(data["moments"], dtype=float)
+        bins = np.asarray(data["bins"], dtype=float)
+        if moments.shape != (len(MONOMIALS),):
+            raise InputError(f"moments must have {len(MONOMIALS)} values, got shape {moments.shape}")
+        if bins.shape != (N_BINS, len(BIN_COLUMNS)):
+            raise InputError(f"bins must be {N_BINS}x{len(BIN_COLUMNS)}, got shape {bins.shape}")
+        if not (np.all(np.isfinite(moments)) and np.all(np.isfinite(bins))):
+            raise InputError("window statistics contain a non-finite value")
+        return cls(scale=float(data["scale"]), center_d=float(data["center_d"]), center_q=float(data["center_q"]),
+                   moments=moments, bins=bins, temp_n=int(data["temp_n"]), temp_sum=float(data["temp_sum"]),
+                   temp_sq_sum=float(data["temp_sq_sum"]),
+                   temp_min=float("inf") if data.get("temp_min") is None else float(data["temp_min"]),
+                   temp_max=float("-inf") if data.get("temp_max") is None else float(data["temp_max"]),
+                   rejected=int(data.get("rejected", 0)))
+
+
+def angle_bin(x, y) -> np.ndarray:
+    theta = np.arctan2(y, x) % (2 * np.pi)
+    return np.minimum((theta * (N_BINS / (2 * np.pi))).astype(int), N_BINS - 1)
+
+
+def bin_edges() -> np.ndarray:
+    return np.arange(N_BINS + 1) * (2 * np.pi / N_BINS)
+
+
+def plausible_mask(d, q, *, center=(0.0, 0.0), tolerance: float = 0.12) -> np.ndarray:
+    """Finite samples whose radius is within ±tolerance of the block's median radius.
+
+    An impulse on one hall moves the point off the circle; the fits' 4th-order sums must not see it.
+    """
+    d = np.asarray(d, float)
+    q = np.asarray(q, float)
+    ok = np.isfinite(d) & np.isfinite(q)
+    r = np.hypot(d - center[0], q - center[1])
+    if ok.sum() == 0:
+        return ok
+    med = np.median(r[ok])
+    return ok & (np.abs(r - med) <= tolerance * med)

@@ -1,0 +1,106 @@
+"""`encoder-fleet`: one command, a subcommand per job. Bad input exits 2 with a one-line reason."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from encoder_core.samples import InputError
+
+
+def cmd_simulate(args) -> int:
+    from encoder_core.simulator import EncoderModel, bench_profile, field_profile, record, typical_drive
+    from encoder_fleet.recording import write_recording
+
+    rng = np.random.default_rng(args.seed)
+    model = typical_drive(rng) if args.typical else EncoderModel()
+    changes = {}
+    for item in args.set or []:
+        key, _, value = item.partition("=")
+        if key not in EncoderModel.__dataclass_fields__:
+            raise InputError(f"--set {item!r}: unknown model parameter {key!r} "
+                             f"(known: {', '.join(EncoderModel.__dataclass_fields__)})")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            raise InputError(f"--set {item!r}: value must be JSON (a number, true/false or a list)") from None
+        changes[key] = parsed
+    model = EncoderModel.from_dict({**model.to_dict(), **changes})
+    if args.scenario == "bench":
+        profile = bench_profile(tuple(args.plateaus), rng=rng)
+    else:
+        profile = field_profile(args.days, sample_s=args.sample_s, rng=rng)
+    samples = record(model, profile, rng, reference=not args.no_reference, temperature=not args.no_temperature,
+                     halls=args.halls)
+    write_recording(samples, args.out, halls=args.halls)
+    print(f"wrote {len(samples)} rows to {args.out}")
+    return 0
+
+
+def cmd_bench_methods(args) -> int:
+    from encoder_fleet.bench_methods import main as bench_main
+
+    return bench_main(json_path=args.json, png_path=args.png, seed=args.seed)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="encoder-fleet", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="write a simulated recording (CSV contract of DESIGN.md)")
+    p.add_argument("--scenario", choices=["bench", "field"], default="bench",
+                   help="bench: seed 000's rig, 3600 positions per plateau with ramps; field: a drive for days")
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--typical", action="store_true", help="start from a randomly drawn production encoder")
+    p.add_argument("--set", action="append", metavar="KEY=JSON", help="set a model parameter, e.g. thermal_lag_tau_s=300")
+    p.add_argument("--plateaus", type=float, nargs="+", default=[20.0, -40.0, 60.0, 20.0])
+    p.add_argument("--days", type=float, default=3.0)
+    p.add_argument("--sample-s", type=float, default=10.0)
+    p.add_argument("--no-reference", action="store_true")
+    p.add_argument("--no-temperature", action="store_true")
+    p.add_argument("--halls", action="store_true", help="write the four hall columns instead of d, q")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("bench-methods", help="every compensation method on every scenario, one table")
+    p.add_argument("--json", help="also write the table as JSON")
+    p.add_argument("--png", help="also write error-against-angle plots")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_bench_methods)
+
+    for register in _extensions():
+        register(sub)
+    return parser
+
+
+def _extensions():
+    """Subcommands that live beside their code (diagnose, fleet): each module offers register(sub)."""
+    import importlib
+
+    found = []
+    for name in ("encoder_fleet.diagnose_cli", "encoder_fleet.fleet_cli"):
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name != name:
+                raise
+            continue
+        found.append(module.register)
+    return found
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"encoder-fleet {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""Recording CSV (the contract in DESIGN.md): read with line-precise errors, write from Samples."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from encoder_core.physics import halls_to_dq
+from encoder_core.samples import InputError, Samples
+
+HALL_COLUMNS = ("a_plus", "a_minus", "b_plus", "b_minus")
+OPTIONAL = ("temp_c", "theta_ref_deg", "speed_rpm", "run")
+
+
+def read_recording(path: str | Path) -> Samples:
+    """Parse a recording; any problem raises InputError naming the file, line and column."""
+    path = Path(path)
+    try:
+        handle = path.open(newline="")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot open: {exc.strerror}") from exc
+    with handle:
+        reader = csv.reader(handle)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise InputError(f"{path}: the file is empty (expected a header row)") from None
+        except csv.Error as exc:
+            raise InputError(f"{path}, line 1: not valid CSV: {exc}") from None
+        if "t" not in header:
+            raise InputError(f"{path}: missing column 't' (header has: {', '.join(header)})")
+        has_dq = "d" in header and "q" in header
+        has_halls = all(h in header for h in HALL_COLUMNS)
+        if not (has_dq or has_halls):
+            raise InputError(f"{path}: missing columns: need 'd' and 'q', or all of {', '.join(HALL_COLUMNS)}"
+                             f" (header has: {', '.join(header)})")
+        wanted = ["t"] + (["d", "q"] if has_dq else list(HALL_COLUMNS)) + [c for c in OPTIONAL if c in header]
+        index = {name: header.index(name) for name in wanted}
+        columns: dict[str, list[float]] = {name: [] for name in wanted}
+        try:
+            for row in reader:
+                line = reader.line_num
+                if not row or all(not cell.strip() for cell in row):
+                    continue
+                if len(row) < len(header):
+                    raise InputError(f"{path}, line {line}: {len(row)} fields, expected {len(header)}")
+                for name, col in index.items():
+                    cell = row[col].strip()
+                    try:
+                        value = float(cell)
+                    except ValueError:
+                        raise InputError(f"{path}, line {line}, column '{name}': not a number: {cell!r}") from None
+                    if not math.isfinite(value):
+                        raise InputError(f"{path}, line {line}, column '{name}': not a finite number: {cell!r}")
+                    columns[name].append(value)
+        except csv.Error as exc:
+            raise InputError(f"{path}, line {reader.line_num}: not valid CSV: {exc}") from None
+    arrays = {k: np.asarray(v, dtype=float) for k, v in columns.items()}
+    t = arrays["t"]
+    if t.size == 0:
+        raise InputError(f"{path}: no data rows after the header")
+    step = np.diff(t)
+    bad = np.flatnonzero(step <= 0)
+    if bad.size:
+        # header is line 1, first data row line 2 (blank lines aside)
+        raise InputError(f"{path}, data row {bad[0] + 2}: column 't' does not increase "
+                         f"({t[bad[0]]} then {t[bad[0] + 1]})")
+    if has_dq:
+        d, q = arrays["d"], arrays["q"]
+        halls = None
+    else:
+        halls = {h: arrays[h] for h in HALL_COLUMNS}
+        d, q = halls_to_dq(halls["a_plus"], halls["a_minus"], halls["b_plus"], halls["b_minus"])
+    theta = np.radians(arrays["theta_ref_deg"]) if "theta_ref_deg" in arrays else None
+    return Samples(t=t, d=d, q=q, temp_c=arrays.get("temp_c"), theta_ref=theta, run=arrays.get("run"),
+                   speed_rpm=arrays.get("speed_rpm"), halls=halls)
+
+
+def write_recording(samples: Samples, path: str | Path, *, halls: bool = False) -> None:
+    """Write the CSV contract: t, d, q (or the four halls), then whichever optional columns exist."""
+    cols: dict[str, np.ndarray] = {"t": samples.t}
+    if halls and samples.halls is not None:
+        cols.update({h: samples.halls[h] for h in HALL_COLUMNS})
+    else:
+        cols.update({"d": samples.d, "q": samples.q})
+    if samples.temp_c is not None:
+        cols["temp_c"] = samples.temp_c
+    if samples.theta_ref is not None:
+        cols["theta_ref_deg"] = np.degrees(samples.theta_ref)
+    if samples.speed_rpm is not None:
+        cols["speed_rpm"] = samples.speed_rpm
+    if samples.run is not None:
+        cols["run"] = samples.run
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fmt = {"t": "%.4f", "run": "%d"}
+    matrix = np.column_stack(list(cols.values()))
+    np.savetxt(path, matrix, delimiter=",", header=",".join(cols), comments="",
+               fmt=[fmt.get(c, "%.6g") for c in cols])
