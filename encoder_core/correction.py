@@ -50,12 +50,30 @@ class Correction:
                    harmonics={int(m): (float(a), float(b)) for m, a, b in data.get("harmonics", [])},
                    temp_c=data.get("temp_c"))
 
+    def locus(self, n: int = 360) -> tuple[np.ndarray, np.ndarray]:
+        """Raw (d, q) points that this correction maps onto the unit circle, evenly in θ0."""
+        psi = np.arange(n) * (2 * np.pi / n)
+        u1, u2 = np.cos(psi), np.sin(psi)
+        d = (u1 - self.w2) / self.w1
+        q = (u2 - self.w4 - self.w5 * u1) / self.w3
+        return d, q
+
     def params(self, orders: list[int]) -> np.ndarray:
         row = [self.w1, self.w2, self.w3, self.w4, self.w5, self.zero_offset_rad]
         for m in orders:
             a, b = self.harmonics.get(m, (0.0, 0.0))
             row += [a, b]
         return np.array(row)
+
+
+def zero_shift(reference: Correction, other: Correction) -> float:
+    """The rotation that makes `other` agree with `reference` on average around other's circle.
+
+    A reference-free fit cannot see the zero; a factory calibration (made against a reference) can.
+    Gain, offset and harmonic differences average out around the circle; a rotation does not."""
+    d, q = other.locus()
+    diff = reference.angle(d, q) - other.angle(d, q)
+    return float(np.angle(np.mean(np.exp(1j * diff))))
 
 
 def harmonic_sum(theta0, harmonics: dict[int, tuple[float, float]]) -> np.ndarray:
@@ -106,6 +124,18 @@ class BandedCorrection:
         if len(self.bands) > 1 and any(b.temp_c is None for b in self.bands):
             raise InputError("every band of a banded correction needs its temperature")
         self.bands = sorted(self.bands, key=lambda b: b.temp_c if b.temp_c is not None else 0.0)
+
+    def at(self, temp_c: float) -> Correction:
+        """The correction interpolated to one temperature."""
+        if len(self.bands) == 1:
+            return Correction.from_dict({**self.bands[0].to_dict(), "temp_c": float(temp_c)})
+        orders = sorted({m for b in self.bands for m in b.harmonics})
+        table = np.array([b.params(orders) for b in self.bands])
+        temps = np.array([b.temp_c for b in self.bands])
+        p = [float(np.interp(temp_c, temps, table[:, k])) for k in range(table.shape[1])]
+        return Correction(w1=p[0], w2=p[1], w3=p[2], w4=p[3], w5=p[4], zero_offset_rad=p[5],
+                          harmonics={m: (p[6 + 2 * i], p[7 + 2 * i]) for i, m in enumerate(orders)},
+                          temp_c=float(temp_c))
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
         if len(self.bands) == 1 or temp_c is None:

@@ -93,13 +93,12 @@ def ellipse_correction(stats: WindowStats, fit: EllipseFit) -> Correction:
     return from_inverse_matrix(g, offset)
 
 
-def density_harmonics(stats: WindowStats, fit: EllipseFit, orders=range(1, 7)) -> dict[int, tuple[float, float]]:
-    """Angle-error harmonics left after the ellipse, from where the samples fall (uniform true angle)."""
+def density_reference(stats: WindowStats, fit: EllipseFit) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Raw (d, q) on the fitted locus at each angle-bin edge, and the true angle there up to a constant:
+    2π times the share of samples below the edge (a turning drive visits every angle equally often).
+    None when the binning's origin lies outside the locus (then bins are not angles)."""
     counts = stats.bins[:, 0]
     total = counts.sum()
-    if total < MIN_DENSITY_SAMPLES:
-        return {}
-    upper = np.linalg.cholesky(fit.qform).T
     edges = bin_edges()[:-1]
     v = np.column_stack([np.cos(edges), np.sin(edges)])
     qc = fit.qform @ fit.center
@@ -107,13 +106,47 @@ def density_harmonics(stats: WindowStats, fit: EllipseFit, orders=range(1, 7)) -
     vqc = v @ qc
     cqc = fit.center @ qc
     disc = vqc**2 - vqv * (cqc - 1.0)
-    if cqc >= 1.0 or np.any(disc <= 0):
-        return {}  # the origin of the binning lies outside the fitted ellipse: bins are not angles
-    rho = (vqc + np.sqrt(disc)) / vqv
-    u = (v * rho[:, None] - fit.center) @ upper.T
-    phi = np.unwrap(np.arctan2(u[:, 1], u[:, 0]))
-    cdf = np.concatenate(([0.0], np.cumsum(counts)[:-1])) / total
-    err = phi - phi[0] - 2 * np.pi * cdf
+    if total <= 0 or cqc >= 1.0 or np.any(disc <= 0):
+        return None
+    points = v * ((vqc + np.sqrt(disc)) / vqv)[:, None]
+    d = stats.center_d + stats.scale * points[:, 0]
+    q = stats.center_q + stats.scale * points[:, 1]
+    true_angle = 2 * np.pi * np.concatenate(([0.0], np.cumsum(counts)[:-1])) / total
+    return d, q, true_angle
+
+
+@dataclass
+class HarmonicEstimate:
+    """Unthresholded angle-error harmonics from the density, with the noise of one order scaled by m:
+    an order's amplitude scatters as about noise/m."""
+
+    coefficients: dict[int, tuple[float, float]]  # m -> (a_m, b_m) of the correction, rad
+    noise: float
+
+    def significant(self) -> dict[int, tuple[float, float]]:
+        return {m: ab for m, ab in self.coefficients.items() if np.hypot(*ab) > SIGNIFICANCE * self.noise / m}
+
+    @staticmethod
+    def pooled(estimates: list["HarmonicEstimate"]) -> "HarmonicEstimate":
+        """Inverse-variance mean of several estimates of the same harmonics (e.g. a device's bands)."""
+        usable = [e for e in estimates if e.noise > 0]
+        if not usable:
+            return HarmonicEstimate({}, 0.0)
+        weights = np.array([1 / e.noise**2 for e in usable])
+        orders = sorted({m for e in usable for m in e.coefficients})
+        coef = {m: tuple(float(np.dot(weights, [e.coefficients.get(m, (0.0, 0.0))[i] for e in usable]) / weights.sum())
+                         for i in (0, 1)) for m in orders}
+        return HarmonicEstimate(coef, float(1 / np.sqrt(weights.sum())))
+
+
+def density_harmonics(stats: WindowStats, fit: EllipseFit, orders=range(1, 7)) -> HarmonicEstimate:
+    """Angle-error harmonics left after the ellipse, from where the samples fall (uniform true angle)."""
+    ref = density_reference(stats, fit) if stats.bins[:, 0].sum() >= MIN_DENSITY_SAMPLES else None
+    if ref is None:
+        return HarmonicEstimate({}, 0.0)
+    d, q, true_angle = ref
+    phi = np.unwrap(ellipse_correction(stats, fit).angle(d, q))
+    err = phi - phi[0] - true_angle
     # Fit far more orders than we keep: the high ones carry no signal, only the sampling noise of the
     # density (for random angles each order's amplitude scatters as ~sqrt(2/N)/m; a uniform sweep is
     # much quieter), so they measure the noise, and an order is kept only when it stands clear of it.
@@ -124,12 +157,7 @@ def density_harmonics(stats: WindowStats, fit: EllipseFit, orders=range(1, 7)) -
     coef, *_ = np.linalg.lstsq(np.column_stack(design), err, rcond=None)
     amp = {m: (coef[2 * m - 1], coef[2 * m]) for m in fitted}
     noise = np.sqrt(np.mean([m * m * (a * a + b * b) for m, (a, b) in amp.items() if m >= NOISE_ORDERS[0]]))
-    kept = {}
-    for m in orders:
-        a, b = amp[m]
-        if np.hypot(a, b) > SIGNIFICANCE * noise / m:
-            kept[m] = (-float(a), -float(b))
-    return kept
+    return HarmonicEstimate({m: (-float(amp[m][0]), -float(amp[m][1])) for m in orders}, float(noise))
 
 
 def radius_ripple_rms(stats: WindowStats, correction_fit: EllipseFit) -> float:
@@ -150,7 +178,7 @@ def fit_from_stats(stats: WindowStats, *, harmonics_from_density: bool = True) -
     fit = fit_ellipse(stats)
     corr = ellipse_correction(stats, fit)
     if harmonics_from_density:
-        corr.harmonics = density_harmonics(stats, fit)
+        corr.harmonics = density_harmonics(stats, fit).significant()
     corr.temp_c = stats.temp_mean if stats.temp_n else None
     quality = {"samples": stats.n, "residual_rms_rad": fit.residual_rms,
                "radius_ripple_rad": radius_ripple_rms(stats, fit)}

@@ -80,7 +80,7 @@ def test_ellipse_recovers_offsets_and_density_finds_hidden_harmonic():
     fit = fit_ellipse(stats)
     center = np.array([stats.center_d, stats.center_q]) + stats.scale * fit.center
     assert center == pytest.approx([30.0, -20.0], abs=1.0)
-    found = density_harmonics(stats, fit)
+    found = density_harmonics(stats, fit).significant()
     assert set(found) == {2}  # the 3rd harmonic shows as a 2θ angle error; nothing else is significant
     corr = OursEllipse().fit(s).correction
     err = angle_error_deg(corr.angle(s.d, s.q, s.temp_c), theta)

@@ -1,0 +1,276 @@
+"""The edge agent: corrects its drive's angle with the coefficients it holds, ships one window of
+additive statistics per interval, takes new coefficients from the service when they are safe.
+
+Delivery is at-least-once: each window goes to the durable outbox before it is sent, and leaves it
+only when the service's watermark (every seq up to N stored) passes it. The service drops
+duplicates by (device, seq). So the agent can run with the service gone and catch up later.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from encoder_core.correction import BandedCorrection
+from encoder_core.physics import REFERENCE_TEMP_C
+from encoder_core.samples import InputError, Samples
+from encoder_core.stats import WindowStats, plausible_mask
+from encoder_fleet import wire
+
+from .outbox import Outbox
+from .sources import SampleSource
+
+log = logging.getLogger("edge_agent")
+
+# plausible bounds for a coefficient set: gains within 5x of the factory's, harmonics under 6°
+MAX_GAIN_RATIO = 5.0
+MAX_HARMONIC_RAD = 0.1
+
+
+def keys(device: str) -> dict[str, str]:
+    base = f"encoders/{device}"
+    return {"stats": f"{base}/stats", "coefficients": f"{base}/coefficients", "ack": f"{base}/ack",
+            "alive": f"{base}/alive", "received": f"{base}/received", "factory": f"{base}/factory"}
+
+
+@dataclass
+class AgentCounters:
+    windows: int = 0
+    sent: int = 0
+    resent: int = 0
+    applied: list[int] = field(default_factory=list)
+    refused: list[tuple[int, str]] = field(default_factory=list)
+    offline_syncs: int = 0
+
+
+class EdgeAgent:
+    def __init__(self, device: str, source: SampleSource, session: zenoh.Session, outbox: Outbox,
+                 factory: BandedCorrection, *, window_s: float = 60.0, resend_after_s: float = 2.0,
+                 query_timeout_s: float = 1.0):
+        self.device = device
+        self.source = source
+        self.session = session
+        self.outbox = outbox
+        self.factory = factory
+        self.correction = factory
+        self.version = 0
+        self.window_s = window_s
+        self.resend_after_s = resend_after_s
+        self.query_timeout_s = query_timeout_s
+        self.keys = keys(device)
+        self.seq = outbox.last_seq()
+        self.counters = AgentCounters()
+        self.inbox: queue.Queue[bytes] = queue.Queue()
+        self.pending_ack: int | None = None
+        # the statistics' normalisation stays fixed for the device's whole life: windows must merge
+        ref_band = min(factory.bands, key=lambda b: abs((b.temp_c or REFERENCE_TEMP_C) - REFERENCE_TEMP_C))
+        self.scale = float(round(1.0 / abs(ref_band.w1)))
+        self._declared: list = []
+
+    # --- lifecycle ---------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._declared.append(self.session.liveliness().declare_token(self.keys["alive"]))
+        self._declared.append(self.session.declare_subscriber(
+            self.keys["coefficients"], lambda sample: self.inbox.put(sample.payload.to_bytes())))
+        replies = self._get(self.keys["coefficients"])
+        if replies is None or not replies:
+            # the service has nothing for us yet (or is not there): tell it what the factory wrote
+            self.session.put(self.keys["factory"], wire.encode("coefficients", self.factory_message()))
+        for payload in replies or []:
+            self.inbox.put(payload)
+
+    def close(self) -> None:
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self._declared.clear()
+
+    def run(self, *, real_time_factor: float = 0.0, max_windows: int | None = None) -> AgentCounters:
+        """Process the source to its end. real_time_factor > 0 sleeps to run that many times real time."""
+        started = time.monotonic()
+        while max_windows is None or self.counters.windows < max_windows:
+            if not self.step():
+                break
+            if real_time_factor > 0:
+                ahead = self.counters.windows * self.window_s / real_time_factor - (time.monotonic() - started)
+                if ahead > 0:
+                    time.sleep(ahead)
+        self.drain()
+        return self.counters
+
+    # --- one window --------------------------------------------------------------------------------
+
+    def step(self) -> bool:
+        self.apply_inbox()
+        block = self.source.read(self.window_s)
+        if block is None:
+            return False
+        if len(block) == 0:
+            return True
+        self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
+        quality = self.angle_quality_deg(block)
+        if self.pending_ack is not None:
+            self.send_ack(self.pending_ack, "applied", quality)
+            self.pending_ack = None
+        stats = self.window_stats(block)
+        self.seq += 1
+        msg = wire.window_message(device=self.device, seq=self.seq, window_start=float(block.t[0]),
+                                  window_end=float(block.t[-1]), stats=stats, coefficients_version=self.version,
+                                  angle_quality_deg=quality, temp_rate_c_per_s=temp_rate(block))
+        payload = wire.encode("window", msg)
+        self.outbox.add(self.seq, payload)
+        self.session.put(self.keys["stats"], payload)
+        self.outbox.mark_sent([self.seq], time.monotonic())
+        self.counters.windows += 1
+        self.counters.sent += 1
+        self.sync()
+        return True
+
+    def correct(self, block: Samples) -> np.ndarray:
+        return self.correction.angle(block.d, block.q, block.temp_c)
+
+    def angle_quality_deg(self, block: Samples) -> float:
+        """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""
+        radius = corrected_radius(self.correction, block)
+        ok = plausible_mask(block.d, block.q)
+        if ok.sum() < 8:
+            return 0.0
+        r = radius[ok]
+        return float(np.degrees(np.std(r) / np.mean(r)))
+
+    def window_stats(self, block: Samples) -> WindowStats:
+        keep = plausible_mask(block.d, block.q)
+        if block.halls is not None:  # a hall at a rail is clipped: its sample says nothing about the circle
+            for hall in block.halls.values():
+                keep &= (hall > 0) & (hall < 4095)
+        stats = WindowStats(scale=self.scale)
+        stats.add(block.d[keep], block.q[keep], None if block.temp_c is None else block.temp_c[keep])
+        stats.rejected = int((~keep).sum())
+        return stats
+
+    # --- delivery ----------------------------------------------------------------------------------
+
+    def sync(self) -> bool:
+        """Ask the service how far it has stored us; forget what it has, resend what it lacks."""
+        replies = self._get(self.keys["received"])
+        if not replies:
+            self.counters.offline_syncs += 1
+            return False
+        try:
+            watermark = int(json.loads(replies[0])["contiguous_seq"])
+        except (ValueError, KeyError, TypeError):
+            log.warning("%s: unreadable watermark reply %r", self.device, replies[0][:200])
+            return False
+        self.outbox.confirm_through(watermark)
+        stale = self.outbox.pending(sent_before=time.monotonic() - self.resend_after_s)
+        for seq, payload in stale:
+            self.session.put(self.keys["stats"], payload)
+        if stale:
+            self.outbox.mark_sent([s for s, _ in stale], time.monotonic())
+            self.counters.resent += len(stale)
+        return True
+
+    def drain(self, timeout_s: float = 20.0) -> bool:
+        """At the end: keep syncing until the service has every window (or time runs out)."""
+        deadline = time.monotonic() + timeout_s
+        while len(self.outbox) and time.monotonic() < deadline:
+            self.apply_inbox()
+            if not self.sync():
+                time.sleep(0.2)
+            elif len(self.outbox):
+                time.sleep(0.1)
+        self.apply_inbox()
+        return len(self.outbox) == 0
+
+    def _get(self, key: str) -> list[bytes] | None:
+        try:
+            replies = self.session.get(key, timeout=self.query_timeout_s)
+            return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+        except zenoh.ZError as exc:  # the session itself failed
+            log.warning("%s: get %s failed: %s", self.device, key, exc)
+            return None
+
+    # --- coefficients ------------------------------------------------------------------------------
+
+    def apply_inbox(self) -> None:
+        while True:
+            try:
+                payload = self.inbox.get_nowait()
+            except queue.Empty:
+                return
+            self.on_coefficients(payload)
+
+    def on_coefficients(self, payload: bytes) -> None:
+        try:
+            msg = wire.decode("coefficients", payload, key_device=self.device)
+            if msg["version"] <= self.version:
+                return  # an old or repeated set: nothing to do, nothing to say
+            candidate = BandedCorrection.from_dict({"bands": msg["bands"]})
+            check_plausible(candidate, self.factory)
+        except (wire.WireError, InputError) as exc:
+            version = _version_of(payload)
+            log.warning("%s: refused coefficient set %s: %s", self.device, version, exc)
+            if version is not None and version > self.version:
+                self.counters.refused.append((version, str(exc)))
+                self.send_ack(version, "rejected", None, reason=str(exc))
+            return
+        self.correction, self.version = candidate, int(msg["version"])
+        self.counters.applied.append(self.version)
+        self.pending_ack = self.version  # acknowledged with the quality seen on the next block
+
+    def send_ack(self, version: int, status: str, quality: float | None, *, reason: str | None = None) -> None:
+        msg = wire.ack_message(device=self.device, version=version, status=status, angle_quality_deg=quality,
+                               at=float(getattr(self.source, "now", time.time())), reason=reason)
+        self.session.put(self.keys["ack"], wire.encode("ack", msg))
+
+    def factory_message(self) -> dict:
+        bands = [{**b.to_dict(), "band": int(np.floor((b.temp_c or REFERENCE_TEMP_C) / 10.0)),
+                  "quality": {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0}}
+                 for b in self.factory.bands]
+        return wire.coefficients_message(device=self.device, version=0, created_at=0.0, basis="factory", bands=bands)
+
+
+def corrected_radius(correction: BandedCorrection, block: Samples) -> np.ndarray:
+    """|u| of the affine part of the correction, per sample (temperature-interpolated like the angle)."""
+    temps = np.array([b.temp_c if b.temp_c is not None else REFERENCE_TEMP_C for b in correction.bands])
+    t = block.temp_c if block.temp_c is not None else np.full(len(block), REFERENCE_TEMP_C)
+    w = np.array([[b.w1, b.w2, b.w3, b.w4, b.w5] for b in correction.bands])
+    p = np.column_stack([np.interp(t, temps, w[:, k]) for k in range(5)]) if len(temps) > 1 else np.tile(w[0], (len(block), 1))
+    u1 = p[:, 0] * block.d + p[:, 1]
+    u2 = p[:, 2] * block.q + p[:, 3] + p[:, 4] * u1
+    return np.hypot(u1, u2)
+
+
+def check_plausible(candidate: BandedCorrection, factory: BandedCorrection) -> None:
+    ref = factory.bands[0]
+    for band in candidate.bands:
+        values = [band.w1, band.w2, band.w3, band.w4, band.w5, band.zero_offset_rad]
+        values += [v for ab in band.harmonics.values() for v in ab]
+        if not np.all(np.isfinite(values)):
+            raise InputError(f"band at {band.temp_c} °C has a non-finite coefficient")
+        for name, w, w_ref in (("w1", band.w1, ref.w1), ("w3", band.w3, ref.w3)):
+            ratio = w / w_ref
+            if not (1 / MAX_GAIN_RATIO < ratio < MAX_GAIN_RATIO):
+                raise InputError(f"band at {band.temp_c} °C: {name} = {w:.4g} is {ratio:.3g}x the factory's")
+        for m, (a, b) in band.harmonics.items():
+            if np.hypot(a, b) > MAX_HARMONIC_RAD:
+                raise InputError(f"band at {band.temp_c} °C: harmonic {m} of {np.hypot(a, b):.3g} rad is implausible")
+
+
+def temp_rate(block: Samples) -> float:
+    if block.temp_c is None or len(block) < 2 or block.t[-1] == block.t[0]:
+        return 0.0
+    return float(np.polyfit(block.t - block.t[0], block.temp_c, 1)[0])
+
+
+def _version_of(payload: bytes) -> int | None:
+    try:
+        v = json.loads(payload).get("version")
+        return int(v) if isinstance(v, (int, float)) and np.isfinite(v) else None
+    except (ValueError, AttributeError, TypeError):
+        return None

@@ -1,0 +1,95 @@
+"""Where an agent's samples come from. The agent holds a SampleSource and never knows which one."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from encoder_core.correction import BandedCorrection
+from encoder_core.methods import OursLsRef
+from encoder_core.samples import Samples
+from encoder_core.simulator import EncoderModel, bench_profile, cycle_profile, record, simulate, typical_drive
+
+
+class SampleSource(ABC):
+    """A stream of samples read in blocks of a given duration (seconds of the drive's clock)."""
+
+    @abstractmethod
+    def read(self, duration_s: float) -> Samples | None:
+        """The next block, or None when the source has ended."""
+
+
+class SimulatedDrive(SampleSource):
+    """A drive with its own encoder (drawn from a seed), going through heating and cooling between
+    t_min and t_max, sampled at random positions. Runs as fast as the caller reads."""
+
+    def __init__(self, seed: int, *, hours: float, sample_hz: float = 20.0, t_min: float = -40.0,
+                 t_max: float = 85.0, cycle_hours: float = 12.0, model: EncoderModel | None = None):
+        self.seed = seed
+        self.model = model or drive_model(seed)
+        self.rng = np.random.default_rng([seed, 1])
+        self.end_s = hours * 3600.0
+        self.sample_s = 1.0 / sample_hz
+        self.t_min, self.t_max, self.cycle_hours = t_min, t_max, cycle_hours
+        self.now = 0.0
+        self.die_temp: float | None = None
+
+    def read(self, duration_s: float) -> Samples | None:
+        if self.now >= self.end_s:
+            return None
+        hours = min(duration_s, self.end_s - self.now) / 3600.0
+        profile = cycle_profile(hours, sample_s=self.sample_s, t_min=self.t_min, t_max=self.t_max,
+                                cycle_hours=self.cycle_hours, t0=self.now, rng=self.rng)
+        samples, die = simulate(self.model, profile.t, profile.theta, profile.temp_c, self.rng,
+                                hours_offset=self.now / 3600.0, die_temp0=self.die_temp)
+        self.now += duration_s
+        if die.size:
+            self.die_temp = float(die[-1])
+        samples.theta_ref = None  # a drive in the field has no reference angle
+        return samples
+
+
+class ReplaySource(SampleSource):
+    """A recording replayed in blocks of its own time column."""
+
+    def __init__(self, samples: Samples):
+        self.samples = samples
+        self.pos = 0
+        self.t_next = float(samples.t[0]) if len(samples) else 0.0
+
+    def read(self, duration_s: float) -> Samples | None:
+        if self.pos >= len(self.samples):
+            return None
+        self.t_next += duration_s
+        end = int(np.searchsorted(self.samples.t, self.t_next, side="left"))
+        end = max(end, self.pos + 1)
+        block = self.samples.subset(slice(self.pos, end))
+        self.pos = end
+        return block
+
+
+def drive_model(seed: int) -> EncoderModel:
+    """The encoder of simulated device `seed`: a production part with its own drift, phase and harmonic."""
+    return typical_drive(np.random.default_rng([seed, 0]))
+
+
+def factory_calibration(model: EncoderModel, seed: int) -> BandedCorrection:
+    """What the factory writes into a drive: a +20 °C bench sweep with a reference, fitted in closed form.
+    It knows nothing of temperature, so it is the drive's correction at every temperature until the fleet
+    service learns better."""
+    rng = np.random.default_rng([seed, 2])
+    sweep = record(model, bench_profile((20.0,), soak_s=0.0), rng)
+    method = OursLsRef().fit(sweep)
+    return method.correction
+
+
+def evaluation_set(model: EncoderModel, seed: int, *, n: int = 20000, t_min: float = -40.0,
+                   t_max: float = 85.0) -> Samples:
+    """Truth for scoring a correction: random positions at settled temperatures across the cycle.
+    Only the demo and tests use it; the agent and the service never see it."""
+    rng = np.random.default_rng([seed, 3])
+    temp = rng.uniform(t_min, t_max, n)
+    theta = rng.uniform(0, 2 * np.pi, n)
+    samples, _ = simulate(model.with_(thermal_lag_tau_s=0.0), np.arange(n, dtype=float), theta, temp, rng)
+    return samples
+

@@ -1,0 +1,55 @@
+"""The service's refit, fed the agent's window statistics of a simulated drive (no transport here)."""
+import numpy as np
+import pytest
+
+from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
+from encoder_core.correction import BandedCorrection
+from encoder_core.physics import error_summary
+from encoder_core.stats import WindowStats, plausible_mask
+from service.refit import refit_device
+
+
+def band_stats_of(seed, hours, scale):
+    bands = {}
+    source = SimulatedDrive(seed, hours=hours)
+    while (block := source.read(60.0)) is not None:
+        keep = plausible_mask(block.d, block.q)
+        stats = WindowStats(scale=scale).add(block.d[keep], block.q[keep], block.temp_c[keep])
+        band = int(np.floor(stats.temp_mean / 10))
+        bands[band] = bands[band].merge(stats) if band in bands else stats
+    return bands
+
+
+@pytest.mark.parametrize("seed", [3, 11])
+def test_refit_beats_factory_fivefold_across_the_cycle(seed):
+    model = drive_model(seed)
+    factory = factory_calibration(model, seed)
+    bands = band_stats_of(seed, 24, float(round(1 / factory.bands[0].w1)))
+    result = refit_device(bands, factory, factory)
+    assert result.changed
+    fleet = BandedCorrection.from_dict({"bands": result.bands})
+    truth = evaluation_set(model.with_(noise_counts=0.0), seed)  # scores the coefficients, not sensor noise
+    before = error_summary(factory.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref)["rms_error_deg"]
+    after = error_summary(fleet.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref)["rms_error_deg"]
+    assert after * 5 < before, (before, after)
+
+
+def test_refit_leaves_a_right_set_alone():
+    seed = 5
+    model = drive_model(seed)
+    factory = factory_calibration(model, seed)
+    bands = band_stats_of(seed, 24, float(round(1 / factory.bands[0].w1)))
+    first = refit_device(bands, factory, factory)
+    rolled_out = BandedCorrection.from_dict({"bands": first.bands})
+    again = refit_device(bands, rolled_out, factory)
+    assert not again.changed  # same statistics, same answer: no churn of versions
+    adopted_first = {d.band for d in first.decisions if d.adopted}
+    assert adopted_first
+    assert all(d.running_error_deg < 1e-6 for d in again.decisions if d.band in adopted_first)
+
+
+def test_too_few_samples_gives_no_fit():
+    seed = 2
+    factory = factory_calibration(drive_model(seed), seed)
+    bands = band_stats_of(seed, 0.1, float(round(1 / factory.bands[0].w1)))
+    assert refit_device(bands, factory, factory).bands == []
