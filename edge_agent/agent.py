@@ -229,10 +229,15 @@ class EdgeAgent:
         self.session.put(self.keys["ack"], wire.encode("ack", msg))
 
     def factory_message(self) -> dict:
-        bands = [{**b.to_dict(), "band": int(np.floor((b.temp_c or REFERENCE_TEMP_C) / 10.0)),
-                  "quality": {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0}}
-                 for b in self.factory.bands]
-        return wire.coefficients_message(device=self.device, version=0, created_at=0.0, basis="factory", bands=bands)
+        return factory_message(self.device, self.factory)
+
+
+def factory_message(device: str, factory: BandedCorrection) -> dict:
+    """What the factory wrote into the drive, as coefficient set version 0."""
+    bands = [wire.band_entry(int(np.floor((b.temp_c or REFERENCE_TEMP_C) / 10.0)), b.to_dict(),
+                             {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0})
+             for b in factory.bands]
+    return wire.coefficients_message(device=device, version=0, created_at=0.0, basis="factory", bands=bands)
 
 
 def corrected_radius(correction: BandedCorrection, block: Samples) -> np.ndarray:

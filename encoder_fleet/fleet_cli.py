@@ -1,0 +1,148 @@
+"""Fleet subcommands: agent, service, export, demo, bench-fleet."""
+from __future__ import annotations
+
+import hashlib
+import logging
+import signal
+import threading
+from pathlib import Path
+
+from encoder_core.samples import InputError
+
+
+def device_seed(device: str) -> int:
+    """A simulated device's seed, stable for its name."""
+    return int(hashlib.sha256(device.encode()).hexdigest()[:8], 16)
+
+
+def cmd_agent(args) -> int:
+    import json
+
+    import zenoh
+
+    from edge_agent.agent import EdgeAgent
+    from edge_agent.outbox import Outbox
+    from edge_agent.sources import ReplaySource, SimulatedDrive, drive_model, factory_calibration
+    from encoder_core.correction import BandedCorrection
+    from encoder_fleet.zenoh_config import session_config
+
+    seed = args.seed if args.seed is not None else device_seed(args.device)
+    if args.source == "sim":
+        model = drive_model(seed)
+        source = SimulatedDrive(seed, hours=args.sim_hours, sample_hz=args.sample_hz)
+        factory = factory_calibration(model, seed)
+    elif args.source.startswith("replay:"):
+        from encoder_fleet.recording import read_recording
+
+        recording = read_recording(args.source.split(":", 1)[1])
+        source = ReplaySource(recording)
+        factory = None
+    else:
+        raise InputError(f"--source {args.source!r}: use 'sim' or 'replay:REC.csv'")
+    if args.factory:
+        try:
+            factory = BandedCorrection.from_dict({"bands": json.loads(Path(args.factory).read_text())["bands"]})
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f"--factory {args.factory}: not a coefficient set: {exc}") from None
+    if factory is None:
+        raise InputError("a replayed recording needs --factory FILE (a coefficient set as JSON)")
+    outbox = Outbox(args.outbox or Path("out") / "outbox" / f"{args.device}.sqlite")
+    session = zenoh.open(session_config("client", connect=args.connect))
+    agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        agent.start()
+        while not stop.is_set() and agent.step():
+            pass
+        if not stop.is_set():
+            agent.drain()
+        c = agent.counters
+        print(f"{args.device}: {c.windows} windows, {c.resent} resent, versions applied {c.applied}, "
+              f"{len(outbox)} left in outbox", flush=True)
+    finally:
+        agent.close()
+        session.close()
+        outbox.close()
+    return 0
+
+
+def cmd_service(args) -> int:
+    from service.runtime import run_service
+
+    return run_service(db=args.db, listen=args.listen, connect=args.connect, http_port=args.http_port,
+                       refit_interval_s=args.refit_interval)
+
+
+def cmd_export(args) -> int:
+    from service.mcap_export import export_mcap
+    from service.store import Store
+
+    if not Path(args.db).exists():
+        raise InputError(f"--db {args.db}: no such database")
+    store = Store.open(args.db)
+    try:
+        if store.device(args.device) is None:
+            raise InputError(f"device {args.device!r} is not in {args.db}")
+        with open(args.out, "wb") as out:
+            export_mcap(store, args.device, out, t_from=args.t_from, t_to=args.t_to)
+    finally:
+        store.close()
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from encoder_fleet.demo import run_demo
+
+    return run_demo(devices=args.devices, sim_hours=args.sim_hours, out_dir=Path(args.out), as_json=args.json)
+
+
+def cmd_bench_fleet(args) -> int:
+    from encoder_fleet.bench_fleet import run_bench
+
+    return run_bench(sizes=args.devices, windows_per_device=args.windows)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("agent", help="run an edge agent next to a drive")
+    p.add_argument("--device", required=True)
+    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--source", default="sim", help="sim, or replay:REC.csv")
+    p.add_argument("--seed", type=int, help="simulated drive's seed (default: from the device name)")
+    p.add_argument("--sim-hours", type=float, default=24.0)
+    p.add_argument("--sample-hz", type=float, default=20.0)
+    p.add_argument("--window-s", type=float, default=60.0)
+    p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
+    p.add_argument("--factory", help="the factory coefficient set, JSON (required for replay)")
+    p.set_defaults(func=cmd_agent)
+
+    p = sub.add_parser("service", help="run the central service (embeds a Zenoh router by default)")
+    p.add_argument("--db", default="out/fleet.sqlite")
+    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="router endpoint (default tcp/127.0.0.1:7447)")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="join external routers instead")
+    p.add_argument("--http-port", type=int, default=8000)
+    p.add_argument("--refit-interval", type=float, default=2.0, help="seconds between refit passes")
+    p.set_defaults(func=cmd_service)
+
+    p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")
+    p.add_argument("--db", default="out/fleet.sqlite")
+    p.add_argument("--device", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--from", dest="t_from", type=float)
+    p.add_argument("--to", dest="t_to", type=float)
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("demo", help="a simulated fleet, the service and the rollout, with a summary")
+    p.add_argument("--devices", type=int, default=4)
+    p.add_argument("--sim-hours", type=float, default=24.0)
+    p.add_argument("--out", default="out/demo")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench-fleet", help="windows ingested and refits per second for fleets of several sizes")
+    p.add_argument("--devices", type=int, nargs="+", default=[10, 100, 1000])
+    p.add_argument("--windows", type=int, default=20, help="windows per device")
+    p.set_defaults(func=cmd_bench_fleet)
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")

@@ -1,0 +1,235 @@
+"""The running service: Zenoh ingest and queries, the refit-and-rollout loop, liveliness.
+
+By default it embeds a Zenoh router (mode "router", listening on a local endpoint); with connect
+endpoints it joins external routers as a client instead.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import zenoh
+
+from encoder_core.correction import BandedCorrection
+from encoder_fleet import wire
+from service.refit import MIN_BAND_SAMPLES, refit_device
+from service.store import Store
+
+log = logging.getLogger("service")
+
+
+@dataclass
+class ServiceCounters:
+    ingested: dict[str, int] = field(default_factory=dict)  # status -> count ('stored', 'duplicate', reasons)
+    refits: int = 0
+    rollouts: int = 0
+
+    def count(self, status: str) -> None:
+        self.ingested[status] = self.ingested.get(status, 0) + 1
+
+
+class FleetService:
+    def __init__(self, store: Store, session: zenoh.Session, *, refit_interval_s: float = 2.0,
+                 min_band_samples: int = MIN_BAND_SAMPLES):
+        self.store = store
+        self.session = session
+        self.refit_interval_s = refit_interval_s
+        self.min_band_samples = min_band_samples
+        self.counters = ServiceCounters()
+        self._declared: list = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._watermarks: dict[str, int] = {}
+        self._refitted_at: dict[str, int] = {}  # device -> window count at its last refit
+        self._lock = threading.Lock()
+
+    # --- lifecycle ---------------------------------------------------------------------------------
+
+    def start(self) -> "FleetService":
+        s = self.session
+        self._declared += [
+            s.declare_subscriber("encoders/*/stats", self._on_message),
+            s.declare_subscriber("encoders/*/ack", self._on_message),
+            s.declare_subscriber("encoders/*/factory", self._on_factory),
+            s.declare_queryable("encoders/*/coefficients", self._on_coefficients_query),
+            s.declare_queryable("encoders/*/received", self._on_received_query),
+            s.liveliness().declare_subscriber("encoders/*/alive", self._on_alive, history=True),
+        ]
+        if self.refit_interval_s > 0:
+            self._thread = threading.Thread(target=self._refit_loop, name="refit", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self._declared.clear()
+
+    # --- ingest ------------------------------------------------------------------------------------
+
+    def _on_message(self, sample: zenoh.Sample) -> None:
+        status = self.store.ingest(str(sample.key_expr), sample.payload.to_bytes())
+        with self._lock:
+            self.counters.count(status)
+
+    def _on_factory(self, sample: zenoh.Sample) -> None:
+        """An agent that found no set here tells what its factory wrote: it becomes version 0."""
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        try:
+            device = wire.device_from_key(key)
+            msg = wire.decode("coefficients", payload, key_device=device)
+            if msg["basis"] != "factory" or msg["version"] != 0:
+                raise wire.WireError("schema", f"{key}: a factory set must have basis 'factory' and version 0")
+        except wire.WireError as exc:
+            self.store.dead_letter(key, exc.reason, str(exc), payload)
+            return
+        if self.store.current_coefficients(device) is None:
+            self.store.insert_coefficient_set(msg)
+            self.store.mark_published(device, 0)
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        try:
+            device = str(sample.key_expr).split("/")[1]
+        except IndexError:
+            return
+        self.store.set_online(device, sample.kind == zenoh.SampleKind.PUT)
+
+    # --- queries -----------------------------------------------------------------------------------
+
+    def _on_coefficients_query(self, query: zenoh.Query) -> None:
+        device = str(query.key_expr).split("/")[1]
+        current = self.store.current_coefficients(device, published_only=True)
+        if current is not None:
+            query.reply(query.key_expr, wire.encode("coefficients", current))
+
+    def _on_received_query(self, query: zenoh.Query) -> None:
+        device = str(query.key_expr).split("/")[1]
+        body = {"device": device, "contiguous_seq": self.watermark(device)}
+        query.reply(query.key_expr, json.dumps(body).encode())
+
+    def watermark(self, device: str) -> int:
+        """Highest seq with every window up to it stored (so the agent may forget them)."""
+        with self._lock:
+            mark = self._watermarks.get(device, 0)
+            mark = self.store.contiguous_seq(device, start=mark)
+            self._watermarks[device] = mark
+            return mark
+
+    # --- refit and rollout -------------------------------------------------------------------------
+
+    def _refit_loop(self) -> None:
+        while not self._stop.wait(self.refit_interval_s):
+            try:
+                self.refit_all()
+            except Exception:  # the loop must outlive one bad device; the error is logged with its trace
+                log.exception("refit pass failed")
+
+    def refit_all(self) -> list[int]:
+        """Refit every device that sent windows since its last refit; returns the versions published."""
+        published = []
+        for dev in self.store.devices():
+            device, windows = dev["id"], dev.get("windows", 0)
+            if windows == self._refitted_at.get(device):
+                continue
+            self._refitted_at[device] = windows
+            version = self.refit(device)
+            if version is not None:
+                published.append(version)
+        return published
+
+    def refit(self, device: str) -> int | None:
+        history = self.store.coefficient_history(device)
+        factory_msg = next((h["message"] for h in history if h["basis"] == "factory"), None)
+        running_msg = self.store.current_coefficients(device, published_only=True)
+        if running_msg is None:
+            return None  # no factory set known yet: nothing to anchor a rollout to
+        band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
+        factory = BandedCorrection.from_dict({"bands": factory_msg["bands"]}) if factory_msg else None
+        running = BandedCorrection.from_dict({"bands": running_msg["bands"]})
+        result = refit_device(band_stats, running, factory, min_samples=self.min_band_samples)
+        with self._lock:
+            self.counters.refits += 1
+        if not result.changed:
+            return None
+        for decision, entry in zip(result.decisions, result.bands):
+            if decision.adopted:
+                self.store.record_fit(device, decision.band, entry, entry["quality"])
+        version = self.store.next_version(device)
+        msg = wire.coefficients_message(device=device, version=version, created_at=time.time(), basis="fit",
+                                        bands=result.bands)
+        self.store.insert_coefficient_set(msg)
+        self.session.put(f"encoders/{device}/coefficients", wire.encode("coefficients", msg))
+        self.store.mark_published(device, version)
+        with self._lock:
+            self.counters.rollouts += 1
+        log.info("%s: published coefficient set v%d (%d bands adopted)", device, version,
+                 sum(d.adopted for d in result.decisions))
+        return version
+
+
+def open_session(*, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Session:
+    """The service's session: an embedded router on `listen`, or a client of external routers."""
+    from encoder_fleet.zenoh_config import session_config
+
+    if connect:
+        return zenoh.open(session_config("client", connect=connect))
+    return zenoh.open(session_config("router", listen=listen))
+
+
+class HttpServer:
+    """The REST API on a background thread (uvicorn), stoppable."""
+
+    def __init__(self, store: Store, port: int, host: str = "127.0.0.1"):
+        import uvicorn
+
+        from service.api import create_app
+
+        self.server = uvicorn.Server(uvicorn.Config(create_app(store), host=host, port=port, log_level="warning"))
+        self.thread = threading.Thread(target=self.server.run, name="http", daemon=True)
+
+    def start(self) -> "HttpServer":
+        self.thread.start()
+        deadline = time.monotonic() + 10
+        while not self.server.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return self
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+
+
+def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None, http_port: int | None,
+                refit_interval_s: float) -> int:
+    """`encoder-fleet service`: until SIGINT or SIGTERM."""
+    import signal
+
+    from pathlib import Path
+
+    Path(db).parent.mkdir(parents=True, exist_ok=True)
+    listen = listen or ([] if connect else ["tcp/127.0.0.1:7447"])
+    store = Store.open(db)
+    session = open_session(listen=listen, connect=connect)
+    service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
+    http = HttpServer(store, http_port).start() if http_port else None
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    where = ", ".join(connect or listen)
+    print(f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
+          + (f"; REST http://127.0.0.1:{http_port}/docs" if http else ""), flush=True)
+    try:
+        stop.wait()
+    finally:
+        if http:
+            http.stop()
+        service.stop()
+        session.close()
+        store.close()
+    return 0
