@@ -1,0 +1,200 @@
+"""The wire: the one place that knows the JSON messages agents and the service exchange.
+
+docs/wire.md describes them, schemas/*.schema.json are the contract, this module checks both
+directions: `decode` for what arrives, `encode` for what leaves, builders for what we create.
+Kinds are "window" (key suffix "stats"), "coefficients" and "ack".
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from functools import cache
+from pathlib import Path
+
+from jsonschema import Draft202012Validator
+from jsonschema.exceptions import best_match
+
+from encoder_core.stats import WindowStats
+
+SCHEMA_DIR = Path(__file__).resolve().parent.parent / "schemas"
+KINDS = ("window", "coefficients", "ack")
+KEY_SUFFIX = {"window": "stats", "coefficients": "coefficients", "ack": "ack"}
+SCHEMA_NAME = {kind: f"encoder-fleet/{kind}/1" for kind in KINDS}
+MAX_PAYLOAD = 256 * 1024
+DEVICE_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+class WireError(ValueError):
+    """A message that cannot be accepted. `reason` is a short code, the message says what and where."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+@cache
+def load_schema(kind: str) -> dict:
+    if kind not in KINDS:
+        raise WireError("unknown_kind", f"unknown message kind {kind!r}; expected one of {', '.join(KINDS)}")
+    return json.loads((SCHEMA_DIR / f"{kind}.schema.json").read_text(encoding="utf-8"))
+
+
+@cache
+def _validator(kind: str) -> Draft202012Validator:
+    schema = load_schema(kind)
+    Draft202012Validator.check_schema(schema)
+    return Draft202012Validator(schema)
+
+
+# --- keys -------------------------------------------------------------------------------------
+
+def key_for(kind: str, device: str) -> str:
+    return f"encoders/{device}/{KEY_SUFFIX[kind]}"
+
+
+def parse_key(key_expr: str) -> tuple[str, str]:
+    """`encoders/<device>/<suffix>` -> (device, kind)."""
+    parts = str(key_expr).split("/")
+    kinds = {suffix: kind for kind, suffix in KEY_SUFFIX.items()}
+    if len(parts) != 3 or parts[0] != "encoders" or parts[2] not in kinds or not DEVICE_RE.match(parts[1]):
+        raise WireError("bad_key", f"key {key_expr!r} is not encoders/<device>/<{'|'.join(kinds)}>")
+    return parts[1], kinds[parts[2]]
+
+
+def device_from_key(key_expr: str) -> str:
+    return parse_key(key_expr)[0]
+
+
+# --- checking ---------------------------------------------------------------------------------
+
+class _NonFinite:
+    """Stands in for a NaN/Infinity token or an overflowing number while parsing, so we can say where it was."""
+
+    def __init__(self, token: str):
+        self.token = token
+
+
+def _parse_float(token: str):
+    value = float(token)
+    return value if math.isfinite(value) else _NonFinite(token)
+
+
+def _find_non_finite(value, path: str = "$") -> tuple[str, str] | None:
+    if isinstance(value, _NonFinite):
+        return path, value.token
+    if isinstance(value, float) and not math.isfinite(value):
+        return path, repr(value)
+    if isinstance(value, dict):
+        items = ((f"{path}.{k}", v) for k, v in value.items())
+    elif isinstance(value, (list, tuple)):
+        items = ((f"{path}[{i}]", v) for i, v in enumerate(value))
+    else:
+        return None
+    for sub_path, sub in items:
+        found = _find_non_finite(sub, sub_path)
+        if found:
+            return found
+    return None
+
+
+def check(kind: str, msg) -> dict:
+    """Raise WireError unless msg is a valid message of this kind; returns msg."""
+    found = _find_non_finite(msg)
+    if found:
+        raise WireError("non_finite", f"{kind} message: {found[0]}: non-finite number {found[1]} (JSON allows finite numbers only)")
+    error = best_match(_validator(kind).iter_errors(msg))
+    if error is not None:
+        text = error.message if len(error.message) <= 200 else error.message[:200] + "…"
+        raise WireError("schema", f"{kind} message: {error.json_path}: {text}")
+    _check_consistency(kind, msg)
+    return msg
+
+
+def _check_consistency(kind: str, msg: dict) -> None:
+    """What a JSON Schema cannot say: relations between fields."""
+    def bad(path: str, text: str):
+        raise WireError("inconsistent", f"{kind} message: {path}: {text}")
+
+    if kind == "window":
+        if msg["window_end"] < msg["window_start"]:
+            bad("$.window_end", f"{msg['window_end']} is before window_start {msg['window_start']}")
+        if msg["samples"] != round(msg["stats"]["moments"][0]):
+            bad("$.samples", f"{msg['samples']} differs from stats.moments[0] = {msg['stats']['moments'][0]}")
+        if not msg["temp_min_c"] <= msg["temp_mean_c"] <= msg["temp_max_c"]:
+            bad("$.temp_mean_c", f"{msg['temp_mean_c']} is outside [temp_min_c, temp_max_c]")
+        if msg["band"] != math.floor(msg["temp_mean_c"] / 10):
+            bad("$.band", f"{msg['band']} is not floor(temp_mean_c / 10) = {math.floor(msg['temp_mean_c'] / 10)}")
+    elif kind == "coefficients":
+        bands = [b["band"] for b in msg["bands"]]
+        if len(set(bands)) != len(bands):
+            bad("$.bands", f"a band appears twice: {bands}")
+
+
+def decode(kind: str, payload: bytes, *, key_device: str | None) -> dict:
+    """Bytes off the wire -> a checked message. key_device: the <device> of the key it arrived on."""
+    if len(payload) > MAX_PAYLOAD:
+        raise WireError("too_large", f"{kind} message: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD} bytes")
+    try:
+        text = bytes(payload).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise WireError("not_json", f"{kind} message: not UTF-8 at byte {exc.start}") from None
+    try:
+        msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float)
+    except json.JSONDecodeError as exc:
+        raise WireError("not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    check(kind, msg)
+    if key_device is not None and msg["device"] != key_device:
+        raise WireError("device_mismatch",
+                        f"{kind} message: $.device: {msg['device']!r} differs from the key's device {key_device!r}")
+    return msg
+
+
+def encode(kind: str, msg: dict) -> bytes:
+    """A message -> bytes to send, after the same checks the receiver makes."""
+    check(kind, msg)
+    payload = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    if len(payload) > MAX_PAYLOAD:
+        raise WireError("too_large", f"{kind} message: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD} bytes")
+    return payload
+
+
+# --- builders ---------------------------------------------------------------------------------
+
+def window_message(device: str, seq: int, stats: WindowStats, *, window_start: float, window_end: float,
+                   temp_rate_c_per_s: float, coefficients_version: int, angle_quality_deg: float) -> dict:
+    """A window message; samples, rejected, temperatures and band come from the statistics."""
+    if stats.temp_n == 0:
+        raise WireError("schema", "window message: the statistics hold no temperature; a window needs one for its band")
+    temp_mean = float(stats.temp_mean)
+    return check("window", {
+        "schema": SCHEMA_NAME["window"], "device": device, "seq": int(seq),
+        "window_start": float(window_start), "window_end": float(window_end),
+        "samples": stats.n, "rejected": int(stats.rejected),
+        "temp_mean_c": temp_mean, "temp_min_c": float(stats.temp_min), "temp_max_c": float(stats.temp_max),
+        "temp_rate_c_per_s": float(temp_rate_c_per_s), "band": math.floor(temp_mean / 10),
+        "coefficients_version": int(coefficients_version), "angle_quality_deg": float(angle_quality_deg),
+        "stats": stats.to_dict(),
+    })
+
+
+def band_entry(band: int, correction: dict, quality: dict) -> dict:
+    """One entry of a coefficient set: Correction.to_dict() plus band and quality."""
+    return {"band": int(band), **correction, "quality": dict(quality)}
+
+
+def coefficients_message(device: str, version: int, created_at: float, basis: str, bands: list[dict]) -> dict:
+    """bands: entries from band_entry(), in any order (sent sorted by band)."""
+    return check("coefficients", {
+        "schema": SCHEMA_NAME["coefficients"], "device": device, "version": int(version),
+        "created_at": float(created_at), "basis": basis, "bands": sorted(bands, key=lambda b: b["band"]),
+    })
+
+
+def ack_message(device: str, version: int, status: str, at: float, *, angle_quality_deg: float | None = None,
+                reason: str | None = None) -> dict:
+    msg = {"schema": SCHEMA_NAME["ack"], "device": device, "version": int(version), "status": status,
+           "angle_quality_deg": None if angle_quality_deg is None else float(angle_quality_deg), "at": float(at)}
+    if reason is not None:
+        msg["reason"] = reason
+    return check("ack", msg)

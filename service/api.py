@@ -1,0 +1,230 @@
+"""REST API over the Store: fleet health, coefficient history, windows, MCAP export, ingest rejections.
+
+FastAPI's bigger-applications layout: one router per resource, the Store reached through a
+dependency (app.state.store, set by create_app), no globals, so tests and the service each build
+their own app around their own Store.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, Field
+
+from .mcap_export import iter_mcap
+from .store import Store
+
+
+# --- dependencies -------------------------------------------------------------------------------
+
+def get_store(request: Request) -> Store:
+    return request.app.state.store
+
+
+StoreDep = Annotated[Store, Depends(get_store)]
+
+
+def known_device(device_id: str, store: StoreDep) -> dict:
+    device = store.device(device_id)
+    if device is None:
+        raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}")
+    return device
+
+
+DeviceDep = Annotated[dict, Depends(known_device)]
+
+
+@dataclass
+class TimeRange:
+    t_from: float | None
+    t_to: float | None
+
+
+def time_range(
+    t_from: Annotated[float | None, Query(alias="from", allow_inf_nan=False,
+                                          description="Start, s on the drive's clock (inclusive).")] = None,
+    t_to: Annotated[float | None, Query(alias="to", allow_inf_nan=False,
+                                        description="End, s on the drive's clock (inclusive).")] = None,
+) -> TimeRange:
+    if t_from is not None and t_to is not None and t_from > t_to:
+        raise HTTPException(status_code=422, detail=f"'from' ({t_from}) is after 'to' ({t_to})")
+    return TimeRange(t_from, t_to)
+
+
+RangeDep = Annotated[TimeRange, Depends(time_range)]
+
+
+# --- response models (for the OpenAPI docs; wire messages stay plain JSON objects) -------------
+
+class Device(BaseModel):
+    id: str
+    first_seen: float = Field(description="Service clock, unix s.")
+    last_seen: float = Field(description="Service clock, unix s: last window, ack or liveliness change.")
+    online: bool = Field(description="Liveliness token held.")
+    current_version: int | None = Field(description="Coefficient version the agent last reported using.")
+    windows: int = Field(description="Windows stored.")
+
+
+class CoefficientsInUse(BaseModel):
+    in_use: int | None = Field(description="coefficients_version of the newest window (0 = factory).")
+    latest_published: int | None = Field(description="Newest coefficient set published to the agent.")
+    latest: int | None = Field(description="Newest coefficient set created (published or not).")
+
+
+class AngleError(BaseModel):
+    latest_deg: float | None = Field(description="angle_quality_deg of the newest window.")
+    mean_recent_deg: float | None = Field(description="Mean angle_quality_deg of the newest windows.")
+    recent_windows: int
+
+
+class BandFit(BaseModel):
+    band: int
+    fit_id: int
+    created_at: float
+    samples: int
+    quality: dict
+
+
+class Health(BaseModel):
+    device: str
+    online: bool
+    last_seen: float
+    coefficients: CoefficientsInUse
+    angle_error: AngleError
+    bands: list[BandFit] = Field(description="Quality of the newest fit of each temperature band.")
+    windows: int
+    samples: int
+    rejected: int
+    rejected_share: float | None = Field(description="rejected / (samples + rejected) over all windows.")
+
+
+class CoefficientSet(BaseModel):
+    version: int
+    created_at: float
+    basis: str
+    published_at: float | None
+    message: dict = Field(description="The encoder-fleet/coefficients/1 message.")
+    acks: list[dict] = Field(description="encoder-fleet/ack/1 messages for this version, oldest first.")
+
+
+class CoefficientHistory(BaseModel):
+    device: str
+    sets: list[CoefficientSet] = Field(description="Newest first.")
+
+
+class WindowList(BaseModel):
+    device: str
+    count: int
+    truncated: bool = Field(description="More windows match; narrow the range or raise the limit.")
+    windows: list[dict] = Field(description="encoder-fleet/window/1 messages by window_start (stats only if asked).")
+
+
+class DeadLetter(BaseModel):
+    id: int
+    received_at: float
+    key_expr: str
+    reason: str
+    detail: str
+    payload_bytes: int
+    payload_preview: str = Field(description="First 200 bytes, undecodable bytes replaced.")
+
+
+class Rejections(BaseModel):
+    counts: dict[str, int] = Field(description="Dead letters by reason.")
+    total: int
+    latest: list[DeadLetter] = Field(description="Newest first.")
+
+
+# --- routers ------------------------------------------------------------------------------------
+
+devices = APIRouter(prefix="/devices", tags=["devices"])
+coefficients = APIRouter(prefix="/devices", tags=["coefficients"])
+windows = APIRouter(prefix="/devices", tags=["windows"])
+export = APIRouter(prefix="/devices", tags=["export"])
+ingest = APIRouter(prefix="/ingest", tags=["ingest"])
+
+
+@devices.get("", response_model=list[Device], summary="All devices")
+def list_devices(store: StoreDep):
+    return store.devices()
+
+
+@devices.get("/{device_id}", response_model=Device, summary="One device")
+def get_device(device: DeviceDep):
+    return device
+
+
+@devices.get("/{device_id}/health", response_model=Health, summary="Health of one device")
+def device_health(device: DeviceDep, store: StoreDep):
+    dev_id = device["id"]
+    summary = store.window_summary(dev_id, recent=10)
+    recent = summary["recent"]
+    published = store.current_coefficients(dev_id, published_only=True)
+    latest = store.current_coefficients(dev_id)
+    seen = summary["samples"] + summary["rejected"]
+    return Health(
+        device=dev_id, online=device["online"], last_seen=device["last_seen"],
+        coefficients=CoefficientsInUse(in_use=recent[0]["coefficients_version"] if recent else None,
+                                       latest_published=published["version"] if published else None,
+                                       latest=latest["version"] if latest else None),
+        angle_error=AngleError(latest_deg=recent[0]["angle_quality_deg"] if recent else None,
+                               mean_recent_deg=(sum(w["angle_quality_deg"] for w in recent) / len(recent)
+                                                if recent else None),
+                               recent_windows=len(recent)),
+        bands=[BandFit(band=f["band"], fit_id=f["id"], created_at=f["created_at"], samples=f["samples"],
+                       quality=f["quality"]) for f in store.latest_fits(dev_id)],
+        windows=summary["windows"], samples=summary["samples"], rejected=summary["rejected"],
+        rejected_share=summary["rejected"] / seen if seen else None)
+
+
+@coefficients.get("/{device_id}/coefficients", response_model=CoefficientHistory,
+                  summary="Coefficient history with acks")
+def coefficient_history(device: DeviceDep, store: StoreDep):
+    acks = store.acks(device["id"])
+    return CoefficientHistory(device=device["id"], sets=[
+        CoefficientSet(**h, acks=[a for a in acks if a["version"] == h["version"]])
+        for h in store.coefficient_history(device["id"])])
+
+
+@windows.get("/{device_id}/windows", response_model=WindowList, summary="Windows in a time range")
+def list_windows(device: DeviceDep, store: StoreDep, span: RangeDep,
+                 stats: Annotated[bool, Query(description="Include the (large) statistics of each window.")] = False,
+                 limit: Annotated[int, Query(ge=1, le=10000, description="Most windows returned.")] = 1000):
+    found = store.windows(device["id"], span.t_from, span.t_to, stats=stats, limit=limit + 1)
+    return WindowList(device=device["id"], count=min(len(found), limit), truncated=len(found) > limit,
+                      windows=found[:limit])
+
+
+@export.get("/{device_id}/export.mcap", summary="MCAP file of windows, coefficient sets and acks",
+            response_class=StreamingResponse,
+            responses={200: {"content": {"application/octet-stream": {}},
+                             "description": "MCAP; opens in Foxglove."}})
+def export_mcap(device: DeviceDep, store: StoreDep, span: RangeDep):
+    return StreamingResponse(iter_mcap(store, device["id"], span.t_from, span.t_to),
+                             media_type="application/octet-stream",
+                             headers={"Content-Disposition": f'attachment; filename="{device["id"]}.mcap"'})
+
+
+@ingest.get("/rejections", response_model=Rejections, summary="Rejected input: counts and the latest dead letters")
+def rejections(store: StoreDep,
+               limit: Annotated[int, Query(ge=0, le=1000, description="Dead letters listed.")] = 20):
+    counts = store.rejection_counts()
+    latest = [DeadLetter(payload_bytes=len(d["payload"]),
+                         payload_preview=bytes(d["payload"][:200]).decode("utf-8", errors="replace"),
+                         **{k: d[k] for k in ("id", "received_at", "key_expr", "reason", "detail")})
+              for d in store.dead_letters(limit)]
+    return Rejections(counts=counts, total=sum(counts.values()), latest=latest)
+
+
+def create_app(store: Store) -> FastAPI:
+    """The REST app around one Store; the caller owns the Store (opens and closes it)."""
+    app = FastAPI(title="encoder-fleet service",
+                  description="Fleet health, coefficient history, window statistics and MCAP export "
+                              "for magneto-electric encoders.",
+                  version="1")
+    app.state.store = store
+    for router in (devices, coefficients, windows, export, ingest):
+        app.include_router(router)
+    return app

@@ -1,0 +1,342 @@
+"""The service's history in one SQLite file: every window, fit, coefficient set, ack and bad input.
+
+One connection guarded by a lock: Zenoh callbacks, FastAPI's worker threads and the refit loop
+all call in, and SQLite serialises writers anyway. WAL mode lets outside readers (sqlite3 CLI,
+backups) read while we write. Methods take and return wire-shaped dicts (encoder_fleet.wire):
+messages handed in must come from wire.decode or a wire builder, which have checked them.
+
+Clocks: devices' first_seen/last_seen and every received_at are the service's clock (unix s);
+window times, created_at of a set and an ack's `at` are the drive's clock, as on the wire.
+"""
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from encoder_core.samples import InputError
+from encoder_core.stats import WindowStats
+from encoder_fleet import wire
+
+MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+
+# wire fields of a window stored as columns of the same name, in wire order
+WINDOW_FIELDS = ("device", "seq", "window_start", "window_end", "samples", "rejected", "temp_mean_c", "temp_min_c",
+                 "temp_max_c", "temp_rate_c_per_s", "band", "coefficients_version", "angle_quality_deg")
+
+
+class StoreError(ValueError):
+    """A well-formed message the history cannot take (e.g. a seq reused with other content)."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+def _json(value) -> str:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False)
+
+
+def _statements(sql: str) -> Iterator[str]:
+    """Split a migration into statements (one statement may span lines; a line holds at most one end)."""
+    buf = ""
+    for line in sql.splitlines(keepends=True):
+        buf += line
+        if sqlite3.complete_statement(buf):
+            yield buf
+            buf = ""
+    if buf.strip() and not all(l.strip().startswith("--") or not l.strip() for l in buf.splitlines()):
+        raise ValueError(f"migration ends in an incomplete statement: {buf.strip()[:80]!r}")
+
+
+class Store:
+    def __init__(self, conn: sqlite3.Connection, path: str):
+        self._conn = conn
+        self._lock = threading.RLock()
+        self.path = path
+
+    @classmethod
+    def open(cls, path, *, migrations_dir: Path = MIGRATIONS_DIR) -> "Store":
+        # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
+        conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
+        conn.row_factory = sqlite3.Row
+        conn.execute("PRAGMA journal_mode=WAL")
+        conn.execute("PRAGMA foreign_keys=ON")
+        store = cls(conn, str(path))
+        store._migrate(Path(migrations_dir))
+        return store
+
+    def close(self) -> None:
+        with self._lock:
+            self._conn.close()
+
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- plumbing ---------------------------------------------------------------------------
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction; BEGIN IMMEDIATE takes the write lock up front, so no upgrade deadlock."""
+        with self._lock:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._conn
+            except BaseException:
+                self._conn.execute("ROLLBACK")
+                raise
+            self._conn.execute("COMMIT")
+
+    def _rows(self, sql: str, args=()) -> list[sqlite3.Row]:
+        with self._lock:
+            return self._conn.execute(sql, args).fetchall()
+
+    def _migrate(self, migrations_dir: Path) -> None:
+        with self._lock:
+            self._conn.execute("CREATE TABLE IF NOT EXISTS schema_migrations "
+                               "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)")
+        for path in sorted(migrations_dir.glob("[0-9]*.sql")):
+            version = int(path.name.split("_", 1)[0])
+            # check inside the write transaction: another process may be migrating the same file
+            with self._tx() as c:
+                if c.execute("SELECT 1 FROM schema_migrations WHERE version = ?", (version,)).fetchone():
+                    continue
+                for statement in _statements(path.read_text(encoding="utf-8")):
+                    c.execute(statement)
+                c.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", (version, path.name, time.time()))
+
+    def migrations(self) -> list[tuple[int, str]]:
+        return [(r["version"], r["name"]) for r in self._rows("SELECT version, name FROM schema_migrations ORDER BY version")]
+
+    @staticmethod
+    def _touch(c: sqlite3.Connection, device: str, now: float, *, heard: bool = True) -> None:
+        """Make sure the device row exists; heard=True when the device itself spoke (moves last_seen)."""
+        c.execute("INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
+                  + ("UPDATE SET last_seen = max(last_seen, excluded.last_seen)" if heard else "NOTHING"),
+                  (device, now, now))
+
+    # --- ingest -----------------------------------------------------------------------------
+
+    def ingest(self, key_expr: str, payload: bytes, *, received_at: float | None = None) -> str:
+        """A Zenoh sample in, whatever it is: 'stored', 'duplicate', or the reason it went to dead letters."""
+        try:
+            device, kind = wire.parse_key(key_expr)
+            if kind not in ("window", "ack"):
+                raise wire.WireError("unexpected_kind", f"the service does not accept {kind} messages on {key_expr}")
+            msg = wire.decode(kind, payload, key_device=device)
+            if kind == "ack":
+                self.insert_ack(msg, received_at=received_at)
+                return "stored"
+            return "stored" if self.insert_window(msg, received_at=received_at) else "duplicate"
+        except (wire.WireError, StoreError) as exc:
+            self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=received_at)
+            return exc.reason
+
+    def insert_window(self, msg: dict, *, received_at: float | None = None) -> bool:
+        """Store a window and add it to its band's sum in one transaction. False (nothing changed) for a duplicate."""
+        now = time.time() if received_at is None else received_at
+        device, seq, band = msg["device"], msg["seq"], msg["band"]
+        stats = WindowStats.from_dict(msg["stats"])
+        stats_json = _json(msg["stats"])
+        with self._tx() as c:
+            old = c.execute("SELECT window_start, window_end, stats_json FROM windows WHERE device = ? AND seq = ?",
+                            (device, seq)).fetchone()
+            if old is not None:
+                if (old["window_start"], old["window_end"], old["stats_json"]) == (msg["window_start"], msg["window_end"], stats_json):
+                    return False  # redelivery: same window again
+                raise StoreError("seq_conflict", f"window {device}#{seq} is already stored with different content "
+                                                 "(agent restarted its sequence?)")
+            self._touch(c, device, now)
+            c.execute(f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at) "
+                      f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 2))})",
+                      [msg[f] for f in WINDOW_FIELDS] + [stats_json, now])
+            row = c.execute("SELECT stats_json FROM band_stats WHERE device = ? AND band = ?", (device, band)).fetchone()
+            if row is not None:
+                try:
+                    stats = WindowStats.from_dict(json.loads(row["stats_json"])).merge(stats)
+                except InputError as exc:
+                    raise StoreError("normalisation_mismatch", f"window {device}#{seq}, band {band}: {exc}") from None
+            c.execute("INSERT INTO band_stats (device, band, stats_json, windows, samples, updated_at) "
+                      "VALUES (?, ?, ?, 1, ?, ?) ON CONFLICT(device, band) DO UPDATE SET "
+                      "stats_json = excluded.stats_json, windows = windows + 1, "
+                      "samples = samples + excluded.samples, updated_at = excluded.updated_at",
+                      (device, band, _json(stats.to_dict()), msg["samples"], now))
+            # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
+            c.execute("UPDATE devices SET current_version = ? WHERE id = ? AND "
+                      "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
+                      (msg["coefficients_version"], device, seq, device))
+        return True
+
+    def dead_letter(self, key_expr: str, reason: str, detail: str, payload: bytes, *,
+                    received_at: float | None = None) -> int:
+        with self._tx() as c:
+            cur = c.execute("INSERT INTO dead_letters (received_at, key_expr, reason, detail, payload) VALUES (?, ?, ?, ?, ?)",
+                            (time.time() if received_at is None else received_at, str(key_expr), reason, detail,
+                             bytes(payload)))
+            return cur.lastrowid
+
+    def rejection_counts(self) -> dict[str, int]:
+        return {r["reason"]: r["n"] for r in
+                self._rows("SELECT reason, count(*) AS n FROM dead_letters GROUP BY reason ORDER BY reason")}
+
+    def dead_letters(self, limit: int = 20) -> list[dict]:
+        """Newest first."""
+        return [dict(r) for r in self._rows("SELECT * FROM dead_letters ORDER BY id DESC LIMIT ?", (limit,))]
+
+    def insert_ack(self, msg: dict, *, received_at: float | None = None) -> int:
+        now = time.time() if received_at is None else received_at
+        with self._tx() as c:
+            self._touch(c, msg["device"], now)
+            cur = c.execute("INSERT INTO acks (device, version, status, reason, angle_quality_deg, at, received_at) "
+                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                            (msg["device"], msg["version"], msg["status"], msg.get("reason"),
+                             msg["angle_quality_deg"], msg["at"], now))
+            if msg["status"] == "applied":
+                c.execute("UPDATE devices SET current_version = ? WHERE id = ?", (msg["version"], msg["device"]))
+            return cur.lastrowid
+
+    def set_online(self, device: str, online: bool, at: float | None = None) -> None:
+        """From the liveliness token: the one source of `online`."""
+        now = time.time() if at is None else at
+        with self._tx() as c:
+            self._touch(c, device, now)
+            c.execute("UPDATE devices SET online = ? WHERE id = ?", (int(bool(online)), device))
+
+    # --- refit and rollout ------------------------------------------------------------------
+
+    def band_stats(self, device: str) -> dict[int, tuple[WindowStats, int, int]]:
+        """band -> (merged statistics, windows, samples): everything a refit needs."""
+        return {r["band"]: (WindowStats.from_dict(json.loads(r["stats_json"])), r["windows"], r["samples"])
+                for r in self._rows("SELECT * FROM band_stats WHERE device = ? ORDER BY band", (device,))}
+
+    def record_fit(self, device: str, band: int, correction: dict, quality: dict, *,
+                   created_at: float | None = None) -> int:
+        """correction: Correction.to_dict(); quality: as in a coefficient set's band entry."""
+        with self._tx() as c:
+            now = time.time()
+            self._touch(c, device, now, heard=False)
+            cur = c.execute("INSERT INTO fits (device, band, created_at, samples, quality_json, correction_json) "
+                            "VALUES (?, ?, ?, ?, ?, ?)",
+                            (device, band, now if created_at is None else created_at, int(quality.get("samples", 0)),
+                             _json(quality), _json(correction)))
+            return cur.lastrowid
+
+    def latest_fits(self, device: str) -> list[dict]:
+        """The newest fit of each band, by band."""
+        rows = self._rows("SELECT * FROM fits WHERE id IN (SELECT max(id) FROM fits WHERE device = ? GROUP BY band) "
+                          "ORDER BY band", (device,))
+        return [{"id": r["id"], "band": r["band"], "created_at": r["created_at"], "samples": r["samples"],
+                 "quality": json.loads(r["quality_json"]), "correction": json.loads(r["correction_json"])} for r in rows]
+
+    def next_version(self, device: str) -> int:
+        return self._rows("SELECT coalesce(max(version), 0) + 1 AS v FROM coefficient_sets WHERE device = ?",
+                          (device,))[0]["v"]
+
+    def insert_coefficient_set(self, msg: dict) -> None:
+        with self._tx() as c:
+            if c.execute("SELECT 1 FROM coefficient_sets WHERE device = ? AND version = ?",
+                         (msg["device"], msg["version"])).fetchone():
+                raise StoreError("version_exists", f"coefficient set {msg['device']} v{msg['version']} already exists")
+            self._touch(c, msg["device"], time.time(), heard=False)
+            c.execute("INSERT INTO coefficient_sets (device, version, created_at, basis, body_json) VALUES (?, ?, ?, ?, ?)",
+                      (msg["device"], msg["version"], msg["created_at"], msg["basis"], _json(msg)))
+
+    def mark_published(self, device: str, version: int, at: float | None = None) -> None:
+        with self._tx() as c:
+            cur = c.execute("UPDATE coefficient_sets SET published_at = ? WHERE device = ? AND version = ?",
+                            (time.time() if at is None else at, device, version))
+            if cur.rowcount == 0:
+                raise KeyError(f"no coefficient set {device} v{version}")
+
+    def current_coefficients(self, device: str, *, published_only: bool = False) -> dict | None:
+        """The latest coefficient set (wire message), or None."""
+        rows = self._rows("SELECT body_json FROM coefficient_sets WHERE device = ?"
+                          + (" AND published_at IS NOT NULL" if published_only else "")
+                          + " ORDER BY version DESC LIMIT 1", (device,))
+        return json.loads(rows[0]["body_json"]) if rows else None
+
+    def coefficient_history(self, device: str) -> list[dict]:
+        """Every set, newest first: version, created_at, basis, published_at and the wire message."""
+        return [{"version": r["version"], "created_at": r["created_at"], "basis": r["basis"],
+                 "published_at": r["published_at"], "message": json.loads(r["body_json"])}
+                for r in self._rows("SELECT * FROM coefficient_sets WHERE device = ? ORDER BY version DESC", (device,))]
+
+    def acks(self, device: str) -> list[dict]:
+        """Every ack (wire message), in the order the agent sent them."""
+        out = []
+        for r in self._rows("SELECT * FROM acks WHERE device = ? ORDER BY at, id", (device,)):
+            msg = {"schema": wire.SCHEMA_NAME["ack"], "device": r["device"], "version": r["version"],
+                   "status": r["status"], "angle_quality_deg": r["angle_quality_deg"], "at": r["at"]}
+            if r["reason"] is not None:
+                msg["reason"] = r["reason"]
+            out.append(msg)
+        return out
+
+    # --- reading ----------------------------------------------------------------------------
+
+    @staticmethod
+    def _device_row(r: sqlite3.Row) -> dict:
+        return {"id": r["id"], "first_seen": r["first_seen"], "last_seen": r["last_seen"], "online": bool(r["online"]),
+                "current_version": r["current_version"], "windows": r["windows"]}
+
+    _DEVICE_SQL = "SELECT d.*, (SELECT count(*) FROM windows w WHERE w.device = d.id) AS windows FROM devices d"
+
+    def devices(self) -> list[dict]:
+        return [self._device_row(r) for r in self._rows(self._DEVICE_SQL + " ORDER BY d.id")]
+
+    def device(self, device: str) -> dict | None:
+        rows = self._rows(self._DEVICE_SQL + " WHERE d.id = ?", (device,))
+        return self._device_row(rows[0]) if rows else None
+
+    def max_seq(self, device: str) -> int:
+        """Highest window seq stored (0 when none): where an agent's catch-up resumes."""
+        return self._rows("SELECT coalesce(max(seq), 0) AS s FROM windows WHERE device = ?", (device,))[0]["s"]
+
+    @staticmethod
+    def _window(r: sqlite3.Row, stats: bool) -> dict:
+        msg = {"schema": wire.SCHEMA_NAME["window"], **{f: r[f] for f in WINDOW_FIELDS}}
+        if stats:
+            msg["stats"] = json.loads(r["stats_json"])
+        return msg
+
+    def windows(self, device: str, t_from: float | None = None, t_to: float | None = None, *,
+                stats: bool = False, limit: int | None = None) -> list[dict]:
+        """Windows with t_from <= window_start <= t_to, by window_start; wire messages (without stats unless asked)."""
+        cols = ", ".join(WINDOW_FIELDS) + (", stats_json" if stats else "")
+        sql = f"SELECT {cols} FROM windows WHERE device = ? AND window_start >= ? AND window_start <= ? " \
+              "ORDER BY window_start, seq LIMIT ?"
+        rows = self._rows(sql, (device, -float("inf") if t_from is None else t_from,
+                                float("inf") if t_to is None else t_to, -1 if limit is None else limit))
+        return [self._window(r, stats) for r in rows]
+
+    def iter_windows(self, device: str, t_from: float | None = None, t_to: float | None = None, *,
+                     page: int = 200) -> Iterator[dict]:
+        """Full window messages with t_from <= window_start <= t_to, by window_end, a page at a time
+        (the lock is not held between pages, so a long export does not stall ingest)."""
+        after = (-float("inf"), 0)
+        lo = -float("inf") if t_from is None else t_from
+        hi = float("inf") if t_to is None else t_to
+        while True:
+            rows = self._rows(f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json FROM windows WHERE device = ? "
+                              "AND window_start >= ? AND window_start <= ? AND (window_end, seq) > (?, ?) "
+                              "ORDER BY window_end, seq LIMIT ?", (device, lo, hi, *after, page))
+            for r in rows:
+                yield self._window(r, True)
+            if len(rows) < page:
+                return
+            after = (rows[-1]["window_end"], rows[-1]["seq"])
+
+    def window_summary(self, device: str, recent: int = 10) -> dict:
+        """Totals over all windows and the newest `recent` windows (by seq), newest first."""
+        total = self._rows("SELECT count(*) AS windows, coalesce(sum(samples), 0) AS samples, "
+                           "coalesce(sum(rejected), 0) AS rejected FROM windows WHERE device = ?", (device,))[0]
+        latest = self._rows("SELECT seq, window_start, window_end, coefficients_version, angle_quality_deg "
+                            "FROM windows WHERE device = ? ORDER BY seq DESC LIMIT ?", (device, recent))
+        return {**dict(total), "recent": [dict(r) for r in latest]}

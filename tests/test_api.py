@@ -1,0 +1,136 @@
+"""The REST API: the real app over a real SQLite file, through TestClient."""
+import io
+import json
+
+import pytest
+from fastapi.testclient import TestClient
+from mcap.reader import make_reader
+
+from encoder_fleet import wire
+from service.api import create_app
+from service.store import Store
+from wire_samples import ack, coefficients, window
+
+DEVICE = "drive-001"
+
+
+@pytest.fixture
+def store(tmp_path):
+    with Store.open(tmp_path / "fleet.db") as s:
+        yield s
+
+
+@pytest.fixture
+def client(store):
+    with TestClient(create_app(store)) as c:
+        yield c
+
+
+@pytest.fixture
+def history(store):
+    """Three windows at factory coefficients, a fit, set v1 published and applied, two windows on v1."""
+    for seq in range(1, 6):
+        store.insert_window(window(seq=seq, version=0 if seq <= 3 else 1, quality=0.3 if seq <= 3 else 0.1,
+                                   temp_c=23.0 if seq != 2 else 33.0), received_at=1000.0 + seq)
+    store.record_fit(DEVICE, 2, {"w": [1, 0, 1, 0]}, {"samples": 800, "residual_rms_rad": 0.004}, created_at=190.0)
+    store.record_fit(DEVICE, 2, {"w": [1, 0, 1, 0]}, {"samples": 1200, "residual_rms_rad": 0.002}, created_at=195.0)
+    store.insert_coefficient_set(coefficients(version=1, created_at=200.0))
+    store.mark_published(DEVICE, 1, at=1004.0)
+    store.insert_ack(ack(version=1, at=210.0), received_at=1004.5)
+    store.insert_coefficient_set(coefficients(version=2, created_at=280.0, bands=(2, 3)))
+    store.set_online(DEVICE, True, at=1006.0)
+    store.insert_window(window("drive-002", 1))
+    store.dead_letter("encoders/drive-001/stats", "not_json", "window message: not JSON", b"\xffjunk")
+
+
+def test_devices(client, history):
+    got = client.get("/devices").json()
+    assert [d["id"] for d in got] == [DEVICE, "drive-002"]
+    d = got[0]
+    assert d == {"id": DEVICE, "first_seen": 1001.0, "last_seen": 1006.0, "online": True, "current_version": 1,
+                 "windows": 5}
+    assert client.get(f"/devices/{DEVICE}").json() == d
+
+
+def test_health(client, history, store):
+    h = client.get(f"/devices/{DEVICE}/health").json()
+    assert h["online"] is True and h["last_seen"] == 1006.0
+    assert h["coefficients"] == {"in_use": 1, "latest_published": 1, "latest": 2}
+    assert h["angle_error"]["latest_deg"] == 0.1
+    assert h["angle_error"]["mean_recent_deg"] == pytest.approx((3 * 0.3 + 2 * 0.1) / 5)
+    assert h["bands"] == [{"band": 2, "fit_id": 2, "created_at": 195.0, "samples": 1200,
+                           "quality": {"samples": 1200, "residual_rms_rad": 0.002}}]
+    wins = store.windows(DEVICE)
+    assert h["samples"] == sum(w["samples"] for w in wins) and h["windows"] == 5
+    assert h["rejected_share"] == sum(w["rejected"] for w in wins) / (h["samples"] + h["rejected"])
+
+
+def test_health_of_a_device_known_only_by_liveliness(client, store):
+    store.set_online("drive-009", True, at=5.0)
+    h = client.get("/devices/drive-009/health").json()
+    assert h["coefficients"] == {"in_use": None, "latest_published": None, "latest": None}
+    assert h["angle_error"]["latest_deg"] is None and h["rejected_share"] is None and h["bands"] == []
+
+
+def test_coefficients_newest_first_with_acks(client, history, store):
+    got = client.get(f"/devices/{DEVICE}/coefficients").json()
+    assert [s["version"] for s in got["sets"]] == [2, 1]
+    v2, v1 = got["sets"]
+    assert v1["published_at"] == 1004.0 and v2["published_at"] is None
+    assert v1["acks"] == [ack(version=1, at=210.0)] and v2["acks"] == []
+    assert v2["message"] == store.current_coefficients(DEVICE)
+
+
+def test_windows_range_and_stats(client, history, store):
+    got = client.get(f"/devices/{DEVICE}/windows", params={"from": 60, "to": 180}).json()
+    assert [w["seq"] for w in got["windows"]] == [2, 3, 4] and got["count"] == 3 and not got["truncated"]
+    assert all("stats" not in w for w in got["windows"])
+    full = client.get(f"/devices/{DEVICE}/windows", params={"stats": "true"}).json()["windows"]
+    assert full == store.windows(DEVICE, stats=True)
+    for w in full:
+        wire.check("window", w)
+    page = client.get(f"/devices/{DEVICE}/windows", params={"limit": 2}).json()
+    assert [w["seq"] for w in page["windows"]] == [1, 2] and page["truncated"]
+
+
+@pytest.mark.parametrize("params", [{"from": "yesterday"}, {"to": "nan"}, {"from": "inf"}, {"from": 10, "to": 5},
+                                    {"limit": 0}, {"stats": "maybe"}])
+def test_bad_query_values_are_422(client, history, params):
+    r = client.get(f"/devices/{DEVICE}/windows", params=params)
+    assert r.status_code == 422, r.text
+
+
+@pytest.mark.parametrize("path", ["/devices/drive-404", "/devices/drive-404/health", "/devices/drive-404/coefficients",
+                                  "/devices/drive-404/windows", "/devices/drive-404/export.mcap"])
+def test_unknown_device_is_404_naming_it(client, history, path):
+    r = client.get(path)
+    assert r.status_code == 404 and "drive-404" in r.json()["detail"]
+
+
+def test_export_mcap(client, history, store):
+    r = client.get(f"/devices/{DEVICE}/export.mcap", params={"from": 0, "to": 150})
+    assert r.status_code == 200
+    assert r.headers["content-disposition"] == f'attachment; filename="{DEVICE}.mcap"'
+    reader = make_reader(io.BytesIO(r.content))
+    got = [(c.topic, json.loads(m.data)) for _, c, m in reader.iter_messages()]
+    assert [b for t, b in got if t.endswith("/stats")] == list(store.iter_windows(DEVICE, 0, 150))
+    assert all(t.startswith(f"/encoders/{DEVICE}/") for t, _ in got)
+    assert client.get(f"/devices/{DEVICE}/export.mcap", params={"from": "x"}).status_code == 422
+
+
+def test_rejections(client, history, store):
+    store.ingest("encoders/drive-001/stats", b"{}")
+    got = client.get("/ingest/rejections").json()
+    assert got["counts"] == {"not_json": 1, "schema": 1} and got["total"] == 2
+    assert [d["reason"] for d in got["latest"]] == ["schema", "not_json"]
+    junk = got["latest"][1]
+    assert junk["payload_bytes"] == 5 and junk["payload_preview"] == "\ufffdjunk"
+    assert client.get("/ingest/rejections", params={"limit": 1}).json()["latest"][0]["reason"] == "schema"
+
+
+def test_openapi_documents_every_router(client):
+    spec = client.get("/openapi.json").json()
+    assert spec["info"]["title"] == "encoder-fleet service"
+    assert {"/devices", "/devices/{device_id}/health", "/devices/{device_id}/coefficients",
+            "/devices/{device_id}/windows", "/devices/{device_id}/export.mcap", "/ingest/rejections"} <= set(spec["paths"])
+    assert all(op.get("summary") for path in spec["paths"].values() for op in path.values())

@@ -1,0 +1,183 @@
+"""The SQLite history: migrations, dedupe, band sums, dead letters, threads. Real files, no mocks."""
+import json
+import sqlite3
+import threading
+
+import numpy as np
+import pytest
+
+from encoder_fleet import wire
+from service.store import Store, StoreError
+from wire_samples import ack, coefficients, window
+
+
+@pytest.fixture
+def store(tmp_path):
+    with Store.open(tmp_path / "fleet.db") as s:
+        yield s
+
+
+def test_migrations_apply_once_and_are_recorded(tmp_path):
+    path = tmp_path / "fleet.db"
+    with Store.open(path) as s:
+        assert s.migrations()[0] == (1, "001_initial.sql")
+        s.insert_window(window())
+    with Store.open(path) as s:  # reopening applies nothing twice and keeps the data
+        assert s.migrations() == [(1, "001_initial.sql")]
+        assert s.max_seq("drive-001") == 1
+    conn = sqlite3.connect(path)
+    assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert conn.execute("SELECT count(*) FROM schema_migrations").fetchone()[0] == 1
+
+
+def test_new_migration_is_applied_in_order(tmp_path):
+    from service.store import MIGRATIONS_DIR
+    mig = tmp_path / "migrations"
+    mig.mkdir()
+    (mig / "001_initial.sql").write_text((MIGRATIONS_DIR / "001_initial.sql").read_text())
+    with Store.open(tmp_path / "a.db", migrations_dir=mig):
+        pass
+    (mig / "002_notes.sql").write_text("-- a later change; kept small\nCREATE TABLE notes (\n  id INTEGER\n);\n"
+                                       "INSERT INTO notes VALUES (7);\n")
+    with Store.open(tmp_path / "a.db", migrations_dir=mig) as s:
+        assert [v for v, _ in s.migrations()] == [1, 2]
+    with Store.open(tmp_path / "a.db", migrations_dir=mig) as s:
+        assert s._rows("SELECT count(*) AS n FROM notes")[0]["n"] == 1
+
+
+def test_duplicate_window_is_dropped_and_changes_nothing(store):
+    msg = window(seq=1)
+    assert store.insert_window(msg, received_at=10.0) is True
+    before = (store.devices(), store.band_stats("drive-001")[2][1:], store.windows("drive-001", stats=True))
+    assert store.insert_window(json.loads(json.dumps(msg)), received_at=20.0) is False
+    after = (store.devices(), store.band_stats("drive-001")[2][1:], store.windows("drive-001", stats=True))
+    assert before == after
+    assert store.windows("drive-001", stats=True) == [msg]
+
+
+def test_reused_seq_with_other_content_is_a_conflict_not_a_duplicate(store):
+    store.insert_window(window(seq=1))
+    payload = wire.encode("window", window(seq=1, temp_c=30.0))
+    assert store.ingest("encoders/drive-001/stats", payload) == "seq_conflict"
+    assert store.rejection_counts() == {"seq_conflict": 1}
+    assert store.dead_letters()[0]["payload"] == payload
+    assert len(store.windows("drive-001")) == 1
+
+
+def test_band_stats_equal_the_sum_of_windows(store):
+    msgs = [window(seq=s, temp_c=t) for s, t in enumerate([21.0, 24.0, 35.0, 27.5, 22.0], start=1)]
+    for m in reversed(msgs):  # arrival order does not matter
+        store.insert_window(m)
+    bands = store.band_stats("drive-001")
+    assert sorted(bands) == [2, 3]
+    merged, n_windows, n_samples = bands[2]
+    in_band = [m for m in msgs if m["band"] == 2]
+    assert n_windows == 4 and n_samples == sum(m["samples"] for m in in_band) == merged.n
+    np.testing.assert_allclose(merged.moments, np.sum([m["stats"]["moments"] for m in in_band], axis=0), rtol=1e-12)
+    np.testing.assert_allclose(merged.bins, np.sum([m["stats"]["bins"] for m in in_band], axis=0), rtol=1e-12)
+    assert merged.temp_n == sum(m["stats"]["temp_n"] for m in in_band)
+    assert merged.temp_min == min(m["temp_min_c"] for m in in_band)
+    assert merged.temp_max == max(m["temp_max_c"] for m in in_band)
+
+
+def test_window_with_other_normalisation_is_dead_lettered_atomically(store):
+    store.insert_window(window(seq=1))
+    other = window(seq=2)
+    other["stats"]["scale"] = 1000.0
+    assert store.ingest("encoders/drive-001/stats", wire.encode("window", other)) == "normalisation_mismatch"
+    assert store.max_seq("drive-001") == 1  # the window insert was rolled back with the merge
+    assert store.band_stats("drive-001")[2][1] == 1
+
+
+def test_ingest_keeps_every_bad_input(store):
+    good = wire.encode("window", window(seq=1))
+    outcomes = [
+        store.ingest("encoders/drive-001/stats", good),
+        store.ingest("encoders/drive-001/stats", good),
+        store.ingest("encoders/drive-002/stats", good),
+        store.ingest("encoders/drive-001/stats", b"\x00garbage"),
+        store.ingest("encoders/drive-001/stats", good.replace(b'"seq":1', b'"seq":-4')),
+        store.ingest("encoders/drive-001/ack", wire.encode("ack", ack())),
+        store.ingest("encoders/drive-001/coefficients", wire.encode("coefficients", coefficients())),
+        store.ingest("encoders/drive-001/stats", b" " * (wire.MAX_PAYLOAD + 1)),
+        store.ingest("sensors/x", b"{}"),
+    ]
+    assert outcomes == ["stored", "duplicate", "device_mismatch", "not_json", "schema", "stored", "unexpected_kind",
+                        "too_large", "bad_key"]
+    assert store.rejection_counts() == {"bad_key": 1, "device_mismatch": 1, "not_json": 1, "schema": 1,
+                                        "too_large": 1, "unexpected_kind": 1}
+    letters = store.dead_letters(limit=100)
+    assert [d["reason"] for d in letters][:2] == ["bad_key", "too_large"]  # newest first
+    garbage = next(d for d in letters if d["reason"] == "not_json")
+    assert garbage["payload"] == b"\x00garbage" and garbage["key_expr"] == "encoders/drive-001/stats"
+    assert "$.seq" in next(d for d in letters if d["reason"] == "schema")["detail"]
+
+
+def test_coefficients_fits_acks_and_devices(store):
+    assert store.next_version("drive-001") == 1 and store.current_coefficients("drive-001") is None
+    store.insert_window(window(seq=1, version=0), received_at=5.0)
+    store.record_fit("drive-001", 2, {"w": [1, 0, 1, 0]}, {"samples": 10}, created_at=50.0)
+    fit_id = store.record_fit("drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01})
+    store.record_fit("drive-001", 3, {"w": [1, 0, 1, 0]}, {"samples": 5})
+    assert [(f["band"], f["samples"]) for f in store.latest_fits("drive-001")] == [(2, 20), (3, 5)]
+    assert store.latest_fits("drive-001")[0]["id"] == fit_id
+
+    c1, c2 = coefficients(version=1, created_at=100.0), coefficients(version=2, created_at=200.0, bands=(2, 3))
+    store.insert_coefficient_set(c1)
+    store.insert_coefficient_set(c2)
+    with pytest.raises(StoreError, match="already exists"):
+        store.insert_coefficient_set(c1)
+    assert store.next_version("drive-001") == 3
+    assert store.current_coefficients("drive-001") == c2
+    assert store.current_coefficients("drive-001", published_only=True) is None
+    store.mark_published("drive-001", 1, at=101.0)
+    assert store.current_coefficients("drive-001", published_only=True) == c1
+    with pytest.raises(KeyError):
+        store.mark_published("drive-001", 9)
+    assert [(h["version"], h["published_at"]) for h in store.coefficient_history("drive-001")] == [(2, None), (1, 101.0)]
+
+    a1, a2 = ack(version=1, at=150.0), ack(version=2, at=250.0, status="rejected")
+    store.insert_ack(a1, received_at=151.0)
+    store.insert_ack(a2, received_at=251.0)
+    assert store.acks("drive-001") == [a1, a2]
+    store.set_online("drive-001", True, at=300.0)
+    dev = store.device("drive-001")
+    assert dev["online"] is True and dev["current_version"] == 1 and dev["windows"] == 1
+    assert dev["first_seen"] == 5.0 and dev["last_seen"] == 300.0
+    assert store.device("nope") is None and [d["id"] for d in store.devices()] == ["drive-001"]
+
+
+def test_windows_time_range_and_catch_up_order(store):
+    for seq in (3, 1, 2, 5, 4):
+        store.insert_window(window(seq=seq, version=seq // 3))
+    assert [w["seq"] for w in store.windows("drive-001", 60.0, 180.0)] == [2, 3, 4]
+    assert "stats" not in store.windows("drive-001")[0]
+    assert [w["seq"] for w in store.iter_windows("drive-001", page=2)] == [1, 2, 3, 4, 5]
+    assert store.max_seq("drive-001") == 5
+    assert store.device("drive-001")["current_version"] == 1  # from seq 5, not the late seq 4
+    summary = store.window_summary("drive-001", recent=2)
+    assert summary["windows"] == 5 and [w["seq"] for w in summary["recent"]] == [5, 4]
+
+
+def test_threads_share_one_store(store):
+    errors = []
+
+    def agent(device):
+        try:
+            for seq in range(1, 9):
+                payload = wire.encode("window", window(device, seq))
+                assert store.ingest(wire.key_for("window", device), payload) == "stored"
+                store.ingest(wire.key_for("window", device), payload)  # redelivery
+                store.devices()
+                store.band_stats(device)
+        except Exception as exc:  # surfaced below: an assert in a thread would be lost
+            errors.append(exc)
+
+    threads = [threading.Thread(target=agent, args=(f"drive-{i:03d}",)) for i in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert [(d["id"], d["windows"]) for d in store.devices()] == [(f"drive-{i:03d}", 8) for i in range(6)]
+    assert all(store.band_stats(f"drive-{i:03d}")[2][1] == 8 for i in range(6))

@@ -1,0 +1,147 @@
+"""The wire contract: schemas, builders and the decoder agree, and every bad input is named."""
+import json
+
+import pytest
+from jsonschema import Draft202012Validator
+
+from encoder_fleet import wire
+from wire_samples import ack, coefficients, window
+
+BUILT = {"window": window, "coefficients": coefficients, "ack": ack}
+
+
+@pytest.mark.parametrize("kind", wire.KINDS)
+def test_schema_is_valid_2020_12_with_titles(kind):
+    schema = wire.load_schema(kind)
+    Draft202012Validator.check_schema(schema)
+    assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+    assert schema["title"] == wire.SCHEMA_NAME[kind] and schema["description"]
+    assert schema["additionalProperties"] is False
+    assert all("description" in p or "$ref" in p for p in schema["properties"].values())
+
+
+@pytest.mark.parametrize("kind", wire.KINDS)
+def test_builder_output_validates_and_has_exactly_the_required_keys(kind):
+    msg = BUILT[kind]()
+    Draft202012Validator(wire.load_schema(kind)).validate(msg)
+    assert set(msg) == set(wire.load_schema(kind)["required"])
+    assert msg["schema"] == wire.SCHEMA_NAME[kind]
+
+
+def test_rejected_ack_carries_reason_and_applied_ack_must_not():
+    msg = ack(status="rejected")
+    assert set(msg) == set(wire.load_schema("ack")["required"]) | {"reason"}
+    assert msg["angle_quality_deg"] is None
+    with pytest.raises(wire.WireError, match=r"\$") as exc:
+        wire.check("ack", {**ack(), "reason": "why"})
+    assert exc.value.reason == "schema"
+    without_reason = dict(msg)
+    del without_reason["reason"]
+    with pytest.raises(wire.WireError, match="reason"):
+        wire.check("ack", without_reason)
+
+
+def test_window_derived_fields_come_from_the_statistics():
+    msg = window(temp_c=-12.0)
+    stats = msg["stats"]
+    assert msg["samples"] == stats["moments"][0] == 400
+    assert msg["temp_mean_c"] == pytest.approx(stats["temp_sum"] / stats["temp_n"])
+    assert msg["band"] == -2  # floor(-12.x / 10)
+    assert msg["temp_min_c"] == stats["temp_min"] and msg["temp_max_c"] == stats["temp_max"]
+
+
+@pytest.mark.parametrize("kind", wire.KINDS)
+def test_encode_decode_round_trip(kind):
+    msg = BUILT[kind]()
+    assert wire.decode(kind, wire.encode(kind, msg), key_device="drive-001") == msg
+
+
+def payload(msg) -> bytes:
+    return json.dumps(msg).encode()
+
+
+def mutate(path, value):
+    msg = window()
+    target = msg
+    for key in path[:-1]:
+        target = target[key]
+    if value is KeyError:
+        del target[path[-1]]
+    else:
+        target[path[-1]] = value
+    return payload(msg)
+
+
+@pytest.mark.parametrize("data, reason, where", [
+    (b"{" + b" " * (wire.MAX_PAYLOAD + 1) + b"}", "too_large", "exceeds"),
+    (b"seq=1", "not_json", "not JSON"),
+    (b"\xff\xfe{}", "not_json", "UTF-8"),
+    (payload(window()).replace(b'"angle_quality_deg": 0.08', b'"angle_quality_deg": NaN'), "non_finite",
+     "$.angle_quality_deg"),
+    (payload(window()).replace(b'"scale": 1400.0', b'"scale": -Infinity'), "non_finite", "$.stats.scale"),
+    (payload(window()).replace(b'"window_end": 60.0', b'"window_end": 1e999'), "non_finite", "$.window_end"),
+    (mutate(["seq"], KeyError), "schema", "'seq'"),
+    (mutate(["samples"], "400"), "schema", "$.samples"),
+    (mutate(["seq"], -1), "schema", "$.seq"),
+    (mutate(["seq"], 0), "schema", "$.seq"),
+    (mutate(["seq"], True), "schema", "$.seq"),
+    (mutate(["device"], "drive/001"), "schema", "$.device"),
+    (mutate(["extra"], 1), "schema", "extra"),
+    (mutate(["stats", "moments"], [1.0] * 14), "schema", "$.stats.moments"),
+    (mutate(["stats", "bins"], [[0.0] * 6] * 63), "schema", "$.stats.bins"),
+    (mutate(["angle_quality_deg"], -0.1), "schema", "$.angle_quality_deg"),
+    (mutate(["samples"], 399), "inconsistent", "$.samples"),
+    (mutate(["window_end"], -1.0), "schema", "$.window_end"),
+    (mutate(["band"], 7), "inconsistent", "$.band"),
+    (payload([1, 2]), "schema", "$"),
+])
+def test_bad_window_input_is_named(data, reason, where):
+    with pytest.raises(wire.WireError) as exc:
+        wire.decode("window", data, key_device="drive-001")
+    assert exc.value.reason == reason
+    assert where in str(exc.value)
+    assert isinstance(exc.value, ValueError)
+
+
+def test_device_in_body_must_match_key():
+    with pytest.raises(wire.WireError, match=r"\$\.device.*drive-002") as exc:
+        wire.decode("ack", wire.encode("ack", ack()), key_device="drive-002")
+    assert exc.value.reason == "device_mismatch"
+
+
+def test_coefficient_bands_are_checked():
+    msg = coefficients(bands=(1, 2))
+    bad = json.loads(json.dumps(msg))
+    bad["bands"][0]["w"] = [1.0, 0.0, 1.0]
+    with pytest.raises(wire.WireError, match=r"\$\.bands\[0\]\.w"):
+        wire.decode("coefficients", payload(bad), key_device=None)
+    bad = json.loads(json.dumps(msg))
+    bad["bands"][1]["band"] = bad["bands"][0]["band"]
+    with pytest.raises(wire.WireError, match="twice") as exc:
+        wire.decode("coefficients", payload(bad), key_device=None)
+    assert exc.value.reason == "inconsistent"
+
+
+def test_encode_refuses_what_decode_would_refuse():
+    msg = coefficients()
+    msg["bands"][0]["w5"] = float("nan")
+    with pytest.raises(wire.WireError, match=r"\$\.bands\[0\]\.w5") as exc:
+        wire.encode("coefficients", msg)
+    assert exc.value.reason == "non_finite"
+
+
+def test_keys():
+    assert wire.key_for("window", "drive-001") == "encoders/drive-001/stats"
+    assert wire.parse_key("encoders/drive-001/stats") == ("drive-001", "window")
+    assert wire.device_from_key("encoders/d.7_x/ack") == "d.7_x"
+    for key in ("encoders/drive-001", "encoders/a/b/stats", "other/drive-001/ack", "encoders/drive-001/alive",
+                "encoders/*/stats"):
+        with pytest.raises(wire.WireError) as exc:
+            wire.parse_key(key)
+        assert exc.value.reason == "bad_key"
+
+
+def test_unknown_kind():
+    with pytest.raises(wire.WireError) as exc:
+        wire.decode("telemetry", b"{}", key_device=None)
+    assert exc.value.reason == "unknown_kind"
