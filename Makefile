@@ -17,10 +17,11 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 demo: $(STAMP)
-	$(BIN)/encoder-fleet bench-methods --png out/bench-methods.png --json out/bench-methods.json
+	$(BIN)/encoder-fleet demo --devices 3 --sim-hours 24 --out out/demo
 
 bench: $(STAMP)
 	$(BIN)/encoder-fleet bench-methods --png out/bench-methods.png --json out/bench-methods.json
+	$(BIN)/encoder-fleet bench-fleet
 
 clean:
 	rm -rf $(VENV) out

@@ -63,7 +63,11 @@ def parse_key(key_expr: str) -> tuple[str, str]:
 
 
 def device_from_key(key_expr: str) -> str:
-    return parse_key(key_expr)[0]
+    """The <device> of any `encoders/<device>/...` key (stats, ack, coefficients, factory, received, alive)."""
+    parts = str(key_expr).split("/")
+    if len(parts) < 3 or parts[0] != "encoders" or not DEVICE_RE.match(parts[1]):
+        raise WireError("bad_key", f"key {key_expr!r} is not encoders/<device>/...")
+    return parts[1]
 
 
 # --- checking ---------------------------------------------------------------------------------

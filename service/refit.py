@@ -18,6 +18,7 @@ from encoder_core.ellipse import HarmonicEstimate, density_harmonics, fit_ellips
 from encoder_core.physics import REFERENCE_TEMP_C, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
+from encoder_fleet import wire
 
 MIN_BAND_SAMPLES = 20000
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
@@ -104,9 +105,5 @@ def refit_device(band_stats: dict[int, WindowStats], running: BandedCorrection,
 
 
 def band_entry(band: int, corr: Correction, quality: dict) -> dict:
-    q = {"samples": int(quality.get("samples", 0)), "residual_rms_rad": float(quality.get("residual_rms_rad", 0.0)),
-         "radius_ripple_rad": float(quality.get("radius_ripple_rad", 0.0))}
-    if "estimated_error_deg" in quality:
-        q["estimated_error_deg"] = float(quality["estimated_error_deg"])
-    return {**corr.to_dict(), "band": int(band), "quality": q}
-
+    keys = ("samples", "residual_rms_rad", "radius_ripple_rad", "estimated_error_deg")
+    return wire.band_entry(band, corr.to_dict(), {k: quality[k] for k in keys if k in quality})

@@ -95,21 +95,21 @@ class FleetService:
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
-            device = str(sample.key_expr).split("/")[1]
-        except IndexError:
+            device = wire.device_from_key(sample.key_expr)
+        except wire.WireError:
             return
         self.store.set_online(device, sample.kind == zenoh.SampleKind.PUT)
 
     # --- queries -----------------------------------------------------------------------------------
 
     def _on_coefficients_query(self, query: zenoh.Query) -> None:
-        device = str(query.key_expr).split("/")[1]
+        device = wire.device_from_key(query.key_expr)
         current = self.store.current_coefficients(device, published_only=True)
         if current is not None:
             query.reply(query.key_expr, wire.encode("coefficients", current))
 
     def _on_received_query(self, query: zenoh.Query) -> None:
-        device = str(query.key_expr).split("/")[1]
+        device = wire.device_from_key(query.key_expr)
         body = {"device": device, "contiguous_seq": self.watermark(device)}
         query.reply(query.key_expr, json.dumps(body).encode())
 

@@ -295,6 +295,19 @@ class Store:
         rows = self._rows(self._DEVICE_SQL + " WHERE d.id = ?", (device,))
         return self._device_row(rows[0]) if rows else None
 
+    def contiguous_seq(self, device: str, *, start: int = 0) -> int:
+        """Highest seq with every window from 1 up to it stored; `start` is a watermark known to hold."""
+        mark = start
+        while True:
+            rows = self._rows("SELECT seq FROM windows WHERE device = ? AND seq > ? ORDER BY seq LIMIT 512",
+                              (device, mark))
+            for r in rows:
+                if r["seq"] != mark + 1:
+                    return mark
+                mark += 1
+            if len(rows) < 512:
+                return mark
+
     def max_seq(self, device: str) -> int:
         """Highest window seq stored (0 when none): where an agent's catch-up resumes."""
         return self._rows("SELECT coalesce(max(seq), 0) AS s FROM windows WHERE device = ?", (device,))[0]["s"]
