@@ -179,12 +179,19 @@ class _Data:
     def _folds(self, samples: Samples) -> tuple[np.ndarray, str]:
         if samples.run is not None:
             runs = np.unique(samples.run)
-            if 2 <= runs.size <= 50:
+            if 3 <= runs.size <= 50:
                 counts = np.array([np.count_nonzero(samples.run == r) for r in runs])
-                if counts.min() >= 8:
-                    return np.searchsorted(runs, samples.run), "run"
+                folds = np.searchsorted(runs, samples.run)
+                if counts.min() >= 8 and self._folds_span_temperature(folds):
+                    return folds, "run"
         blocks = np.minimum((np.arange(self.n) * 8) // self.n, 7)
         return blocks % 4, "time block"
+
+    def _folds_span_temperature(self, folds: np.ndarray) -> bool:
+        """Leaving a fold out must not leave a fit that only saw part of the temperature range."""
+        if self.temp is None or self.temp_span < MIN_TEMP_SPAN_C:
+            return True
+        return all(np.ptp(self.temp[folds != f]) >= 0.5 * self.temp_span for f in np.unique(folds))
 
     def _clipping(self, samples: Samples):
         """Channels stuck at one extreme value while the other channel keeps moving."""
@@ -243,6 +250,12 @@ class _StageA:
     coef_q: np.ndarray
     x: np.ndarray  # corrected channels for every sample (from a fit on the training rows)
     y: np.ndarray
+    memo: dict = field(default_factory=dict)  # target, angle and features computed from x, y
+
+    def get(self, key, make):
+        if key not in self.memo:
+            self.memo[key] = make()
+        return self.memo[key]
 
 
 def _stage_a(data: _Data, spec: Spec, train: np.ndarray, basis: np.ndarray, phi0: np.ndarray | None) -> _StageA:
@@ -288,28 +301,32 @@ def _repair_clipping(data: _Data, x, y):
 
 # --- stage B ------------------------------------------------------------------------------------
 
-def _features(data: _Data, spec: Spec, phi: np.ndarray) -> list[tuple[str, np.ndarray]]:
+def _features(data: _Data, spec: Spec, sa: _StageA) -> list[tuple[str, np.ndarray]]:
     ref = data.metric == "reference"
+    phi = _target(data, sa)[1]
     feats = []
     if spec.zero and ref:
-        feats.append(("zero", np.ones_like(phi)))
-    shape = np.sin(phi) ** 2 if ref else np.sin(2 * phi)
+        feats.append(("zero", sa.get("one", lambda: np.ones_like(phi))))
+    shape = sa.get("shape", lambda: np.sin(phi) ** 2 if ref else np.sin(2 * phi))
     if spec.phase:
         feats.append(("phase", shape))
     if spec.drift and data.temp is not None:
-        feats.append(("drift", data.temp_n(spec.tau_s) * shape))
+        feats.append(("drift", sa.get(("drift", spec.tau_s), lambda: data.temp_n(spec.tau_s) * shape)))
     for n in spec.orders:
         m = n - 1
-        feats.append((f"h{n}c", np.cos(m * phi)))
-        feats.append((f"h{n}s", np.sin(m * phi)))
+        feats.append((f"h{n}c", sa.get(f"h{n}c", lambda: np.cos(m * phi))))
+        feats.append((f"h{n}s", sa.get(f"h{n}s", lambda: np.sin(m * phi))))
     return feats
 
 
-def _target(data: _Data, x, y) -> tuple[np.ndarray, np.ndarray]:
-    phi = np.arctan2(y, x)
-    if data.ref is not None:
-        return wrap_rad(phi - data.ref), phi
-    return np.hypot(x, y) - 1.0, phi
+def _target(data: _Data, sa: _StageA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The error metric before stage B (rad), the corrected angle, and the radius deviation."""
+    def make():
+        phi = np.arctan2(sa.y, sa.x)
+        radius = np.hypot(sa.x, sa.y) - 1.0
+        e = wrap_rad(phi - data.ref) if data.ref is not None else radius
+        return e, phi, radius
+    return sa.get("target", make)
 
 
 def _robust_sigma(v: np.ndarray) -> float:
@@ -333,8 +350,8 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
     train = train & ~data.suspect & ~data.clipped
     if stage_a is None:
         stage_a = _stage_a(data, spec, train, _basis(data, spec), phi0)
-    e, phi = _target(data, stage_a.x, stage_a.y)
-    feats = _features(data, spec, phi)
+    e, phi, radius = _target(data, stage_a)
+    feats = _features(data, spec, stage_a)
     names = [f[0] for f in feats]
     if feats:
         f = np.column_stack([v for _, v in feats])
@@ -342,7 +359,6 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
         e = e - f @ coef
     else:
         coef = np.zeros(0)
-    radius = np.hypot(stage_a.x, stage_a.y) - 1.0
     reject = np.zeros(data.n, bool)
     threshold = np.inf
     if spec.outliers:
@@ -366,7 +382,7 @@ class _Evaluator:
         if key not in self._cache:
             train = (self.data.folds != fold) & ~self.data.suspect & ~self.data.clipped
             self._cache[key] = _stage_a(self.data, spec, train, _basis(self.data, spec), self.phi0.get(int(fold)))
-            while len(self._cache) > 8 * len(self.data.fold_ids):
+            while len(self._cache) > 3 * len(self.data.fold_ids):
                 self._cache.pop(next(iter(self._cache)))
         return self._cache[key]
 
