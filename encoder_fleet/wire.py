@@ -26,7 +26,10 @@ DEVICE_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
 
 class WireError(ValueError):
-    """A message that cannot be accepted. `reason` is a short code, the message says what and where."""
+    """A message that cannot be accepted. `reason` is a short code, the message says what and where
+    (a JSON path). Codes: too_large, not_json, non_finite, schema, inconsistent, device_mismatch,
+    bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
+    normalisation_mismatch for well-formed messages it cannot take."""
 
     def __init__(self, reason: str, message: str):
         super().__init__(message)
@@ -119,6 +122,8 @@ def _check_consistency(kind: str, msg: dict) -> None:
     if kind == "window":
         if msg["window_end"] < msg["window_start"]:
             bad("$.window_end", f"{msg['window_end']} is before window_start {msg['window_start']}")
+        if msg["rejected"] != msg["stats"]["rejected"]:
+            bad("$.rejected", f"{msg['rejected']} differs from stats.rejected = {msg['stats']['rejected']}")
         if msg["samples"] != round(msg["stats"]["moments"][0]):
             bad("$.samples", f"{msg['samples']} differs from stats.moments[0] = {msg['stats']['moments'][0]}")
         if not msg["temp_min_c"] <= msg["temp_mean_c"] <= msg["temp_max_c"]:

@@ -91,6 +91,8 @@ def mutate(path, value):
     (mutate(["stats", "bins"], [[0.0] * 6] * 63), "schema", "$.stats.bins"),
     (mutate(["angle_quality_deg"], -0.1), "schema", "$.angle_quality_deg"),
     (mutate(["samples"], 399), "inconsistent", "$.samples"),
+    (mutate(["rejected"], 2), "inconsistent", "$.rejected"),
+    (mutate(["temp_mean_c"], 40.0), "inconsistent", "$.temp_mean_c"),
     (mutate(["window_end"], -1.0), "schema", "$.window_end"),
     (mutate(["band"], 7), "inconsistent", "$.band"),
     (payload([1, 2]), "schema", "$"),
