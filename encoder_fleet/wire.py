@@ -83,6 +83,20 @@ def _parse_float(token: str):
     return value if math.isfinite(value) else _NonFinite(token)
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _unique_keys(pairs: list) -> dict:
+    """JSON objects with a key twice would silently keep the last value; refuse them instead."""
+    obj = {}
+    for key, value in pairs:
+        if key in obj:
+            raise _DuplicateKey(key)
+        obj[key] = value
+    return obj
+
+
 def _find_non_finite(value, path: str = "$") -> tuple[str, str] | None:
     if isinstance(value, _NonFinite):
         return path, value.token
@@ -145,9 +159,11 @@ def decode(kind: str, payload: bytes, *, key_device: str | None) -> dict:
     except UnicodeDecodeError as exc:
         raise WireError("not_json", f"{kind} message: not UTF-8 at byte {exc.start}") from None
     try:
-        msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float)
+        msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as exc:
         raise WireError("not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except _DuplicateKey as exc:
+        raise WireError("not_json", f"{kind} message: key {exc.args[0]!r} appears twice in one object") from None
     check(kind, msg)
     if key_device is not None and msg["device"] != key_device:
         raise WireError("device_mismatch",

@@ -117,8 +117,9 @@ def test_coefficients_fits_acks_and_devices(store):
     assert store.next_version("drive-001") == 1 and store.current_coefficients("drive-001") is None
     store.insert_window(window(seq=1, version=0), received_at=5.0)
     store.record_fit("drive-001", 2, {"w": [1, 0, 1, 0]}, {"samples": 10}, created_at=50.0)
-    fit_id = store.record_fit("drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01})
-    store.record_fit("drive-001", 3, {"w": [1, 0, 1, 0]}, {"samples": 5})
+    fit_id = store.record_fit("drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01},
+                              created_at=60.0)
+    store.record_fit("drive-001", 3, {"w": [1, 0, 1, 0]}, {"samples": 5}, created_at=60.0)
     assert [(f["band"], f["samples"]) for f in store.latest_fits("drive-001")] == [(2, 20), (3, 5)]
     assert store.latest_fits("drive-001")[0]["id"] == fit_id
 
@@ -145,6 +146,8 @@ def test_coefficients_fits_acks_and_devices(store):
     assert dev["online"] is True and dev["current_version"] == 1 and dev["windows"] == 1
     assert dev["first_seen"] == 5.0 and dev["last_seen"] == 300.0
     assert store.device("nope") is None and [d["id"] for d in store.devices()] == ["drive-001"]
+    with pytest.raises(ValueError, match="does not match"):
+        store.set_online("encoders/*", True)
 
 
 def test_windows_time_range_and_catch_up_order(store):

@@ -96,6 +96,8 @@ def mutate(path, value):
     (mutate(["window_end"], -1.0), "schema", "$.window_end"),
     (mutate(["band"], 7), "inconsistent", "$.band"),
     (payload([1, 2]), "schema", "$"),
+    (payload(window()).replace(b'"seq": 1,', b'"seq": 1, "seq": 2,'), "not_json", "'seq' appears twice"),
+    (mutate(["window_start"], 2e10), "schema", "$.window_start"),
 ])
 def test_bad_window_input_is_named(data, reason, where):
     with pytest.raises(wire.WireError) as exc:
