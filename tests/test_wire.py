@@ -17,7 +17,25 @@ def test_schema_is_valid_2020_12_with_titles(kind):
     assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
     assert schema["title"] == wire.SCHEMA_NAME[kind] and schema["description"]
     assert schema["additionalProperties"] is False
-    assert all("description" in p or "$ref" in p for p in schema["properties"].values())
+    assert all(p.get("description") for p in schema["properties"].values())
+
+
+def properties(schema, path="$"):
+    """Every property schema, nested objects and array items included."""
+    for name, prop in schema.get("properties", {}).items():
+        yield f"{path}.{name}", prop
+        items = prop.get("items", {})
+        yield from properties(prop, f"{path}.{name}")
+        yield from properties(items, f"{path}.{name}[]")
+
+
+@pytest.mark.parametrize("kind", wire.KINDS)
+def test_every_property_states_its_type(kind):
+    """Foxglove builds its message definitions from each property's "type": no $ref, oneOf or bare const."""
+    text = json.dumps(wire.load_schema(kind))
+    assert "$ref" not in text and "oneOf" not in text
+    for path, prop in properties(wire.load_schema(kind)):
+        assert "type" in prop, path
 
 
 @pytest.mark.parametrize("kind", wire.KINDS)
