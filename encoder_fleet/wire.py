@@ -36,8 +36,8 @@ class WireError(ValueError):
         self.reason = reason
 
 
-@cache
 def load_schema(kind: str) -> dict:
+    """The JSON Schema of a message kind, freshly read (callers may change their copy)."""
     if kind not in KINDS:
         raise WireError("unknown_kind", f"unknown message kind {kind!r}; expected one of {', '.join(KINDS)}")
     return json.loads((SCHEMA_DIR / f"{kind}.schema.json").read_text(encoding="utf-8"))
@@ -140,7 +140,8 @@ def _check_consistency(kind: str, msg: dict) -> None:
             bad("$.rejected", f"{msg['rejected']} differs from stats.rejected = {msg['stats']['rejected']}")
         if msg["samples"] != round(msg["stats"]["moments"][0]):
             bad("$.samples", f"{msg['samples']} differs from stats.moments[0] = {msg['stats']['moments'][0]}")
-        if not msg["temp_min_c"] <= msg["temp_mean_c"] <= msg["temp_max_c"]:
+        slack = 1e-9 * max(1.0, abs(msg["temp_min_c"]), abs(msg["temp_max_c"]))  # Σt/n rounds past min/max
+        if not msg["temp_min_c"] - slack <= msg["temp_mean_c"] <= msg["temp_max_c"] + slack:
             bad("$.temp_mean_c", f"{msg['temp_mean_c']} is outside [temp_min_c, temp_max_c]")
         if msg["band"] != math.floor(msg["temp_mean_c"] / 10):
             bad("$.band", f"{msg['band']} is not floor(temp_mean_c / 10) = {math.floor(msg['temp_mean_c'] / 10)}")

@@ -1,9 +1,11 @@
 """The wire contract: schemas, builders and the decoder agree, and every bad input is named."""
 import json
 
+import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 
+from encoder_core.stats import WindowStats
 from encoder_fleet import wire
 from wire_samples import ack, coefficients, window
 
@@ -66,6 +68,22 @@ def test_window_derived_fields_come_from_the_statistics():
     assert msg["temp_mean_c"] == pytest.approx(stats["temp_sum"] / stats["temp_n"])
     assert msg["band"] == -2  # floor(-12.x / 10)
     assert msg["temp_min_c"] == stats["temp_min"] and msg["temp_max_c"] == stats["temp_max"]
+
+
+def test_constant_temperature_window_is_consistent():
+    # seven readings of 0.1 sum to 0.7 - 1e-16: their mean falls just below the minimum
+    stats = WindowStats(scale=1400.0).add(np.full(7, 700.0), np.zeros(7), np.full(7, 0.1))
+    assert stats.temp_mean < stats.temp_min
+    msg = wire.window_message("d", 1, stats, window_start=0.0, window_end=1.0, temp_rate_c_per_s=0.0,
+                              coefficients_version=0, angle_quality_deg=0.0)
+    assert wire.decode("window", wire.encode("window", msg), key_device="d")["band"] == 0
+
+
+def test_window_needs_temperature():
+    stats = WindowStats(scale=1400.0).add(np.full(10, 700.0), np.zeros(10))
+    with pytest.raises(wire.WireError, match="no temperature"):
+        wire.window_message("d", 1, stats, window_start=0.0, window_end=1.0, temp_rate_c_per_s=0.0,
+                            coefficients_version=0, angle_quality_deg=0.0)
 
 
 @pytest.mark.parametrize("kind", wire.KINDS)
