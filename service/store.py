@@ -50,8 +50,9 @@ def _statements(sql: str) -> Iterator[str]:
         if sqlite3.complete_statement(buf):
             yield buf
             buf = ""
-    if buf.strip() and not all(l.strip().startswith("--") or not l.strip() for l in buf.splitlines()):
-        raise ValueError(f"migration ends in an incomplete statement: {buf.strip()[:80]!r}")
+    leftover = [line for line in buf.splitlines() if line.strip() and not line.strip().startswith("--")]
+    if leftover:
+        raise ValueError(f"migration ends in an incomplete statement: {leftover[0].strip()[:80]!r}")
 
 
 class Store:
@@ -68,7 +69,11 @@ class Store:
         conn.execute("PRAGMA journal_mode=WAL")
         conn.execute("PRAGMA foreign_keys=ON")
         store = cls(conn, str(path))
-        store._migrate(Path(migrations_dir))
+        try:
+            store._migrate(Path(migrations_dir))
+        except BaseException:
+            conn.close()
+            raise
         return store
 
     def close(self) -> None:

@@ -45,6 +45,22 @@ def test_new_migration_is_applied_in_order(tmp_path):
         assert s._rows("SELECT count(*) AS n FROM notes")[0]["n"] == 1
 
 
+def test_failed_migration_leaves_nothing_behind(tmp_path):
+    from service.store import MIGRATIONS_DIR
+    mig = tmp_path / "migrations"
+    mig.mkdir()
+    (mig / "001_initial.sql").write_text((MIGRATIONS_DIR / "001_initial.sql").read_text())
+    (mig / "002_broken.sql").write_text("CREATE TABLE half (id INTEGER);\nINSERT INTO nowhere VALUES (1);\n")
+    with pytest.raises(sqlite3.OperationalError, match="nowhere"):
+        Store.open(tmp_path / "a.db", migrations_dir=mig)
+    conn = sqlite3.connect(tmp_path / "a.db")
+    assert [r[0] for r in conn.execute("SELECT version FROM schema_migrations")] == [1]
+    assert conn.execute("SELECT count(*) FROM sqlite_master WHERE name = 'half'").fetchone()[0] == 0
+    (mig / "002_broken.sql").write_text("CREATE TABLE half (\n  id INTEGER\n")
+    with pytest.raises(ValueError, match="incomplete statement"):
+        Store.open(tmp_path / "a.db", migrations_dir=mig)
+
+
 def test_duplicate_window_is_dropped_and_changes_nothing(store):
     msg = window(seq=1)
     assert store.insert_window(msg, received_at=10.0) is True
