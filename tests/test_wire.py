@@ -125,6 +125,10 @@ def mutate(path, value):
     (mutate(["extra"], 1), "schema", "extra"),
     (mutate(["stats", "moments"], [1.0] * 14), "schema", "$.stats.moments"),
     (mutate(["stats", "bins"], [[0.0] * 6] * 63), "schema", "$.stats.bins"),
+    (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 7]), "schema", "$.stats.bins[63]"),
+    (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 5 + ["x"]]), "schema", "$.stats.bins[63][5]"),
+    (mutate(["stats", "moments"], [1.0] * 14 + [True]), "schema", "$.stats.moments[14]"),
+    (mutate(["stats", "moments"], {"0": 1.0}), "schema", "$.stats.moments"),
     (mutate(["angle_quality_deg"], -0.1), "schema", "$.angle_quality_deg"),
     (mutate(["samples"], 399), "inconsistent", "$.samples"),
     (mutate(["rejected"], 2), "inconsistent", "$.rejected"),
@@ -141,6 +145,13 @@ def test_bad_window_input_is_named(data, reason, where):
     assert exc.value.reason == reason
     assert where in str(exc.value)
     assert isinstance(exc.value, ValueError)
+
+
+def test_fast_path_cuts_exactly_the_plain_numeric_arrays():
+    _, arrays = wire._fast_validator("window")
+    assert sorted(path for path, _ in arrays) == [("stats", "bins"), ("stats", "moments")]
+    assert wire._fast_valid("window", window())
+    assert wire._fast_validator("coefficients")[1] == []  # w sits inside band items: the full validator checks it
 
 
 def test_device_in_body_must_match_key():
