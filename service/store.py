@@ -204,8 +204,10 @@ class Store:
                             "VALUES (?, ?, ?, ?, ?, ?, ?)",
                             (msg["device"], msg["version"], msg["status"], msg.get("reason"),
                              msg["angle_quality_deg"], msg["at"], now))
-            if msg["status"] == "applied":
-                c.execute("UPDATE devices SET current_version = ? WHERE id = ?", (msg["version"], msg["device"]))
+            if msg["status"] == "applied":  # a late ack from a catch-up does not roll the version back
+                c.execute("UPDATE devices SET current_version = ? WHERE id = ? AND "
+                          "? >= (SELECT max(at) FROM acks WHERE device = ? AND status = 'applied')",
+                          (msg["version"], msg["device"], msg["at"], msg["device"]))
             return cur.lastrowid
 
     def set_online(self, device: str, online: bool, at: float | None = None) -> None:

@@ -157,9 +157,14 @@ def test_coefficients_fits_acks_and_devices(store):
     store.insert_ack(a1, received_at=151.0)
     store.insert_ack(a2, received_at=251.0)
     assert store.acks("drive-001") == [a1, a2]
+    assert store.device("drive-001")["current_version"] == 1
+    store.insert_ack(ack(version=2, at=260.0), received_at=261.0)  # retried and applied
+    assert store.device("drive-001")["current_version"] == 2
+    store.insert_ack(ack(version=1, at=120.0), received_at=262.0)  # late and older: changes no version
+    assert store.acks("drive-001")[0] == ack(version=1, at=120.0) and len(store.acks("drive-001")) == 4
     store.set_online("drive-001", True, at=300.0)
     dev = store.device("drive-001")
-    assert dev["online"] is True and dev["current_version"] == 1 and dev["windows"] == 1
+    assert dev["online"] is True and dev["current_version"] == 2 and dev["windows"] == 1
     assert dev["first_seen"] == 5.0 and dev["last_seen"] == 300.0
     assert store.device("nope") is None and [d["id"] for d in store.devices()] == ["drive-001"]
     with pytest.raises(ValueError, match="does not match"):
