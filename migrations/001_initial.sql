@@ -1,5 +1,7 @@
--- encoder-fleet service history. Times: *_at / first_seen / last_seen are the service's clock
--- (unix s); window_start, window_end, created_at of sets and `at` of acks are the drive's clock.
+-- encoder-fleet service history. Two clocks:
+--   service clock (unix s): devices.first_seen/last_seen, received_at, updated_at, published_at;
+--   drive clock (s, as on the wire): window_start/window_end, created_at of fits and coefficient
+--   sets, `at` of acks.
 -- Every window, fit, coefficient set and ack is kept: this is the audit trail.
 
 CREATE TABLE devices (

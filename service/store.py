@@ -5,8 +5,9 @@ all call in, and SQLite serialises writers anyway. WAL mode lets outside readers
 backups) read while we write. Methods take and return wire-shaped dicts (encoder_fleet.wire):
 messages handed in must come from wire.decode or a wire builder, which have checked them.
 
-Clocks: devices' first_seen/last_seen and every received_at are the service's clock (unix s);
-window times, created_at of a set and an ack's `at` are the drive's clock, as on the wire.
+Clocks: devices' first_seen/last_seen, received_at and published_at are the service's clock
+(unix s); window times, created_at of fits and sets and an ack's `at` are the drive's clock, as
+on the wire (see migrations/001_initial.sql).
 """
 from __future__ import annotations
 
@@ -49,8 +50,9 @@ def _statements(sql: str) -> Iterator[str]:
         if sqlite3.complete_statement(buf):
             yield buf
             buf = ""
-    if buf.strip() and not all(l.strip().startswith("--") or not l.strip() for l in buf.splitlines()):
-        raise ValueError(f"migration ends in an incomplete statement: {buf.strip()[:80]!r}")
+    leftover = [line for line in buf.splitlines() if line.strip() and not line.strip().startswith("--")]
+    if leftover:
+        raise ValueError(f"migration ends in an incomplete statement: {leftover[0].strip()[:80]!r}")
 
 
 class Store:
@@ -67,7 +69,11 @@ class Store:
         conn.execute("PRAGMA journal_mode=WAL")
         conn.execute("PRAGMA foreign_keys=ON")
         store = cls(conn, str(path))
-        store._migrate(Path(migrations_dir))
+        try:
+            store._migrate(Path(migrations_dir))
+        except BaseException:
+            conn.close()
+            raise
         return store
 
     def close(self) -> None:
@@ -198,12 +204,16 @@ class Store:
                             "VALUES (?, ?, ?, ?, ?, ?, ?)",
                             (msg["device"], msg["version"], msg["status"], msg.get("reason"),
                              msg["angle_quality_deg"], msg["at"], now))
-            if msg["status"] == "applied":
-                c.execute("UPDATE devices SET current_version = ? WHERE id = ?", (msg["version"], msg["device"]))
+            if msg["status"] == "applied":  # a late ack from a catch-up does not roll the version back
+                c.execute("UPDATE devices SET current_version = ? WHERE id = ? AND "
+                          "? >= (SELECT max(at) FROM acks WHERE device = ? AND status = 'applied')",
+                          (msg["version"], msg["device"], msg["at"], msg["device"]))
             return cur.lastrowid
 
     def set_online(self, device: str, online: bool, at: float | None = None) -> None:
         """From the liveliness token: the one source of `online`."""
+        if not wire.DEVICE_RE.match(device):
+            raise ValueError(f"device id {device!r} does not match {wire.DEVICE_RE.pattern}")
         now = time.time() if at is None else at
         with self._tx() as c:
             self._touch(c, device, now)
@@ -216,16 +226,14 @@ class Store:
         return {r["band"]: (WindowStats.from_dict(json.loads(r["stats_json"])), r["windows"], r["samples"])
                 for r in self._rows("SELECT * FROM band_stats WHERE device = ? ORDER BY band", (device,))}
 
-    def record_fit(self, device: str, band: int, correction: dict, quality: dict, *,
-                   created_at: float | None = None) -> int:
-        """correction: Correction.to_dict(); quality: as in a coefficient set's band entry."""
+    def record_fit(self, device: str, band: int, correction: dict, quality: dict, *, created_at: float) -> int:
+        """correction: Correction.to_dict(); quality: as in a coefficient set's band entry;
+        created_at: the drive's clock, like the coefficient set the fit goes into."""
         with self._tx() as c:
-            now = time.time()
-            self._touch(c, device, now, heard=False)
+            self._touch(c, device, time.time(), heard=False)
             cur = c.execute("INSERT INTO fits (device, band, created_at, samples, quality_json, correction_json) "
                             "VALUES (?, ?, ?, ?, ?, ?)",
-                            (device, band, now if created_at is None else created_at, int(quality.get("samples", 0)),
-                             _json(quality), _json(correction)))
+                            (device, band, created_at, int(quality.get("samples", 0)), _json(quality), _json(correction)))
             return cur.lastrowid
 
     def latest_fits(self, device: str) -> list[dict]:

@@ -45,6 +45,22 @@ def test_new_migration_is_applied_in_order(tmp_path):
         assert s._rows("SELECT count(*) AS n FROM notes")[0]["n"] == 1
 
 
+def test_failed_migration_leaves_nothing_behind(tmp_path):
+    from service.store import MIGRATIONS_DIR
+    mig = tmp_path / "migrations"
+    mig.mkdir()
+    (mig / "001_initial.sql").write_text((MIGRATIONS_DIR / "001_initial.sql").read_text())
+    (mig / "002_broken.sql").write_text("CREATE TABLE half (id INTEGER);\nINSERT INTO nowhere VALUES (1);\n")
+    with pytest.raises(sqlite3.OperationalError, match="nowhere"):
+        Store.open(tmp_path / "a.db", migrations_dir=mig)
+    conn = sqlite3.connect(tmp_path / "a.db")
+    assert [r[0] for r in conn.execute("SELECT version FROM schema_migrations")] == [1]
+    assert conn.execute("SELECT count(*) FROM sqlite_master WHERE name = 'half'").fetchone()[0] == 0
+    (mig / "002_broken.sql").write_text("CREATE TABLE half (\n  id INTEGER\n")
+    with pytest.raises(ValueError, match="incomplete statement"):
+        Store.open(tmp_path / "a.db", migrations_dir=mig)
+
+
 def test_duplicate_window_is_dropped_and_changes_nothing(store):
     msg = window(seq=1)
     assert store.insert_window(msg, received_at=10.0) is True
@@ -117,8 +133,9 @@ def test_coefficients_fits_acks_and_devices(store):
     assert store.next_version("drive-001") == 1 and store.current_coefficients("drive-001") is None
     store.insert_window(window(seq=1, version=0), received_at=5.0)
     store.record_fit("drive-001", 2, {"w": [1, 0, 1, 0]}, {"samples": 10}, created_at=50.0)
-    fit_id = store.record_fit("drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01})
-    store.record_fit("drive-001", 3, {"w": [1, 0, 1, 0]}, {"samples": 5})
+    fit_id = store.record_fit("drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01},
+                              created_at=60.0)
+    store.record_fit("drive-001", 3, {"w": [1, 0, 1, 0]}, {"samples": 5}, created_at=60.0)
     assert [(f["band"], f["samples"]) for f in store.latest_fits("drive-001")] == [(2, 20), (3, 5)]
     assert store.latest_fits("drive-001")[0]["id"] == fit_id
 
@@ -140,11 +157,18 @@ def test_coefficients_fits_acks_and_devices(store):
     store.insert_ack(a1, received_at=151.0)
     store.insert_ack(a2, received_at=251.0)
     assert store.acks("drive-001") == [a1, a2]
+    assert store.device("drive-001")["current_version"] == 1
+    store.insert_ack(ack(version=2, at=260.0), received_at=261.0)  # retried and applied
+    assert store.device("drive-001")["current_version"] == 2
+    store.insert_ack(ack(version=1, at=120.0), received_at=262.0)  # late and older: changes no version
+    assert store.acks("drive-001")[0] == ack(version=1, at=120.0) and len(store.acks("drive-001")) == 4
     store.set_online("drive-001", True, at=300.0)
     dev = store.device("drive-001")
-    assert dev["online"] is True and dev["current_version"] == 1 and dev["windows"] == 1
+    assert dev["online"] is True and dev["current_version"] == 2 and dev["windows"] == 1
     assert dev["first_seen"] == 5.0 and dev["last_seen"] == 300.0
     assert store.device("nope") is None and [d["id"] for d in store.devices()] == ["drive-001"]
+    with pytest.raises(ValueError, match="does not match"):
+        store.set_online("encoders/*", True)
 
 
 def test_windows_time_range_and_catch_up_order(store):

@@ -1,9 +1,11 @@
 """The wire contract: schemas, builders and the decoder agree, and every bad input is named."""
 import json
 
+import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 
+from encoder_core.stats import WindowStats
 from encoder_fleet import wire
 from wire_samples import ack, coefficients, window
 
@@ -17,7 +19,25 @@ def test_schema_is_valid_2020_12_with_titles(kind):
     assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
     assert schema["title"] == wire.SCHEMA_NAME[kind] and schema["description"]
     assert schema["additionalProperties"] is False
-    assert all("description" in p or "$ref" in p for p in schema["properties"].values())
+    assert all(p.get("description") for p in schema["properties"].values())
+
+
+def properties(schema, path="$"):
+    """Every property schema, nested objects and array items included."""
+    for name, prop in schema.get("properties", {}).items():
+        yield f"{path}.{name}", prop
+        items = prop.get("items", {})
+        yield from properties(prop, f"{path}.{name}")
+        yield from properties(items, f"{path}.{name}[]")
+
+
+@pytest.mark.parametrize("kind", wire.KINDS)
+def test_every_property_states_its_type(kind):
+    """Foxglove builds its message definitions from each property's "type": no $ref, oneOf or bare const."""
+    text = json.dumps(wire.load_schema(kind))
+    assert "$ref" not in text and "oneOf" not in text
+    for path, prop in properties(wire.load_schema(kind)):
+        assert "type" in prop, path
 
 
 @pytest.mark.parametrize("kind", wire.KINDS)
@@ -48,6 +68,22 @@ def test_window_derived_fields_come_from_the_statistics():
     assert msg["temp_mean_c"] == pytest.approx(stats["temp_sum"] / stats["temp_n"])
     assert msg["band"] == -2  # floor(-12.x / 10)
     assert msg["temp_min_c"] == stats["temp_min"] and msg["temp_max_c"] == stats["temp_max"]
+
+
+def test_constant_temperature_window_is_consistent():
+    # seven readings of 0.1 sum to 0.7 - 1e-16: their mean falls just below the minimum
+    stats = WindowStats(scale=1400.0).add(np.full(7, 700.0), np.zeros(7), np.full(7, 0.1))
+    assert stats.temp_mean < stats.temp_min
+    msg = wire.window_message("d", 1, stats, window_start=0.0, window_end=1.0, temp_rate_c_per_s=0.0,
+                              coefficients_version=0, angle_quality_deg=0.0)
+    assert wire.decode("window", wire.encode("window", msg), key_device="d")["band"] == 0
+
+
+def test_window_needs_temperature():
+    stats = WindowStats(scale=1400.0).add(np.full(10, 700.0), np.zeros(10))
+    with pytest.raises(wire.WireError, match="no temperature"):
+        wire.window_message("d", 1, stats, window_start=0.0, window_end=1.0, temp_rate_c_per_s=0.0,
+                            coefficients_version=0, angle_quality_deg=0.0)
 
 
 @pytest.mark.parametrize("kind", wire.KINDS)
@@ -89,11 +125,19 @@ def mutate(path, value):
     (mutate(["extra"], 1), "schema", "extra"),
     (mutate(["stats", "moments"], [1.0] * 14), "schema", "$.stats.moments"),
     (mutate(["stats", "bins"], [[0.0] * 6] * 63), "schema", "$.stats.bins"),
+    (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 7]), "schema", "$.stats.bins[63]"),
+    (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 5 + ["x"]]), "schema", "$.stats.bins[63][5]"),
+    (mutate(["stats", "moments"], [1.0] * 14 + [True]), "schema", "$.stats.moments[14]"),
+    (mutate(["stats", "moments"], {"0": 1.0}), "schema", "$.stats.moments"),
     (mutate(["angle_quality_deg"], -0.1), "schema", "$.angle_quality_deg"),
     (mutate(["samples"], 399), "inconsistent", "$.samples"),
+    (mutate(["rejected"], 2), "inconsistent", "$.rejected"),
+    (mutate(["temp_mean_c"], 40.0), "inconsistent", "$.temp_mean_c"),
     (mutate(["window_end"], -1.0), "schema", "$.window_end"),
     (mutate(["band"], 7), "inconsistent", "$.band"),
     (payload([1, 2]), "schema", "$"),
+    (payload(window()).replace(b'"seq": 1,', b'"seq": 1, "seq": 2,'), "not_json", "'seq' appears twice"),
+    (mutate(["window_start"], 2e10), "schema", "$.window_start"),
 ])
 def test_bad_window_input_is_named(data, reason, where):
     with pytest.raises(wire.WireError) as exc:
@@ -101,6 +145,13 @@ def test_bad_window_input_is_named(data, reason, where):
     assert exc.value.reason == reason
     assert where in str(exc.value)
     assert isinstance(exc.value, ValueError)
+
+
+def test_fast_path_cuts_exactly_the_plain_numeric_arrays():
+    _, arrays = wire._fast_validator("window")
+    assert sorted(path for path, _ in arrays) == [("stats", "bins"), ("stats", "moments")]
+    assert wire._fast_valid("window", window())
+    assert wire._fast_validator("coefficients")[1] == []  # w sits inside band items: the full validator checks it
 
 
 def test_device_in_body_must_match_key():
