@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -81,7 +82,7 @@ class EdgeAgent:
         replies = self._get(self.keys["coefficients"])
         if replies is None or not replies:
             # the service has nothing for us yet (or is not there): tell it what the factory wrote
-            self.session.put(self.keys["factory"], wire.encode("coefficients", self.factory_message()))
+            self.put(self.keys["factory"], wire.encode("coefficients", self.factory_message()))
         for payload in replies or []:
             self.inbox.put(payload)
 
@@ -90,17 +91,19 @@ class EdgeAgent:
             entity.undeclare()
         self._declared.clear()
 
-    def run(self, *, real_time_factor: float = 0.0, max_windows: int | None = None) -> AgentCounters:
-        """Process the source to its end. real_time_factor > 0 sleeps to run that many times real time."""
+    def run(self, *, real_time_factor: float = 0.0, stop: threading.Event | None = None) -> AgentCounters:
+        """Process the source to its end (or until `stop` is set). real_time_factor > 0 paces the drive's
+        clock at that many times real time; 0 runs as fast as the machine can."""
         started = time.monotonic()
-        while max_windows is None or self.counters.windows < max_windows:
+        while stop is None or not stop.is_set():
             if not self.step():
                 break
             if real_time_factor > 0:
                 ahead = self.counters.windows * self.window_s / real_time_factor - (time.monotonic() - started)
                 if ahead > 0:
                     time.sleep(ahead)
-        self.drain()
+        if stop is None or not stop.is_set():
+            self.drain()
         return self.counters
 
     # --- one window --------------------------------------------------------------------------------
@@ -124,7 +127,7 @@ class EdgeAgent:
                                   angle_quality_deg=quality, temp_rate_c_per_s=temp_rate(block))
         payload = wire.encode("window", msg)
         self.outbox.add(self.seq, payload)
-        self.session.put(self.keys["stats"], payload)
+        self.put(self.keys["stats"], payload)
         self.outbox.mark_sent([self.seq], time.monotonic())
         self.counters.windows += 1
         self.counters.sent += 1
@@ -169,7 +172,7 @@ class EdgeAgent:
         self.outbox.confirm_through(watermark)
         stale = self.outbox.pending(sent_before=time.monotonic() - self.resend_after_s)
         for seq, payload in stale:
-            self.session.put(self.keys["stats"], payload)
+            self.put(self.keys["stats"], payload)
         if stale:
             self.outbox.mark_sent([s for s, _ in stale], time.monotonic())
             self.counters.resent += len(stale)
@@ -186,6 +189,10 @@ class EdgeAgent:
                 time.sleep(0.1)
         self.apply_inbox()
         return len(self.outbox) == 0
+
+    def put(self, key: str, payload: bytes) -> None:
+        # windows are few and must arrive: wait for room rather than drop (Zenoh's default for put)
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def _get(self, key: str) -> list[bytes] | None:
         try:
@@ -226,7 +233,7 @@ class EdgeAgent:
     def send_ack(self, version: int, status: str, quality: float | None, *, reason: str | None = None) -> None:
         msg = wire.ack_message(device=self.device, version=version, status=status, angle_quality_deg=quality,
                                at=float(getattr(self.source, "now", time.time())), reason=reason)
-        self.session.put(self.keys["ack"], wire.encode("ack", msg))
+        self.put(self.keys["ack"], wire.encode("ack", msg))
 
     def factory_message(self) -> dict:
         return factory_message(self.device, self.factory)

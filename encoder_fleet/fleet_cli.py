@@ -53,11 +53,7 @@ def cmd_agent(args) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         agent.start()
-        while not stop.is_set() and agent.step():
-            pass
-        if not stop.is_set():
-            agent.drain()
-        c = agent.counters
+        c = agent.run(real_time_factor=args.real_time_factor, stop=stop)
         print(f"{args.device}: {c.windows} windows, {c.resent} resent, versions applied {c.applied}, "
               f"{len(outbox)} left in outbox", flush=True)
     finally:
@@ -70,8 +66,8 @@ def cmd_agent(args) -> int:
 def cmd_service(args) -> int:
     from service.runtime import run_service
 
-    return run_service(db=args.db, listen=args.listen, connect=args.connect, http_port=args.http_port,
-                       refit_interval_s=args.refit_interval)
+    return run_service(db=args.db, listen=args.listen, connect=args.connect, http_host=args.http_host,
+                       http_port=args.http_port, refit_interval_s=args.refit_interval)
 
 
 def cmd_export(args) -> int:
@@ -113,6 +109,8 @@ def register(sub) -> None:
     p.add_argument("--sim-hours", type=float, default=24.0)
     p.add_argument("--sample-hz", type=float, default=20.0)
     p.add_argument("--window-s", type=float, default=60.0)
+    p.add_argument("--real-time-factor", type=float, default=0.0,
+                   help="pace the simulated clock at this many times real time (0: as fast as possible)")
     p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
     p.add_argument("--factory", help="the factory coefficient set, JSON (required for replay)")
     p.set_defaults(func=cmd_agent)
@@ -121,7 +119,8 @@ def register(sub) -> None:
     p.add_argument("--db", default="out/fleet.sqlite")
     p.add_argument("--listen", action="append", metavar="ENDPOINT", help="router endpoint (default tcp/127.0.0.1:7447)")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="join external routers instead")
-    p.add_argument("--http-port", type=int, default=8000)
+    p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
+    p.add_argument("--http-port", type=int, default=8000, help="REST port (0: no REST)")
     p.add_argument("--refit-interval", type=float, default=2.0, help="seconds between refit passes")
     p.set_defaults(func=cmd_service)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ from service.refit import MIN_BAND_SAMPLES, refit_device
 from service.store import Store
 
 log = logging.getLogger("service")
+MAX_BATCH = 500  # messages per ingest transaction
 
 
 @dataclass
@@ -43,6 +45,8 @@ class FleetService:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._watermarks: dict[str, int] = {}
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
         self._refitted_at: dict[str, int] = {}  # device -> window count at its last refit
         self._lock = threading.Lock()
 
@@ -51,32 +55,50 @@ class FleetService:
     def start(self) -> "FleetService":
         s = self.session
         self._declared += [
-            s.declare_subscriber("encoders/*/stats", self._on_message),
-            s.declare_subscriber("encoders/*/ack", self._on_message),
+            s.declare_subscriber("encoders/*/stats", self._enqueue),
+            s.declare_subscriber("encoders/*/ack", self._enqueue),
             s.declare_subscriber("encoders/*/factory", self._on_factory),
             s.declare_queryable("encoders/*/coefficients", self._on_coefficients_query),
             s.declare_queryable("encoders/*/received", self._on_received_query),
             s.liveliness().declare_subscriber("encoders/*/alive", self._on_alive, history=True),
         ]
+        self._writer.start()
         if self.refit_interval_s > 0:
             self._thread = threading.Thread(target=self._refit_loop, name="refit", daemon=True)
             self._thread.start()
         return self
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
         for entity in reversed(self._declared):
             entity.undeclare()
         self._declared.clear()
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self._inbox.put(None)  # the writer stores what is queued, then ends
+        self._writer.join()
 
     # --- ingest ------------------------------------------------------------------------------------
 
-    def _on_message(self, sample: zenoh.Sample) -> None:
-        status = self.store.ingest(str(sample.key_expr), sample.payload.to_bytes())
-        with self._lock:
-            self.counters.count(status)
+    def _enqueue(self, sample: zenoh.Sample) -> None:
+        self._inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _write_loop(self) -> None:
+        """Group commit: whatever arrived while the last batch was written goes in one transaction."""
+        done = False
+        while not done:
+            batch = [self._inbox.get()]
+            while len(batch) < MAX_BATCH and not self._inbox.empty():
+                batch.append(self._inbox.get_nowait())
+            if batch[-1] is None:
+                done = True
+            items = [item for item in batch if item is not None]
+            if not items:
+                continue
+            statuses = self.store.ingest_many(items)
+            with self._lock:
+                for status in statuses:
+                    self.counters.count(status)
 
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""
@@ -157,11 +179,13 @@ class FleetService:
             self.counters.refits += 1
         if not result.changed:
             return None
+        recent = self.store.window_summary(device, recent=1)["recent"]
+        drive_now = recent[0]["window_end"] if recent else 0.0  # message times are on the drive's clock
         for decision, entry in zip(result.decisions, result.bands):
             if decision.adopted:
-                self.store.record_fit(device, decision.band, entry, entry["quality"])
+                self.store.record_fit(device, decision.band, entry, entry["quality"], created_at=drive_now)
         version = self.store.next_version(device)
-        msg = wire.coefficients_message(device=device, version=version, created_at=time.time(), basis="fit",
+        msg = wire.coefficients_message(device=device, version=version, created_at=drive_now, basis="fit",
                                         bands=result.bands)
         self.store.insert_coefficient_set(msg)
         self.session.put(f"encoders/{device}/coefficients", wire.encode("coefficients", msg))
@@ -205,8 +229,8 @@ class HttpServer:
         self.thread.join(timeout=10)
 
 
-def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None, http_port: int | None,
-                refit_interval_s: float) -> int:
+def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None, http_host: str = "127.0.0.1",
+                http_port: int | None, refit_interval_s: float) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM."""
     import signal
 
@@ -217,13 +241,13 @@ def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None,
     store = Store.open(db)
     session = open_session(listen=listen, connect=connect)
     service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
-    http = HttpServer(store, http_port).start() if http_port else None
+    http = HttpServer(store, http_port, host=http_host).start() if http_port else None
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     where = ", ".join(connect or listen)
     print(f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
-          + (f"; REST http://127.0.0.1:{http_port}/docs" if http else ""), flush=True)
+          + (f"; REST http://{http_host}:{http_port}/docs" if http else ""), flush=True)
     try:
         stop.wait()
     finally:

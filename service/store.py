@@ -59,6 +59,7 @@ class Store:
     def __init__(self, conn: sqlite3.Connection, path: str):
         self._conn = conn
         self._lock = threading.RLock()
+        self._depth = 0  # open transactions: 0 none, 1 a transaction, more are savepoints inside it
         self.path = path
 
     @classmethod
@@ -90,15 +91,22 @@ class Store:
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction; BEGIN IMMEDIATE takes the write lock up front, so no upgrade deadlock."""
+        """One write transaction; BEGIN IMMEDIATE takes the write lock up front, so no upgrade deadlock.
+        Inside another, a savepoint: a failing inner step rolls back alone and the batch goes on."""
         with self._lock:
-            self._conn.execute("BEGIN IMMEDIATE")
+            depth = self._depth
+            self._conn.execute(f"SAVEPOINT sp{depth}" if depth else "BEGIN IMMEDIATE")
+            self._depth += 1
             try:
                 yield self._conn
             except BaseException:
-                self._conn.execute("ROLLBACK")
+                self._conn.execute(f"ROLLBACK TO sp{depth}" if depth else "ROLLBACK")
+                if depth:
+                    self._conn.execute(f"RELEASE sp{depth}")
                 raise
-            self._conn.execute("COMMIT")
+            finally:
+                self._depth -= 1
+            self._conn.execute(f"RELEASE sp{depth}" if depth else "COMMIT")
 
     def _rows(self, sql: str, args=()) -> list[sqlite3.Row]:
         with self._lock:
@@ -144,6 +152,11 @@ class Store:
         except (wire.WireError, StoreError) as exc:
             self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=received_at)
             return exc.reason
+
+    def ingest_many(self, items: list[tuple[str, bytes]], *, received_at: float | None = None) -> list[str]:
+        """Several Zenoh samples in one transaction (one disk sync): the statuses of ingest(), in order."""
+        with self._tx():
+            return [self.ingest(key, payload, received_at=received_at) for key, payload in items]
 
     def insert_window(self, msg: dict, *, received_at: float | None = None) -> bool:
         """Store a window and add it to its band's sum in one transaction. False (nothing changed) for a duplicate."""
