@@ -139,7 +139,7 @@ class EdgeAgent:
 
     def angle_quality_deg(self, block: Samples) -> float:
         """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""
-        radius = corrected_radius(self.correction, block)
+        radius = self.correction.radius(block.d, block.q, block.temp_c)
         ok = plausible_mask(block.d, block.q)
         if ok.sum() < 8:
             return 0.0
@@ -245,17 +245,6 @@ def factory_message(device: str, factory: BandedCorrection) -> dict:
                              {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0})
              for b in factory.bands]
     return wire.coefficients_message(device=device, version=0, created_at=0.0, basis="factory", bands=bands)
-
-
-def corrected_radius(correction: BandedCorrection, block: Samples) -> np.ndarray:
-    """|u| of the affine part of the correction, per sample (temperature-interpolated like the angle)."""
-    temps = np.array([b.temp_c if b.temp_c is not None else REFERENCE_TEMP_C for b in correction.bands])
-    t = block.temp_c if block.temp_c is not None else np.full(len(block), REFERENCE_TEMP_C)
-    w = np.array([[b.w1, b.w2, b.w3, b.w4, b.w5] for b in correction.bands])
-    p = np.column_stack([np.interp(t, temps, w[:, k]) for k in range(5)]) if len(temps) > 1 else np.tile(w[0], (len(block), 1))
-    u1 = p[:, 0] * block.d + p[:, 1]
-    u2 = p[:, 2] * block.q + p[:, 3] + p[:, 4] * u1
-    return np.hypot(u1, u2)
 
 
 def check_plausible(candidate: BandedCorrection, factory: BandedCorrection) -> None:

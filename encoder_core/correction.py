@@ -66,6 +66,14 @@ class Correction:
         return np.array(row)
 
 
+def _affine(p: np.ndarray, d, q) -> tuple[np.ndarray, np.ndarray]:
+    """u1, u2 of the correction form with per-sample parameters p (columns w1..w5)."""
+    d = np.asarray(d, dtype=float).ravel()
+    q = np.asarray(q, dtype=float).ravel()
+    u1 = p[:, 0] * d + p[:, 1]
+    return u1, p[:, 2] * q + p[:, 3] + p[:, 4] * u1
+
+
 def zero_shift(reference: Correction, other: Correction) -> float:
     """The rotation that makes `other` agree with `reference` on average around other's circle.
 
@@ -127,35 +135,42 @@ class BandedCorrection:
 
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
-        if len(self.bands) == 1:
-            return Correction.from_dict({**self.bands[0].to_dict(), "temp_c": float(temp_c)})
-        orders = sorted({m for b in self.bands for m in b.harmonics})
-        table = np.array([b.params(orders) for b in self.bands])
-        temps = np.array([b.temp_c for b in self.bands])
-        p = [float(np.interp(temp_c, temps, table[:, k])) for k in range(table.shape[1])]
+        orders, p = self._interpolated(np.array([float(temp_c)]))
+        p = p[0]
         return Correction(w1=p[0], w2=p[1], w3=p[2], w4=p[3], w5=p[4], zero_offset_rad=p[5],
                           harmonics={m: (p[6 + 2 * i], p[7 + 2 * i]) for i, m in enumerate(orders)},
                           temp_c=float(temp_c))
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
-        if len(self.bands) == 1 or temp_c is None:
-            if temp_c is None and len(self.bands) > 1:
-                raise InputError("temperature is needed to pick among several temperature bands")
-            return self.bands[0].angle(d, q)
-        d = np.asarray(d, dtype=float)
-        q = np.asarray(q, dtype=float)
-        temp = np.broadcast_to(np.asarray(temp_c, dtype=float), d.shape)
-        orders = sorted({m for b in self.bands for m in b.harmonics})
-        table = np.array([b.params(orders) for b in self.bands])
-        temps = np.array([b.temp_c for b in self.bands])
-        p = np.column_stack([np.interp(temp, temps, table[:, k]) for k in range(table.shape[1])])
-        u1 = p[:, 0] * d + p[:, 1]
-        u2 = p[:, 2] * q + p[:, 3] + p[:, 4] * u1
+        orders, p = self._interpolated(self._temps_for(d, temp_c))
+        u1, u2 = _affine(p, d, q)
         theta0 = np.arctan2(u2, u1)
         theta = theta0 + p[:, 5]
         for i, m in enumerate(orders):
             theta = theta + p[:, 6 + 2 * i] * np.cos(m * theta0) + p[:, 7 + 2 * i] * np.sin(m * theta0)
         return wrap_rad(theta)
+
+    def radius(self, d, q, temp_c=None) -> np.ndarray:
+        """|u| of the corrected point: 1 everywhere when the gains, offsets and phase are right."""
+        _, p = self._interpolated(self._temps_for(d, temp_c))
+        return np.hypot(*_affine(p, d, q))
+
+    def _temps_for(self, d, temp_c) -> np.ndarray:
+        n = np.asarray(d).size
+        if temp_c is None:
+            if len(self.bands) > 1:
+                raise InputError("temperature is needed to pick among several temperature bands")
+            return np.zeros(n)
+        return np.broadcast_to(np.asarray(temp_c, dtype=float), (n,))
+
+    def _interpolated(self, temps: np.ndarray) -> tuple[list[int], np.ndarray]:
+        """Every parameter at each temperature (rows), linear between bands and flat outside them."""
+        orders = sorted({m for b in self.bands for m in b.harmonics})
+        table = np.array([b.params(orders) for b in self.bands])
+        if len(self.bands) == 1:
+            return orders, np.tile(table[0], (temps.size, 1))
+        centers = np.array([b.temp_c for b in self.bands])
+        return orders, np.column_stack([np.interp(temps, centers, table[:, k]) for k in range(table.shape[1])])
 
     def to_dict(self) -> dict:
         return {"bands": [b.to_dict() for b in self.bands]}

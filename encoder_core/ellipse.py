@@ -173,6 +173,10 @@ def radius_ripple_rms(stats: WindowStats, correction_fit: EllipseFit) -> float:
     return float(np.sqrt(np.average(dev**2, weights=counts[ok])))
 
 
+def ellipse_quality(stats: WindowStats, fit: EllipseFit) -> dict:
+    return {"samples": stats.n, "residual_rms_rad": fit.residual_rms, "radius_ripple_rad": radius_ripple_rms(stats, fit)}
+
+
 def fit_from_stats(stats: WindowStats, *, harmonics_from_density: bool = True) -> tuple[Correction, dict]:
     """Reference-free correction from window statistics, with its quality numbers."""
     fit = fit_ellipse(stats)
@@ -180,6 +184,4 @@ def fit_from_stats(stats: WindowStats, *, harmonics_from_density: bool = True) -
     if harmonics_from_density:
         corr.harmonics = density_harmonics(stats, fit).significant()
     corr.temp_c = stats.temp_mean if stats.temp_n else None
-    quality = {"samples": stats.n, "residual_rms_rad": fit.residual_rms,
-               "radius_ripple_rad": radius_ripple_rms(stats, fit)}
-    return corr, quality
+    return corr, ellipse_quality(stats, fit)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from encoder_core.correction import BandedCorrection, Correction, zero_shift
-from encoder_core.ellipse import HarmonicEstimate, density_harmonics, fit_ellipse, fit_from_stats
+from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
 from encoder_core.physics import REFERENCE_TEMP_C, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -70,11 +70,13 @@ def refit_device(band_stats: dict[int, WindowStats], running: BandedCorrection,
         if stats.n < min_samples:
             continue
         try:
-            corr, quality = fit_from_stats(stats, harmonics_from_density=False)
-            estimates.append(density_harmonics(stats, fit_ellipse(stats)))
+            fit = fit_ellipse(stats)
         except InputError:
             continue  # not enough of the circle seen in this band yet
-        candidates[band] = (corr, quality, stats)
+        corr = ellipse_correction(stats, fit)
+        corr.temp_c = stats.temp_mean
+        estimates.append(density_harmonics(stats, fit))
+        candidates[band] = (corr, ellipse_quality(stats, fit), stats)
     if not candidates:
         return RefitResult(bands=[])
     # harmonics come from the magnet and the sensor geometry, not from temperature: one estimate from

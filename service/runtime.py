@@ -181,14 +181,16 @@ class FleetService:
             return None
         recent = self.store.window_summary(device, recent=1)["recent"]
         drive_now = recent[0]["window_end"] if recent else 0.0  # message times are on the drive's clock
-        for decision, entry in zip(result.decisions, result.bands):
-            if decision.adopted:
-                self.store.record_fit(device, decision.band, entry, entry["quality"], created_at=drive_now)
-        version = self.store.next_version(device)
-        msg = wire.coefficients_message(device=device, version=version, created_at=drive_now, basis="fit",
-                                        bands=result.bands)
-        self.store.insert_coefficient_set(msg)
-        self.session.put(f"encoders/{device}/coefficients", wire.encode("coefficients", msg))
+        with self.store.transaction():  # the fits and the set they make land together, or not at all
+            for decision, entry in zip(result.decisions, result.bands):
+                if decision.adopted:
+                    self.store.record_fit(device, decision.band, entry, entry["quality"], created_at=drive_now)
+            version = self.store.next_version(device)
+            msg = wire.coefficients_message(device=device, version=version, created_at=drive_now, basis="fit",
+                                            bands=result.bands)
+            self.store.insert_coefficient_set(msg)
+        self.session.put(f"encoders/{device}/coefficients", wire.encode("coefficients", msg),
+                         congestion_control=zenoh.CongestionControl.BLOCK)
         self.store.mark_published(device, version)
         with self._lock:
             self.counters.rollouts += 1

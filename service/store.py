@@ -153,6 +153,12 @@ class Store:
             self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=received_at)
             return exc.reason
 
+    @contextmanager
+    def transaction(self) -> Iterator["Store"]:
+        """Several writes as one transaction (one disk sync); any failure undoes them all."""
+        with self._tx():
+            yield self
+
     def ingest_many(self, items: list[tuple[str, bytes]], *, received_at: float | None = None) -> list[str]:
         """Several Zenoh samples in one transaction (one disk sync): the statuses of ingest(), in order."""
         with self._tx():

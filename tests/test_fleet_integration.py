@@ -7,10 +7,13 @@ import time
 import numpy as np
 import pytest
 
+from fastapi.testclient import TestClient
+
 from encoder_core.stats import WindowStats
 from encoder_fleet import wire
 from encoder_fleet.demo import applied_set, score
 from encoder_fleet.zenoh_config import loopback_endpoint
+from service.api import create_app
 from service.runtime import FleetService, open_session
 from service.store import Store
 
@@ -36,8 +39,18 @@ def fleet(tmp_path):
 def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
     endpoint, store, service, session = fleet
     agents = [start_agent(f"drive-{i}", i, endpoint, tmp_path / f"ob{i}.sqlite", 24) for i in (1, 2)]
+    api = TestClient(create_app(store))
+    seen_online = set()
+    while any(a.poll() is None for a in agents):  # the liveliness tokens, as the REST API shows them
+        seen_online |= {d["id"] for d in api.get("/devices").json() if d["online"]}
+        time.sleep(0.2)
     outputs = [a.communicate(timeout=300)[0] for a in agents]
     assert all(a.returncode == 0 for a in agents), outputs
+    assert seen_online == {"drive-1", "drive-2"}
+    deadline = time.monotonic() + 10
+    while any(d["online"] for d in api.get("/devices").json()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(d["online"] for d in api.get("/devices").json())  # tokens gone with the agents
     for i in (1, 2):
         name = f"drive-{i}"
         assert store.device(name)["windows"] == 24 * 60  # every window stored once
