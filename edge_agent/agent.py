@@ -72,6 +72,9 @@ class EdgeAgent:
         ref_band = min(factory.bands, key=lambda b: abs((b.temp_c or REFERENCE_TEMP_C) - REFERENCE_TEMP_C))
         self.scale = float(round(1.0 / abs(ref_band.w1)))
         self._declared: list = []
+        saved = outbox.saved_coefficients()
+        if saved is not None:
+            self.on_coefficients(saved, acknowledge=False)  # resume with what we ran before a restart
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
@@ -212,7 +215,7 @@ class EdgeAgent:
                 return
             self.on_coefficients(payload)
 
-    def on_coefficients(self, payload: bytes) -> None:
+    def on_coefficients(self, payload: bytes, *, acknowledge: bool = True) -> None:
         try:
             msg = wire.decode("coefficients", payload, key_device=self.device)
             if msg["version"] <= self.version:
@@ -222,17 +225,19 @@ class EdgeAgent:
         except (wire.WireError, InputError) as exc:
             version = _version_of(payload)
             log.warning("%s: refused coefficient set %s: %s", self.device, version, exc)
-            if version is not None and version > self.version:
+            if acknowledge and version is not None and version > self.version:
                 self.counters.refused.append((version, str(exc)))
                 self.send_ack(version, "rejected", None, reason=str(exc))
             return
         self.correction, self.version = candidate, int(msg["version"])
-        self.counters.applied.append(self.version)
-        self.pending_ack = self.version  # acknowledged with the quality seen on the next block
+        self.outbox.save_coefficients(payload)
+        if acknowledge:
+            self.counters.applied.append(self.version)
+            self.pending_ack = self.version  # acknowledged with the quality seen on the next block
 
     def send_ack(self, version: int, status: str, quality: float | None, *, reason: str | None = None) -> None:
         msg = wire.ack_message(device=self.device, version=version, status=status, angle_quality_deg=quality,
-                               at=float(getattr(self.source, "now", time.time())), reason=reason)
+                               at=float(self.source.now), reason=reason)
         self.put(self.keys["ack"], wire.encode("ack", msg))
 
     def factory_message(self) -> dict:

@@ -28,6 +28,16 @@ class Outbox:
         self.db.execute("INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
                         (key, value))
 
+    def save_coefficients(self, payload: bytes) -> None:
+        """The set the agent runs with, so a restart resumes with it even when the service is away."""
+        with self.lock:
+            self._set_meta("coefficients", payload)
+
+    def saved_coefficients(self) -> bytes | None:
+        with self.lock:
+            value = self._meta("coefficients", None)
+            return None if value is None else bytes(value)
+
     def last_seq(self) -> int:
         """Highest sequence number ever issued, so a restarted agent continues the series."""
         with self.lock:

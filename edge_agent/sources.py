@@ -14,6 +14,8 @@ from encoder_core.simulator import EncoderModel, bench_profile, cycle_profile, r
 class SampleSource(ABC):
     """A stream of samples read in blocks of a given duration (seconds of the drive's clock)."""
 
+    now: float = 0.0  # the drive's clock: end of the last block read
+
     @abstractmethod
     def read(self, duration_s: float) -> Samples | None:
         """The next block, or None when the source has ended."""
@@ -65,6 +67,7 @@ class ReplaySource(SampleSource):
         end = max(end, self.pos + 1)
         block = self.samples.subset(slice(self.pos, end))
         self.pos = end
+        self.now = float(block.t[-1])
         return block
 
 

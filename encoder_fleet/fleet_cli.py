@@ -35,6 +35,8 @@ def cmd_agent(args) -> int:
         from encoder_fleet.recording import read_recording
 
         recording = read_recording(args.source.split(":", 1)[1])
+        if recording.temp_c is None:
+            raise InputError(f"{args.source}: a replayed recording needs the temp_c column (windows are banded by temperature)")
         source = ReplaySource(recording)
         factory = None
     else:

@@ -3,11 +3,12 @@ agents in their own processes over loopback, coefficients rolled out and acknowl
 import subprocess
 import sys
 import time
+from collections import Counter
 
 import numpy as np
 import pytest
-
 from fastapi.testclient import TestClient
+from mcap.reader import make_reader
 
 from encoder_core.stats import WindowStats
 from encoder_fleet import wire
@@ -60,6 +61,16 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
         result = score(i, applied["bands"])
         assert result["rms_error_deg_fleet"] * 5 < result["rms_error_deg_factory"], result
     assert not any(k for k in store.rejection_counts())
+    # the audit export, as a user runs it, read back with the mcap reader
+    out = tmp_path / "drive-1.mcap"
+    res = subprocess.run([sys.executable, "-m", "encoder_fleet.cli", "export", "--db", str(store.path),
+                          "--device", "drive-1", "--out", str(out)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    with open(out, "rb") as f:
+        topics = Counter(channel.topic for _, channel, _ in make_reader(f).iter_messages())
+    assert topics["/encoders/drive-1/stats"] == 24 * 60
+    assert topics["/encoders/drive-1/coefficients"] == len(store.coefficient_history("drive-1"))
+    assert topics["/encoders/drive-1/ack"] == len(store.acks("drive-1"))
 
 
 def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):

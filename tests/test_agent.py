@@ -1,0 +1,90 @@
+"""The agent's side of a rollout over a real Zenoh session: what it applies, what it refuses, and what
+it remembers across a restart."""
+import json
+import time
+
+import pytest
+import zenoh
+
+from edge_agent.agent import EdgeAgent, factory_message
+from edge_agent.outbox import Outbox
+from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
+from encoder_fleet import wire
+from encoder_fleet.zenoh_config import loopback_endpoint, session_config
+from service.runtime import FleetService, open_session
+from service.store import Store
+
+DEVICE = "drive-t"
+SEED = 4
+
+
+@pytest.fixture
+def setup(tmp_path):
+    endpoint = loopback_endpoint()
+    store = Store.open(tmp_path / "fleet.sqlite")
+    router = open_session(listen=[endpoint])
+    service = FleetService(store, router, refit_interval_s=0).start()  # no refits: the test sends the sets
+    client = zenoh.open(session_config("client", connect=[endpoint]))
+    factory = factory_calibration(drive_model(SEED), SEED)
+    outbox_path = tmp_path / "outbox.sqlite"
+
+    def make_agent(session):
+        return EdgeAgent(DEVICE, SimulatedDrive(SEED, hours=1), session, Outbox(outbox_path), factory)
+
+    yield store, router, client, factory, make_agent
+    client.close()
+    service.stop()
+    router.close()
+    store.close()
+
+
+def coefficient_set(factory, version, scale_w1=1.0):
+    msg = factory_message(DEVICE, factory)
+    for band in msg["bands"]:
+        band["w"][0] *= scale_w1
+    return {**msg, "version": version, "basis": "fit", "created_at": 60.0}
+
+
+def wait_for(predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return predicate()
+
+
+def test_agent_applies_good_sets_and_refuses_bad_ones(setup):
+    store, router, client, factory, make_agent = setup
+    agent = make_agent(client)
+    agent.start()
+    assert wait_for(lambda: store.current_coefficients(DEVICE) is not None)  # the factory announcement
+    key = f"encoders/{DEVICE}/coefficients"
+    router.put(key, wire.encode("coefficients", coefficient_set(factory, 5, scale_w1=1.01)))
+    router.put(key, json.dumps(coefficient_set(factory, 6, scale_w1=100.0)).encode())  # implausible gain
+    router.put(key, wire.encode("coefficients", coefficient_set(factory, 3)))  # older than what it holds
+    router.put(key, b'{"schema": "encoder-fleet/coefficients/1", "version": NaN}')
+    router.put("encoders/other/coefficients", wire.encode("coefficients", {**coefficient_set(factory, 9),
+                                                                           "device": "other"}))
+    time.sleep(0.5)
+    for _ in range(3):
+        agent.step()
+    assert agent.version == 5
+    assert wait_for(lambda: len(store.acks(DEVICE)) == 2)
+    acks = {a["version"]: a for a in store.acks(DEVICE)}
+    assert acks[5]["status"] == "applied" and acks[5]["angle_quality_deg"] >= 0
+    assert acks[6]["status"] == "rejected" and "w1" in acks[6]["reason"]
+    agent.close()
+
+
+def test_restarted_agent_resumes_with_its_set(setup):
+    store, router, client, factory, make_agent = setup
+    agent = make_agent(client)
+    agent.start()
+    router.put(f"encoders/{DEVICE}/coefficients", wire.encode("coefficients", coefficient_set(factory, 7, 1.02)))
+    time.sleep(0.3)
+    agent.step()
+    assert agent.version == 7
+    seq = agent.seq
+    agent.close()
+    again = make_agent(client)  # a new process would do the same: open its outbox and go on
+    assert again.version == 7 and again.seq == seq
+    assert again.correction.bands[0].w1 == pytest.approx(factory.bands[0].w1 * 1.02)
