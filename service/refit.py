@@ -34,6 +34,7 @@ class BandDecision:
     candidate_error_deg: float
     adopted: bool
     quality: dict
+    candidate: dict  # the fit itself, as a band entry, whether adopted or not
 
 
 @dataclass
@@ -99,10 +100,12 @@ def refit_device(band_stats: dict[int, WindowStats], running: BandedCorrection,
         err_new = uncertainty_deg(pooled, harmonics, stats, quality["residual_rms_rad"])
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         chosen = corr if adopt else now
+        candidate = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
         quality = {**quality, "estimated_error_deg": err_new if adopt else err_now}
         result.bands.append(band_entry(band, chosen, quality))
         result.decisions.append(BandDecision(band=band, temp_c=corr.temp_c, samples=stats.n, running_error_deg=err_now,
-                                             candidate_error_deg=err_new, adopted=adopt, quality=quality))
+                                             candidate_error_deg=err_new, adopted=adopt, quality=quality,
+                                             candidate=candidate))
     return result
 
 

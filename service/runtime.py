@@ -182,10 +182,12 @@ class FleetService:
         recent = self.store.window_summary(device, recent=1)["recent"]
         drive_now = recent[0]["window_end"] if recent else 0.0  # message times are on the drive's clock
         with self.store.transaction():  # the fits and the set they make land together, or not at all
-            for decision, entry in zip(result.decisions, result.bands):
-                if decision.adopted:
-                    self.store.record_fit(device, decision.band, entry, entry["quality"], created_at=drive_now)
             version = self.store.next_version(device)
+            for decision in result.decisions:
+                fit = decision.candidate
+                correction = {k: v for k, v in fit.items() if k not in ("band", "quality")}
+                self.store.record_fit(device, decision.band, correction, fit["quality"], created_at=drive_now,
+                                      version=version, adopted=decision.adopted)
             msg = wire.coefficients_message(device=device, version=version, created_at=drive_now, basis="fit",
                                             bands=result.bands)
             self.store.insert_coefficient_set(msg)

@@ -245,14 +245,16 @@ class Store:
         return {r["band"]: (WindowStats.from_dict(json.loads(r["stats_json"])), r["windows"], r["samples"])
                 for r in self._rows("SELECT * FROM band_stats WHERE device = ? ORDER BY band", (device,))}
 
-    def record_fit(self, device: str, band: int, correction: dict, quality: dict, *, created_at: float) -> int:
+    def record_fit(self, device: str, band: int, correction: dict, quality: dict, *, created_at: float,
+                   version: int | None = None, adopted: bool = True) -> int:
         """correction: Correction.to_dict(); quality: as in a coefficient set's band entry;
-        created_at: the drive's clock, like the coefficient set the fit goes into."""
+        created_at: the drive's clock, like the coefficient set the fit goes into (`version`)."""
         with self._tx() as c:
             self._touch(c, device, time.time(), heard=False)
-            cur = c.execute("INSERT INTO fits (device, band, created_at, samples, quality_json, correction_json) "
-                            "VALUES (?, ?, ?, ?, ?, ?)",
-                            (device, band, created_at, int(quality.get("samples", 0)), _json(quality), _json(correction)))
+            cur = c.execute("INSERT INTO fits (device, band, created_at, samples, quality_json, correction_json,"
+                            " version, adopted) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                            (device, band, created_at, int(quality.get("samples", 0)), _json(quality),
+                             _json(correction), version, int(adopted)))
             return cur.lastrowid
 
     def latest_fits(self, device: str) -> list[dict]:

@@ -1,5 +1,6 @@
 """The fleet end to end with real parts: a service (embedded Zenoh router, SQLite file) in this process,
 agents in their own processes over loopback, coefficients rolled out and acknowledged."""
+import sqlite3
 import subprocess
 import sys
 import time
@@ -58,6 +59,10 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
         assert store.contiguous_seq(name) == 24 * 60
         applied = applied_set(store, name)
         assert applied is not None and applied["version"] >= 1, store.acks(name)
+        versions = {h["version"] for h in store.coefficient_history(name) if h["basis"] == "fit"}
+        with sqlite3.connect(store.path) as conn:  # every fit is kept, tagged with the set it was made for
+            fits = conn.execute("SELECT version, adopted FROM fits WHERE device = ?", (name,)).fetchall()
+        assert {v for v, _ in fits} == versions and any(a for _, a in fits)
         result = score(i, applied["bands"])
         assert result["rms_error_deg_fleet"] * 5 < result["rms_error_deg_factory"], result
     assert not any(k for k in store.rejection_counts())

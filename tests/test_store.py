@@ -18,16 +18,19 @@ def store(tmp_path):
 
 
 def test_migrations_apply_once_and_are_recorded(tmp_path):
+    from service.store import MIGRATIONS_DIR
+    files = sorted(p.name for p in MIGRATIONS_DIR.glob("[0-9]*.sql"))
+    expected = [(int(name.split("_", 1)[0]), name) for name in files]
     path = tmp_path / "fleet.db"
     with Store.open(path) as s:
-        assert s.migrations()[0] == (1, "001_initial.sql")
+        assert s.migrations() == expected and expected[0] == (1, "001_initial.sql")
         s.insert_window(window())
     with Store.open(path) as s:  # reopening applies nothing twice and keeps the data
-        assert s.migrations() == [(1, "001_initial.sql")]
+        assert s.migrations() == expected
         assert s.max_seq("drive-001") == 1
     conn = sqlite3.connect(path)
     assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert conn.execute("SELECT count(*) FROM schema_migrations").fetchone()[0] == 1
+    assert conn.execute("SELECT count(*) FROM schema_migrations").fetchone()[0] == len(files)
 
 
 def test_new_migration_is_applied_in_order(tmp_path):
