@@ -12,11 +12,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from edge_agent.sources import drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
-from encoder_core.physics import error_summary
+from encoder_core.physics import angle_error_deg, rms
 from encoder_fleet.zenoh_config import free_port, loopback_endpoint
 from service.mcap_export import export_mcap
 from service.runtime import FleetService, HttpServer, open_session
@@ -25,17 +26,47 @@ from service.store import Store
 WINDOW_S = 60.0
 
 
-def score(device_seed: int, bands: list[dict] | None) -> dict:
-    """RMS and max angle error of factory and fleet coefficients over a -40…+85 °C cycle (noise-free
-    signals: the numbers measure the coefficients, not the sensor's noise)."""
+def errors(device_seed: int, bands: list[dict] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Temperature, and the factory's and the fleet's angle errors (degrees) over a -40…+85 °C cycle, on
+    noise-free signals: they measure the coefficients, not the sensor's noise."""
     model = drive_model(device_seed)
     factory = factory_calibration(model, device_seed)
     truth = evaluation_set(model.with_(noise_counts=0.0), device_seed)
     fleet = BandedCorrection.from_dict({"bands": bands}) if bands else factory
-    f = error_summary(factory.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref)
-    g = error_summary(fleet.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref)
-    return {"rms_error_deg_factory": f["rms_error_deg"], "max_error_deg_factory": f["max_error_deg"],
-            "rms_error_deg_fleet": g["rms_error_deg"], "max_error_deg_fleet": g["max_error_deg"]}
+    return (truth.temp_c, angle_error_deg(factory.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref),
+            angle_error_deg(fleet.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref))
+
+
+def score(device_seed: int, bands: list[dict] | None) -> dict:
+    """RMS and max angle error of factory and fleet coefficients over the cycle."""
+    _, f, g = errors(device_seed, bands)
+    return {"rms_error_deg_factory": rms(f), "max_error_deg_factory": float(np.abs(f).max()),
+            "rms_error_deg_fleet": rms(g), "max_error_deg_fleet": float(np.abs(g).max())}
+
+
+def plot_errors(curves: dict[str, tuple], path: Path) -> None:
+    """RMS angle error against temperature, factory (dashed) and fleet (solid), one colour per drive."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    edges = np.arange(-40.0, 90.0, 5.0)
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for k, (name, (temp, f, g)) in enumerate(curves.items()):
+        idx = np.digitize(temp, edges) - 1
+        centers = edges[:-1] + 2.5
+        for err, style, label in ((f, "--", "factory"), (g, "-", "fleet")):
+            per_bin = [rms(err[idx == i]) if np.any(idx == i) else np.nan for i in range(len(centers))]
+            ax.plot(centers, per_bin, style, color=f"C{k}", label=f"{name} {label}")
+    ax.set_xlabel("temperature (°C)")
+    ax.set_ylabel("RMS angle error (°)")
+    ax.set_title("Angle error across the cycle: factory (+20 °C) coefficients against the fleet's")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def applied_set(store: Store, device: str) -> dict | None:
@@ -86,11 +117,16 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
                 print(f"agent {name} exited with {code}:\n{text}", file=log)
             return 1
         summary = {"devices": {}, "database": str(db)}
+        curves = {}
         for i, name in enumerate(names):
             applied = applied_set(store, name)
             versions = sorted({a["version"] for a in store.acks(name) if a["status"] == "applied"})
+            curves[name] = errors(i, applied["bands"] if applied else None)
             summary["devices"][name] = {**score(i, applied["bands"] if applied else None),
                                         "windows": store.device(name)["windows"], "coefficient_versions": versions}
+        plot_path = out_dir / "angle-error-vs-temperature.png"
+        plot_errors(curves, plot_path)
+        summary["plot"] = str(plot_path)
         mcap_path = out_dir / f"{names[0]}.mcap"
         with open(mcap_path, "wb") as out:
             export_mcap(store, names[0], out)
@@ -124,6 +160,7 @@ def format_summary(summary: dict) -> str:
                      f"{d['max_error_deg_factory']:>7.3f} {d['rms_error_deg_fleet']:>10.3f} "
                      f"{d['max_error_deg_fleet']:>7.3f} {gain:>5.1f}x")
     lines += ["", f"database: {summary['database']}", f"MCAP export (open in Foxglove): {summary['mcap']}",
+              f"plot: {summary['plot']}",
               f"rejected messages: {summary['rejections'] or 'none'}",
               "inspect: .venv/bin/encoder-fleet service --db " + summary["database"]
               + " --http-port 8000, then http://127.0.0.1:8000/docs"]
