@@ -135,9 +135,9 @@ class _Data:
         self.q = (samples.q - self.center[1]) / self.scale
         self.ref = None if samples.theta_ref is None else np.asarray(samples.theta_ref, float)
         if self.ref is not None:
-            check_angle_coverage(self.ref, what="reference angle")
+            check_angle_coverage(self.ref, what="reference angle (theta_ref_deg)")
         else:
-            check_angle_coverage(np.arctan2(self.q, self.d), what="angle (atan2(q, d))")
+            check_angle_coverage(np.arctan2(self.q, self.d), what="d/q angle")
         self.temp = None if samples.temp_c is None else np.asarray(samples.temp_c, float)
         self.temp_span = 0.0 if self.temp is None else float(np.ptp(self.temp))
         self.span_s = float(self.t[-1] - self.t[0]) if n > 1 else 0.0
