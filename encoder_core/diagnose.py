@@ -156,8 +156,8 @@ class _Data:
 
     def temp_n(self, tau_s: float) -> np.ndarray | None:
         """(T - 20)/50 with T lagged first-order by tau (the die temperature model)."""
-        if self.temp is None:
-            return None
+        if self.temp is None or self.temp_span == 0:
+            return None  # no temperature, or one that never changes: gains and offsets are constants
         key = round(float(tau_s), 6)
         if key not in self._lagged:
             tt = first_order_lag(self.t, self.temp, key) if key > 0 else self.temp
