@@ -39,6 +39,8 @@ from typing import Callable
 
 import numpy as np
 
+from scipy.ndimage import median_filter
+
 from .physics import REFERENCE_TEMP_C, wrap_rad
 from .samples import InputError, Samples, check_angle_coverage, check_fit_input
 from .simulator import first_order_lag
@@ -329,6 +331,19 @@ def _target(data: _Data, sa: _StageA) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return sa.get("target", make)
 
 
+def _local_deviation(radius: np.ndarray) -> np.ndarray:
+    """Radius minus its running median over 11 samples in time: slow drifts (temperature, lag, aging)
+    cancel, an isolated corrupted sample stands out."""
+    return radius - median_filter(radius, size=11, mode="nearest")
+
+
+def _outlier_threshold(dev: np.ndarray) -> float:
+    """Beyond 8 robust sigmas, beyond twice the 95th percentile (so that a systematic effect spread
+    over more than 5 % of the samples never counts), and beyond 1 % of the radius."""
+    p95 = float(np.percentile(np.abs(dev), 95)) if dev.size else 0.0
+    return max(OUTLIER_SIGMAS * _robust_sigma(dev), 2.0 * p95, OUTLIER_FLOOR)
+
+
 def _robust_sigma(v: np.ndarray) -> float:
     v = v[np.isfinite(v)]
     if v.size == 0:
@@ -362,9 +377,10 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
     reject = np.zeros(data.n, bool)
     threshold = np.inf
     if spec.outliers:
-        r_train = radius[train]
-        threshold = max(OUTLIER_SIGMAS * _robust_sigma(r_train), OUTLIER_FLOOR)
-        reject = np.abs(radius - np.median(r_train)) > threshold
+        # the rule needs no reference: any stream can apply it to its own radius (test rows: in __call__)
+        dev = stage_a.get("local_dev", lambda: _local_deviation(radius))
+        threshold = _outlier_threshold(dev)
+        reject = np.abs(dev) > threshold
     return _Fit(stage_a, names, coef, e, reject, threshold)
 
 
@@ -396,6 +412,9 @@ class _Evaluator:
             fit = _fit_model(data, spec, ~test, stage_a=self.stage_a_for(spec, fold))
             e = fit.err[test]
             r = fit.reject[test]
+            if spec.outliers:
+                dev = fit.stage_a.memo["local_dev"][test]
+                r = np.abs(dev) > _outlier_threshold(dev)
             rejected += int(r.sum())
             e = np.where(r, np.nan, e)
             err[test] = e
@@ -497,9 +516,9 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
     # robust baseline: fit on everything not clipped, flag isolated samples far off the circle, refit
     full = np.ones(data.n, bool)
     base_fit = _fit_model(data, base_spec, full)
-    radius = np.hypot(base_fit.stage_a.x, base_fit.stage_a.y) - 1.0
-    thr = max(OUTLIER_SIGMAS * _robust_sigma(radius[~data.clipped]), OUTLIER_FLOOR)
-    far = np.abs(radius - np.median(radius[~data.clipped])) > thr
+    dev = _local_deviation(np.hypot(base_fit.stage_a.x, base_fit.stage_a.y) - 1.0)
+    thr = _outlier_threshold(dev[~data.clipped])
+    far = np.abs(dev) > thr
     isolated = far & ~np.roll(far, 1) & ~np.roll(far, -1)
     data.suspect = isolated & ~data.clipped
     phi0 = {}
@@ -672,8 +691,8 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
     if name == "outliers":
         frac = after.rejected / data.n
         return ({"fraction": round(frac, 6)},
-                f"{after.rejected} samples ({100 * frac:.2f} %) lie beyond {OUTLIER_SIGMAS:.0f}× the robust spread "
-                f"off the circle, isolated in time; rejecting them {gain[len('modelling it '):]}.")
+                f"{after.rejected} samples ({100 * frac:.2f} %) jump off the circle, each alone, beyond "
+                f"{OUTLIER_SIGMAS:.0f}× the robust spread of the radius about its running median; rejecting them {gain[len('modelling it '):]}.")
     if name == "adc_clipping":
         frac = float(data.clipped.mean())
         where = "; ".join(f"{c['channel']} stuck at {c['value']} in {c['samples']} samples" for c in data.clip_info)

@@ -56,7 +56,10 @@ def plant(effect, rng, model, style, truth):
         model["offset_tc_counts_per_c"] = (float(sign * rng.uniform(1.0, 2.0)), float(-sign * rng.uniform(1.0, 2.0)))
         truth[effect] = {"tau_s": tau}
     elif effect == "nonlinear_temperature":
-        g2 = (float(sign * rng.uniform(1.5e-5, 3e-5)), float(-sign * rng.uniform(0.5e-5, 1.5e-5)))
+        if style == "bench":  # the reference sees the axes' difference
+            g2 = (float(sign * rng.uniform(1.5e-5, 3e-5)), float(-sign * rng.uniform(0.5e-5, 1.5e-5)))
+        else:  # the radius sees their common part
+            g2 = (float(sign * rng.uniform(2e-5, 4e-5)), float(sign * rng.uniform(2e-5, 4e-5)))
         model["gain_tc2_per_c2"] = g2
         model["offset_tc2_counts_per_c2"] = (float(rng.uniform(-0.01, 0.01)), float(rng.uniform(-0.01, 0.01)))
         truth[effect] = {"gain_tc2_per_c2": g2}
