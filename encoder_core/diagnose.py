@@ -53,6 +53,9 @@ OUTLIER_SIGMAS = 8.0
 OUTLIER_FLOOR = 0.01  # radius deviation (fraction of the radius) below which nothing is an outlier
 MAX_OUTLIER_FRACTION = 0.05
 RADIUS_ITERATIONS = 8
+PARSIMONY = 0.03
+N_PARAMS = {"adc_clipping": 0, "zero_offset": 1, "phase_nonorthogonality": 1, "phase_drift": 1, "thermal_lag": 1,
+            "outliers": 1, "harmonic_distortion": 2, "nonlinear_temperature": 4, "aging": 4}
 REF_ORDERS = tuple(range(2, 9))
 RADIUS_ORDERS = tuple(range(4, 9))
 
@@ -331,10 +334,20 @@ def _target(data: _Data, sa: _StageA) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return sa.get("target", make)
 
 
-def _local_deviation(radius: np.ndarray) -> np.ndarray:
-    """Radius minus its running median over 11 samples in time: slow drifts (temperature, lag, aging)
-    cancel, an isolated corrupted sample stands out."""
-    return radius - median_filter(radius, size=11, mode="nearest")
+def _local_deviation(radius: np.ndarray, phi: np.ndarray, bins: int = 64) -> np.ndarray:
+    """What of the radius neither angle nor time explains: minus its median in the sample's angle bin
+    (64 bins), then minus its running median over 11 samples in time. Harmonics, phase and slow drifts
+    (temperature, lag, aging) cancel; an isolated corrupted sample stands out."""
+    idx = np.minimum(((phi % (2 * np.pi)) * (bins / (2 * np.pi))).astype(int), bins - 1)
+    order = np.lexsort((radius, idx))
+    starts = np.searchsorted(idx[order], np.arange(bins + 1))
+    med = np.zeros(bins)
+    for b in range(bins):
+        lo, hi = starts[b], starts[b + 1]
+        if hi > lo:
+            med[b] = radius[order[(lo + hi - 1) // 2]]
+    r = radius - med[idx]
+    return r - median_filter(r, size=11, mode="nearest")
 
 
 def _outlier_threshold(dev: np.ndarray) -> float:
@@ -374,13 +387,16 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
         e = e - f @ coef
     else:
         coef = np.zeros(0)
+    if spec.clipping and data.ref is None:
+        # a rebuilt sample lies on the model's circle by construction: no radius error left to correct
+        e = np.where(data.clip_d ^ data.clip_q, 0.0, e)
     reject = np.zeros(data.n, bool)
     threshold = np.inf
     if spec.outliers:
         # the rule needs no reference: any stream can apply it to its own radius (test rows: in __call__)
-        dev = stage_a.get("local_dev", lambda: _local_deviation(radius))
+        dev = stage_a.get("local_dev", lambda: _local_deviation(radius, phi))
         threshold = _outlier_threshold(dev)
-        reject = np.abs(dev) > threshold
+        reject = (np.abs(dev) > threshold) & ~data.clipped  # clipped samples are adc_clipping's
     return _Fit(stage_a, names, coef, e, reject, threshold)
 
 
@@ -414,7 +430,7 @@ class _Evaluator:
             r = fit.reject[test]
             if spec.outliers:
                 dev = fit.stage_a.memo["local_dev"][test]
-                r = np.abs(dev) > _outlier_threshold(dev)
+                r = (np.abs(dev) > _outlier_threshold(dev)) & ~data.clipped[test]
             rejected += int(r.sum())
             e = np.where(r, np.nan, e)
             err[test] = e
@@ -516,7 +532,8 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
     # robust baseline: fit on everything not clipped, flag isolated samples far off the circle, refit
     full = np.ones(data.n, bool)
     base_fit = _fit_model(data, base_spec, full)
-    dev = _local_deviation(np.hypot(base_fit.stage_a.x, base_fit.stage_a.y) - 1.0)
+    _, base_phi, base_radius = _target(data, base_fit.stage_a)
+    dev = _local_deviation(base_radius, base_phi)
     thr = _outlier_threshold(dev[~data.clipped])
     far = np.abs(dev) > thr
     isolated = far & ~np.roll(far, 1) & ~np.roll(far, -1)
@@ -554,8 +571,11 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
             accepted.append((ev.rms, name, cand, ev))
         if not accepted:
             break
-        accepted.sort(key=lambda a: a[0])
-        _, name, cand, ev = accepted[0]
+        # the best, but among terms within 3 % of it the one with the fewest parameters: the terms
+        # overlap (zero offset + phase spans what phase + a 3rd harmonic spans), parsimony decides
+        best = min(a[0] for a in accepted)
+        near = [a for a in accepted if a[0] <= best * (1 + PARSIMONY)]
+        _, name, cand, ev = min(near, key=lambda a: (N_PARAMS[a[1]], a[0]))
         findings_order.append((name, cand, cur_eval, ev, sorted(set(cand.orders) - set(current.orders))))
         current, cur_eval = cand, ev
         if current.tau_s > 0 and name != "thermal_lag":

@@ -98,7 +98,7 @@ def draw(seed: int, effects: tuple[str, ...], style: str):
         samples = record(EncoderModel(**model), profile, rng)
     else:
         cold = "adc_clipping" in effects
-        profile = field_profile(2.0, sample_s=10.0, rng=rng, ambient_c=-35.0 if cold else 25.0,
+        profile = field_profile(2.0, sample_s=10.0, rng=rng, ambient_c=-10.0 if cold else 25.0,
                                 load_rise_c=20.0 if cold else 40.0)
         samples = record(EncoderModel(**model), profile, rng, reference=False)
     return samples, truth
