@@ -395,7 +395,7 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
     if spec.outliers:
         # the rule needs no reference: any stream can apply it to its own radius (test rows: in __call__)
         dev = stage_a.get("local_dev", lambda: _local_deviation(radius, phi))
-        threshold = _outlier_threshold(dev)
+        threshold = _outlier_threshold(dev[~data.clipped])
         reject = (np.abs(dev) > threshold) & ~data.clipped  # clipped samples are adc_clipping's
     return _Fit(stage_a, names, coef, e, reject, threshold)
 
@@ -430,7 +430,7 @@ class _Evaluator:
             r = fit.reject[test]
             if spec.outliers:
                 dev = fit.stage_a.memo["local_dev"][test]
-                r = (np.abs(dev) > _outlier_threshold(dev)) & ~data.clipped[test]
+                r = (np.abs(dev) > _outlier_threshold(dev[~data.clipped[test]])) & ~data.clipped[test]
             rejected += int(r.sum())
             e = np.where(r, np.nan, e)
             err[test] = e

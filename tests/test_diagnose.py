@@ -153,13 +153,14 @@ BENCH = [
     (16, ("thermal_lag",)), (17, ("thermal_lag",)), (18, ("nonlinear_temperature",)), (19, ("aging",)),
     (20, ("outliers",)), (21, ("adc_clipping",)),
     (30, ("zero_offset", "harmonic")), (31, ("thermal_lag", "harmonic:3")), (32, ("phase_drift", "outliers")),
+    (33, ("zero_offset", "phase_nonorthogonality")), (34, ("adc_clipping", "harmonic")),
 ]
 FIELD = [
     (100, ()), (101, ()), (102, ()),
     (110, ("phase_nonorthogonality",)), (111, ("phase_drift",)), (112, ("harmonic",)),
     (113, ("thermal_lag",)), (114, ("nonlinear_temperature",)), (115, ("aging",)),
     (116, ("outliers",)), (117, ("adc_clipping",)),
-    (130, ("thermal_lag", "harmonic")), (131, ("aging", "outliers")),
+    (130, ("thermal_lag", "harmonic")), (131, ("aging", "outliers")), (132, ("adc_clipping", "harmonic")),
 ]
 
 
