@@ -51,3 +51,20 @@ def test_real_sensor_names_the_zero_offset_and_it_carries_across_runs(sensor):
     assert ext < 0.85 * base
     for _, r in rows:
         assert r["train"] == 160 and r["test"] == 320
+
+
+def test_cli_on_real_sensor_writes_json_and_report(tmp_path):
+    load(2)  # skips when absent
+    import json
+    import subprocess
+    import sys
+
+    out, html = tmp_path / "s2.json", tmp_path / "s2.html"
+    res = subprocess.run([sys.executable, "-m", "encoder_fleet.cli", "diagnose", str(JIG / "jig_sensor02.csv"),
+                          "--json", str(out), "--report", str(html)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    report = json.loads(out.read_text())
+    assert report["findings"][0]["cause"] == "zero_offset" and report["held_out"]["by"] == "run"
+    text = html.read_text()
+    assert text.count("data:image/png;base64,") == 2  # no temperature: no temperature plot
+    assert "no temp_c column" in text
