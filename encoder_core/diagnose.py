@@ -54,6 +54,7 @@ OUTLIER_FLOOR = 0.01  # radius deviation (fraction of the radius) below which no
 MAX_OUTLIER_FRACTION = 0.05
 RADIUS_ITERATIONS = 8
 PARSIMONY = 0.03
+MAX_FOLDS = 5
 N_PARAMS = {"adc_clipping": 0, "zero_offset": 1, "phase_nonorthogonality": 1, "phase_drift": 1, "thermal_lag": 1,
             "outliers": 1, "harmonic_distortion": 2, "nonlinear_temperature": 4, "aging": 4}
 REF_ORDERS = tuple(range(2, 9))
@@ -186,7 +187,7 @@ class _Data:
             runs = np.unique(samples.run)
             if 3 <= runs.size <= 50:
                 counts = np.array([np.count_nonzero(samples.run == r) for r in runs])
-                folds = np.searchsorted(runs, samples.run)
+                folds = np.searchsorted(runs, samples.run) % MAX_FOLDS  # many runs: several per fold
                 if counts.min() >= 8 and self._folds_span_temperature(folds):
                     return folds, "run"
         blocks = np.minimum((np.arange(self.n) * 8) // self.n, 7)
