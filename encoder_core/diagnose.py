@@ -28,7 +28,11 @@ stuck at a rail is rebuilt from the other channel and radius 1) and outliers (sa
 circle are rejected).
 
 A cause is named only when adding it to the model cuts the held-out RMS error by at least
-`MIN_GAIN` (greedy forward selection). Held-out means leave-one-run-out when the recording has a
+`MIN_GAIN` (greedy forward selection; among terms within `PARSIMONY` of the best, the one with the
+fewest parameters is taken, because the terms overlap: zero offset + phase spans what phase + a 3rd
+harmonic spans). The outlier rule needs no reference: a sample whose radius, less the median of its
+angle bin and its running median in time, lies beyond 8 robust sigmas and twice the 95th percentile
+is rejected (and left out of the error). Held-out means leave-one-run-out when the recording has a
 `run` column with several runs, else contiguous time blocks. Samples that are stuck at a rail or
 isolated far off the circle never enter a fit (robust fitting), whether or not they become findings.
 """

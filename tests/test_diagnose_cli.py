@@ -47,6 +47,7 @@ def test_diagnose_writes_contract_json_and_html(bench_csv, tmp_path):
     assert text.count("data:image/png;base64,") == 3  # angle, temperature (heating/cooling), baseline vs extended
     assert "harmonic_distortion" in text and "heating" in text
     assert "harmonic_distortion" in res.stdout
+    assert "diagnose:" in res.stderr and "fit" in res.stderr  # tqdm progress on stderr (26,880 rows)
 
 
 def test_diagnose_halls_without_reference(tmp_path):
