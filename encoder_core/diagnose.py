@@ -674,7 +674,13 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
     gain = f"modelling it cuts the held-out RMS {what} from {before.rms:.3f}° to {after.rms:.3f}°"
     if name == "zero_offset":
         z = np.degrees(_coef(final, "zero"))
-        return {"offset_deg": round(float(z), 4)}, f"the angle error has a constant part of {z:.3f}° at every angle; {gain}."
+        half = ""
+        if final.stage_a.coef_d[0] < 0 and final.stage_a.coef_q[0] < 0:
+            # both baseline gains negative: the axis-aligned fit turned the angle by half a turn
+            z = float((z + 180.0 + 180.0) % 360.0 - 180.0)
+            half = " (the baseline's gains came out negative on both axes: half a turn of it is in the gains)"
+        return ({"offset_deg": round(float(z), 4)},
+                f"the angle error has a constant part of {z:.3f}° at every angle{half}; {gain}.")
     if name == "phase_nonorthogonality":
         w = _coef(final, "phase")
         beta = np.degrees(w if ref else -2 * w)

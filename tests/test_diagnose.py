@@ -193,3 +193,14 @@ def test_without_temperature_thermal_causes_are_not_testable():
     assert [f["cause"] for f in report["findings"]] == ["harmonic_distortion"]
     assert report["findings"][0]["parameters"]["order"] == 5
     assert "constant" in report["baseline"]["model"]
+
+
+@pytest.mark.parametrize("zero_deg", [37.0, 175.0])
+def test_large_zero_offset_is_named_in_full(zero_deg):
+    """The encoder's zero need not be near the machine's: even past a quarter turn, where the
+    axis-aligned baseline's gains turn negative, the named offset is the whole offset."""
+    rng = np.random.default_rng(int(zero_deg))
+    model = EncoderModel(**{**baseline_model(rng, "bench"), "zero_offset_rad": np.radians(zero_deg)})
+    report = diagnose(record(model, bench_profile(rng=rng), rng)).report
+    assert [f["cause"] for f in report["findings"]] == ["zero_offset"]
+    assert report["findings"][0]["parameters"]["offset_deg"] == pytest.approx(zero_deg, abs=0.05)
