@@ -147,18 +147,20 @@ def check(report, truth, style):
 
 
 BENCH = [
-    (0, ()), (1, ()), (2, ()),
+    (0, ()), (1, ()), (2, ()), (3, ()), (4, ()),
     (10, ("zero_offset",)), (11, ("phase_nonorthogonality",)), (12, ("phase_drift",)),
-    (13, ("harmonic",)), (14, ("harmonic",)), (15, ("harmonic:3",)),
-    (16, ("thermal_lag",)), (17, ("thermal_lag",)), (18, ("nonlinear_temperature",)), (19, ("aging",)),
+    (13, ("harmonic",)), (14, ("harmonic",)), (15, ("harmonic:3",)), (22, ("harmonic",)),
+    (16, ("thermal_lag",)), (17, ("thermal_lag",)), (23, ("thermal_lag",)), (18, ("nonlinear_temperature",)),
+    (19, ("aging",)),
     (20, ("outliers",)), (21, ("adc_clipping",)),
     (30, ("zero_offset", "harmonic")), (31, ("thermal_lag", "harmonic:3")), (32, ("phase_drift", "outliers")),
     (33, ("zero_offset", "phase_nonorthogonality")), (34, ("adc_clipping", "harmonic")),
 ]
 FIELD = [
-    (100, ()), (101, ()), (102, ()),
+    (100, ()), (101, ()), (102, ()), (103, ()), (104, ()),
     (110, ("phase_nonorthogonality",)), (111, ("phase_drift",)), (112, ("harmonic",)),
-    (113, ("thermal_lag",)), (114, ("nonlinear_temperature",)), (115, ("aging",)),
+    (113, ("thermal_lag",)), (118, ("thermal_lag",)), (119, ("harmonic",)), (114, ("nonlinear_temperature",)),
+    (115, ("aging",)),
     (116, ("outliers",)), (117, ("adc_clipping",)),
     (130, ("thermal_lag", "harmonic")), (131, ("aging", "outliers")), (132, ("adc_clipping", "harmonic")),
 ]
