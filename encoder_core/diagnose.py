@@ -618,7 +618,12 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
     phi = np.degrees(np.arctan2(final.stage_a.y, final.stage_a.x)) if data.ref is None else np.degrees(data.ref)
     plots = {"t": data.t, "angle_deg": phi % 360, "temp_c": data.temp, "rate_c_per_min": data.rate,
              "baseline_error_deg": baseline.err_deg, "extended_error_deg": cur_eval.err_deg,
-             "metric": data.metric}
+             "metric": data.metric, "thermal_view_deg": baseline.err_deg, "thermal_view": "baseline"}
+    no_thermal = replace(current, tau_s=0.0, nonlinear=False, aging=False)
+    if data.temp is not None and no_thermal != current and no_thermal != base_spec:
+        # what temperature does to the residual once every other named term is modelled
+        plots["thermal_view_deg"] = evaluate(no_thermal).err_deg
+        plots["thermal_view"] = "extended minus thermal terms"
     return Diagnosis(report=report, plots=plots, spec=current)
 
 
