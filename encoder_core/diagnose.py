@@ -660,15 +660,17 @@ def _axis_terms(final: _Fit, data: _Data, spec: Spec, which: int) -> tuple[np.nd
     return np.array(gains), np.array(offsets)
 
 
-def _rate_split(data: _Data, err: np.ndarray) -> str:
+def _rate_split(data: _Data, before: np.ndarray, after: np.ndarray) -> str:
+    """Held-out RMS while heating, cooling and steady (|dT/dt| <= 0.2 °C/min), before -> after."""
     if data.rate is None:
         return ""
     parts = []
     for label, mask in (("heating", data.rate > 0.2), ("cooling", data.rate < -0.2),
                         ("steady", np.abs(data.rate) <= 0.2)):
-        e = err[mask & np.isfinite(err)]
-        if e.size:
-            parts.append(f"{label} {np.sqrt(np.mean(e ** 2)):.3f}°")
+        b = before[mask & np.isfinite(before)]
+        a = after[mask & np.isfinite(after)]
+        if b.size and a.size:
+            parts.append(f"{label} {np.sqrt(np.mean(b ** 2)):.3f}° -> {np.sqrt(np.mean(a ** 2)):.3f}°")
     return ", ".join(parts)
 
 
@@ -705,7 +707,8 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
                 f"(harmonic order {n}, seed 001 eq. 18); {gain}.")
     if name == "thermal_lag":
         return ({"tau_s": round(float(current.tau_s), 2)},
-                f"the baseline residual differs with the rate of temperature change ({_rate_split(data, baseline.err_deg)});"
+                f"the residual depends on the rate of temperature change, and lagging temp_c fixes it where the "
+                f"temperature moves (held-out RMS {_rate_split(data, before.err_deg, after.err_deg)});"
                 f" the die follows temp_c with a first-order lag of τ = {current.tau_s:.0f} s; {gain}.")
     if name == "nonlinear_temperature":
         g, o = _axis_terms(final, data, current, 2)
