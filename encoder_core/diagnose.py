@@ -28,7 +28,11 @@ stuck at a rail is rebuilt from the other channel and radius 1) and outliers (sa
 circle are rejected).
 
 A cause is named only when adding it to the model cuts the held-out RMS error by at least
-`MIN_GAIN` (greedy forward selection). Held-out means leave-one-run-out when the recording has a
+`MIN_GAIN` (greedy forward selection; among terms within `PARSIMONY` of the best, the one with the
+fewest parameters is taken, because the terms overlap: zero offset + phase spans what phase + a 3rd
+harmonic spans). The outlier rule needs no reference: a sample whose radius, less the median of its
+angle bin and its running median in time, lies beyond 8 robust sigmas and twice the 95th percentile
+is rejected (and left out of the error). Held-out means leave-one-run-out when the recording has a
 `run` column with several runs, else contiguous time blocks. Samples that are stuck at a rail or
 isolated far off the circle never enter a fit (robust fitting), whether or not they become findings.
 """
@@ -38,6 +42,8 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
+
+from scipy.ndimage import median_filter
 
 from .physics import REFERENCE_TEMP_C, wrap_rad
 from .samples import InputError, Samples, check_angle_coverage, check_fit_input
@@ -51,6 +57,10 @@ OUTLIER_SIGMAS = 8.0
 OUTLIER_FLOOR = 0.01  # radius deviation (fraction of the radius) below which nothing is an outlier
 MAX_OUTLIER_FRACTION = 0.05
 RADIUS_ITERATIONS = 8
+PARSIMONY = 0.03
+MAX_FOLDS = 5
+N_PARAMS = {"adc_clipping": 0, "zero_offset": 1, "phase_nonorthogonality": 1, "phase_drift": 1, "thermal_lag": 1,
+            "outliers": 1, "harmonic_distortion": 2, "nonlinear_temperature": 4, "aging": 4}
 REF_ORDERS = tuple(range(2, 9))
 RADIUS_ORDERS = tuple(range(4, 9))
 
@@ -135,9 +145,9 @@ class _Data:
         self.q = (samples.q - self.center[1]) / self.scale
         self.ref = None if samples.theta_ref is None else np.asarray(samples.theta_ref, float)
         if self.ref is not None:
-            check_angle_coverage(self.ref, what="reference angle")
+            check_angle_coverage(self.ref, what="reference angle (theta_ref_deg)")
         else:
-            check_angle_coverage(np.arctan2(self.q, self.d), what="angle (atan2(q, d))")
+            check_angle_coverage(np.arctan2(self.q, self.d), what="d/q angle")
         self.temp = None if samples.temp_c is None else np.asarray(samples.temp_c, float)
         self.temp_span = 0.0 if self.temp is None else float(np.ptp(self.temp))
         self.span_s = float(self.t[-1] - self.t[0]) if n > 1 else 0.0
@@ -156,8 +166,8 @@ class _Data:
 
     def temp_n(self, tau_s: float) -> np.ndarray | None:
         """(T - 20)/50 with T lagged first-order by tau (the die temperature model)."""
-        if self.temp is None:
-            return None
+        if self.temp is None or self.temp_span == 0:
+            return None  # no temperature, or one that never changes: gains and offsets are constants
         key = round(float(tau_s), 6)
         if key not in self._lagged:
             tt = first_order_lag(self.t, self.temp, key) if key > 0 else self.temp
@@ -181,7 +191,7 @@ class _Data:
             runs = np.unique(samples.run)
             if 3 <= runs.size <= 50:
                 counts = np.array([np.count_nonzero(samples.run == r) for r in runs])
-                folds = np.searchsorted(runs, samples.run)
+                folds = np.searchsorted(runs, samples.run) % MAX_FOLDS  # many runs: several per fold
                 if counts.min() >= 8 and self._folds_span_temperature(folds):
                     return folds, "run"
         blocks = np.minimum((np.arange(self.n) * 8) // self.n, 7)
@@ -329,6 +339,29 @@ def _target(data: _Data, sa: _StageA) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return sa.get("target", make)
 
 
+def _local_deviation(radius: np.ndarray, phi: np.ndarray, bins: int = 64) -> np.ndarray:
+    """What of the radius neither angle nor time explains: minus its median in the sample's angle bin
+    (64 bins), then minus its running median over 11 samples in time. Harmonics, phase and slow drifts
+    (temperature, lag, aging) cancel; an isolated corrupted sample stands out."""
+    idx = np.minimum(((phi % (2 * np.pi)) * (bins / (2 * np.pi))).astype(int), bins - 1)
+    order = np.lexsort((radius, idx))
+    starts = np.searchsorted(idx[order], np.arange(bins + 1))
+    med = np.zeros(bins)
+    for b in range(bins):
+        lo, hi = starts[b], starts[b + 1]
+        if hi > lo:
+            med[b] = radius[order[(lo + hi - 1) // 2]]
+    r = radius - med[idx]
+    return r - median_filter(r, size=11, mode="nearest")
+
+
+def _outlier_threshold(dev: np.ndarray) -> float:
+    """Beyond 8 robust sigmas, beyond twice the 95th percentile (so that a systematic effect spread
+    over more than 5 % of the samples never counts), and beyond 1 % of the radius."""
+    p95 = float(np.percentile(np.abs(dev), 95)) if dev.size else 0.0
+    return max(OUTLIER_SIGMAS * _robust_sigma(dev), 2.0 * p95, OUTLIER_FLOOR)
+
+
 def _robust_sigma(v: np.ndarray) -> float:
     v = v[np.isfinite(v)]
     if v.size == 0:
@@ -359,12 +392,16 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
         e = e - f @ coef
     else:
         coef = np.zeros(0)
+    if spec.clipping and data.ref is None:
+        # a rebuilt sample lies on the model's circle by construction: no radius error left to correct
+        e = np.where(data.clip_d ^ data.clip_q, 0.0, e)
     reject = np.zeros(data.n, bool)
     threshold = np.inf
     if spec.outliers:
-        r_train = radius[train]
-        threshold = max(OUTLIER_SIGMAS * _robust_sigma(r_train), OUTLIER_FLOOR)
-        reject = np.abs(radius - np.median(r_train)) > threshold
+        # the rule needs no reference: any stream can apply it to its own radius (test rows: in __call__)
+        dev = stage_a.get("local_dev", lambda: _local_deviation(radius, phi))
+        threshold = _outlier_threshold(dev[~data.clipped])
+        reject = (np.abs(dev) > threshold) & ~data.clipped  # clipped samples are adc_clipping's
     return _Fit(stage_a, names, coef, e, reject, threshold)
 
 
@@ -396,6 +433,9 @@ class _Evaluator:
             fit = _fit_model(data, spec, ~test, stage_a=self.stage_a_for(spec, fold))
             e = fit.err[test]
             r = fit.reject[test]
+            if spec.outliers:
+                dev = fit.stage_a.memo["local_dev"][test]
+                r = (np.abs(dev) > _outlier_threshold(dev[~data.clipped[test]])) & ~data.clipped[test]
             rejected += int(r.sum())
             e = np.where(r, np.nan, e)
             err[test] = e
@@ -497,9 +537,10 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
     # robust baseline: fit on everything not clipped, flag isolated samples far off the circle, refit
     full = np.ones(data.n, bool)
     base_fit = _fit_model(data, base_spec, full)
-    radius = np.hypot(base_fit.stage_a.x, base_fit.stage_a.y) - 1.0
-    thr = max(OUTLIER_SIGMAS * _robust_sigma(radius[~data.clipped]), OUTLIER_FLOOR)
-    far = np.abs(radius - np.median(radius[~data.clipped])) > thr
+    _, base_phi, base_radius = _target(data, base_fit.stage_a)
+    dev = _local_deviation(base_radius, base_phi)
+    thr = _outlier_threshold(dev[~data.clipped])
+    far = np.abs(dev) > thr
     isolated = far & ~np.roll(far, 1) & ~np.roll(far, -1)
     data.suspect = isolated & ~data.clipped
     phi0 = {}
@@ -535,8 +576,11 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
             accepted.append((ev.rms, name, cand, ev))
         if not accepted:
             break
-        accepted.sort(key=lambda a: a[0])
-        _, name, cand, ev = accepted[0]
+        # the best, but among terms within 3 % of it the one with the fewest parameters: the terms
+        # overlap (zero offset + phase spans what phase + a 3rd harmonic spans), parsimony decides
+        best = min(a[0] for a in accepted)
+        near = [a for a in accepted if a[0] <= best * (1 + PARSIMONY)]
+        _, name, cand, ev = min(near, key=lambda a: (N_PARAMS[a[1]], a[0]))
         findings_order.append((name, cand, cur_eval, ev, sorted(set(cand.orders) - set(current.orders))))
         current, cur_eval = cand, ev
         if current.tau_s > 0 and name != "thermal_lag":
@@ -574,7 +618,12 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
     phi = np.degrees(np.arctan2(final.stage_a.y, final.stage_a.x)) if data.ref is None else np.degrees(data.ref)
     plots = {"t": data.t, "angle_deg": phi % 360, "temp_c": data.temp, "rate_c_per_min": data.rate,
              "baseline_error_deg": baseline.err_deg, "extended_error_deg": cur_eval.err_deg,
-             "metric": data.metric}
+             "metric": data.metric, "thermal_view_deg": baseline.err_deg, "thermal_view": "baseline"}
+    no_thermal = replace(current, tau_s=0.0, nonlinear=False, aging=False)
+    if data.temp is not None and no_thermal != current and no_thermal != base_spec:
+        # what temperature does to the residual once every other named term is modelled
+        plots["thermal_view_deg"] = evaluate(no_thermal).err_deg
+        plots["thermal_view"] = "extended minus thermal terms"
     return Diagnosis(report=report, plots=plots, spec=current)
 
 
@@ -611,15 +660,17 @@ def _axis_terms(final: _Fit, data: _Data, spec: Spec, which: int) -> tuple[np.nd
     return np.array(gains), np.array(offsets)
 
 
-def _rate_split(data: _Data, err: np.ndarray) -> str:
+def _rate_split(data: _Data, before: np.ndarray, after: np.ndarray) -> str:
+    """Held-out RMS while heating, cooling and steady (|dT/dt| <= 0.2 °C/min), before -> after."""
     if data.rate is None:
         return ""
     parts = []
     for label, mask in (("heating", data.rate > 0.2), ("cooling", data.rate < -0.2),
                         ("steady", np.abs(data.rate) <= 0.2)):
-        e = err[mask & np.isfinite(err)]
-        if e.size:
-            parts.append(f"{label} {np.sqrt(np.mean(e ** 2)):.3f}°")
+        b = before[mask & np.isfinite(before)]
+        a = after[mask & np.isfinite(after)]
+        if b.size and a.size:
+            parts.append(f"{label} {np.sqrt(np.mean(b ** 2)):.3f}° -> {np.sqrt(np.mean(a ** 2)):.3f}°")
     return ", ".join(parts)
 
 
@@ -630,7 +681,13 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
     gain = f"modelling it cuts the held-out RMS {what} from {before.rms:.3f}° to {after.rms:.3f}°"
     if name == "zero_offset":
         z = np.degrees(_coef(final, "zero"))
-        return {"offset_deg": round(float(z), 4)}, f"the angle error has a constant part of {z:.3f}° at every angle; {gain}."
+        half = ""
+        if final.stage_a.coef_d[0] < 0 and final.stage_a.coef_q[0] < 0:
+            # both baseline gains negative: the axis-aligned fit turned the angle by half a turn
+            z = float((z + 180.0 + 180.0) % 360.0 - 180.0)
+            half = " (the baseline's gains came out negative on both axes: half a turn of it is in the gains)"
+        return ({"offset_deg": round(float(z), 4)},
+                f"the angle error has a constant part of {z:.3f}° at every angle{half}; {gain}.")
     if name == "phase_nonorthogonality":
         w = _coef(final, "phase")
         beta = np.degrees(w if ref else -2 * w)
@@ -650,7 +707,8 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
                 f"(harmonic order {n}, seed 001 eq. 18); {gain}.")
     if name == "thermal_lag":
         return ({"tau_s": round(float(current.tau_s), 2)},
-                f"the baseline residual differs with the rate of temperature change ({_rate_split(data, baseline.err_deg)});"
+                f"the residual depends on the rate of temperature change, and lagging temp_c fixes it where the "
+                f"temperature moves (held-out RMS {_rate_split(data, before.err_deg, after.err_deg)});"
                 f" the die follows temp_c with a first-order lag of τ = {current.tau_s:.0f} s; {gain}.")
     if name == "nonlinear_temperature":
         g, o = _axis_terms(final, data, current, 2)
@@ -672,8 +730,8 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
     if name == "outliers":
         frac = after.rejected / data.n
         return ({"fraction": round(frac, 6)},
-                f"{after.rejected} samples ({100 * frac:.2f} %) lie beyond {OUTLIER_SIGMAS:.0f}× the robust spread "
-                f"off the circle, isolated in time; rejecting them {gain[len('modelling it '):]}.")
+                f"{after.rejected} samples ({100 * frac:.2f} %) jump off the circle, each alone, beyond "
+                f"{OUTLIER_SIGMAS:.0f}× the robust spread of the radius about its running median; rejecting them {gain[len('modelling it '):]}.")
     if name == "adc_clipping":
         frac = float(data.clipped.mean())
         where = "; ".join(f"{c['channel']} stuck at {c['value']} in {c['samples']} samples" for c in data.clip_info)

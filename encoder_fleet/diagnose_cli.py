@@ -55,13 +55,24 @@ def cmd_diagnose(args) -> int:
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(report, indent=2) + "\n")
+        out.write_text(json.dumps(_finite(report), indent=2, allow_nan=False) + "\n")
     if args.report:
         from encoder_fleet.report import write_report
 
         write_report(result, args.report, title=Path(args.recording).name)
     _print_summary(report)
     return 0
+
+
+def _finite(obj):
+    """JSON has no NaN or infinity: a number that is not finite is written as null."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def _print_summary(report: dict) -> None:

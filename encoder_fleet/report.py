@@ -48,14 +48,16 @@ def _plots(plots: dict) -> list[tuple[str, str]]:
     if temp is not None:
         temp = np.asarray(temp)
         rate = np.asarray(plots["rate_c_per_min"])
+        view = np.asarray(plots.get("thermal_view_deg", base))
+        view_name = plots.get("thermal_view", "baseline")
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), sharey=True)
-        for ax, err, name in ((axes[0], base, "baseline"), (axes[1], ext, "extended")):
+        for ax, err, name in ((axes[0], view, view_name), (axes[1], ext, "extended")):
             for mask, colour, what in ((rate > 0.2, "tab:red", "heating"), (rate < -0.2, "tab:blue", "cooling"),
                                        (np.abs(rate) <= 0.2, "tab:gray", "steady")):
                 m = idx[mask[idx]]
                 if m.size:
                     ax.plot(temp[m], err[m], ".", ms=1.5, alpha=0.5, color=colour, label=what)
-            ax.set_title(f"{name}: held-out {label} against temperature")
+            ax.set_title(f"{name}: held-out {label} vs temperature", fontsize=10)
             ax.set_xlabel("reported temperature (°C)")
             ax.grid(alpha=0.3)
             ax.legend(markerscale=6, loc="upper right")

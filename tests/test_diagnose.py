@@ -56,7 +56,10 @@ def plant(effect, rng, model, style, truth):
         model["offset_tc_counts_per_c"] = (float(sign * rng.uniform(1.0, 2.0)), float(-sign * rng.uniform(1.0, 2.0)))
         truth[effect] = {"tau_s": tau}
     elif effect == "nonlinear_temperature":
-        g2 = (float(sign * rng.uniform(1.5e-5, 3e-5)), float(-sign * rng.uniform(0.5e-5, 1.5e-5)))
+        if style == "bench":  # the reference sees the axes' difference
+            g2 = (float(sign * rng.uniform(1.5e-5, 3e-5)), float(-sign * rng.uniform(0.5e-5, 1.5e-5)))
+        else:  # the radius sees their common part
+            g2 = (float(sign * rng.uniform(2e-5, 4e-5)), float(sign * rng.uniform(2e-5, 4e-5)))
         model["gain_tc2_per_c2"] = g2
         model["offset_tc2_counts_per_c2"] = (float(rng.uniform(-0.01, 0.01)), float(rng.uniform(-0.01, 0.01)))
         truth[effect] = {"gain_tc2_per_c2": g2}
@@ -95,7 +98,7 @@ def draw(seed: int, effects: tuple[str, ...], style: str):
         samples = record(EncoderModel(**model), profile, rng)
     else:
         cold = "adc_clipping" in effects
-        profile = field_profile(2.0, sample_s=10.0, rng=rng, ambient_c=-35.0 if cold else 25.0,
+        profile = field_profile(2.0, sample_s=10.0, rng=rng, ambient_c=-10.0 if cold else 25.0,
                                 load_rise_c=20.0 if cold else 40.0)
         samples = record(EncoderModel(**model), profile, rng, reference=False)
     return samples, truth
@@ -144,19 +147,22 @@ def check(report, truth, style):
 
 
 BENCH = [
-    (0, ()), (1, ()), (2, ()),
+    (0, ()), (1, ()), (2, ()), (3, ()), (4, ()),
     (10, ("zero_offset",)), (11, ("phase_nonorthogonality",)), (12, ("phase_drift",)),
-    (13, ("harmonic",)), (14, ("harmonic",)), (15, ("harmonic:3",)),
-    (16, ("thermal_lag",)), (17, ("thermal_lag",)), (18, ("nonlinear_temperature",)), (19, ("aging",)),
+    (13, ("harmonic",)), (14, ("harmonic",)), (15, ("harmonic:3",)), (22, ("harmonic",)),
+    (16, ("thermal_lag",)), (17, ("thermal_lag",)), (23, ("thermal_lag",)), (18, ("nonlinear_temperature",)),
+    (19, ("aging",)),
     (20, ("outliers",)), (21, ("adc_clipping",)),
     (30, ("zero_offset", "harmonic")), (31, ("thermal_lag", "harmonic:3")), (32, ("phase_drift", "outliers")),
+    (33, ("zero_offset", "phase_nonorthogonality")), (34, ("adc_clipping", "harmonic")),
 ]
 FIELD = [
-    (100, ()), (101, ()), (102, ()),
+    (100, ()), (101, ()), (102, ()), (103, ()), (104, ()),
     (110, ("phase_nonorthogonality",)), (111, ("phase_drift",)), (112, ("harmonic",)),
-    (113, ("thermal_lag",)), (114, ("nonlinear_temperature",)), (115, ("aging",)),
+    (113, ("thermal_lag",)), (118, ("thermal_lag",)), (119, ("harmonic",)), (114, ("nonlinear_temperature",)),
+    (115, ("aging",)),
     (116, ("outliers",)), (117, ("adc_clipping",)),
-    (130, ("thermal_lag", "harmonic")), (131, ("aging", "outliers")),
+    (130, ("thermal_lag", "harmonic")), (131, ("aging", "outliers")), (132, ("adc_clipping", "harmonic")),
 ]
 
 
@@ -189,3 +195,14 @@ def test_without_temperature_thermal_causes_are_not_testable():
     assert [f["cause"] for f in report["findings"]] == ["harmonic_distortion"]
     assert report["findings"][0]["parameters"]["order"] == 5
     assert "constant" in report["baseline"]["model"]
+
+
+@pytest.mark.parametrize("zero_deg", [37.0, 175.0])
+def test_large_zero_offset_is_named_in_full(zero_deg):
+    """The encoder's zero need not be near the machine's: even past a quarter turn, where the
+    axis-aligned baseline's gains turn negative, the named offset is the whole offset."""
+    rng = np.random.default_rng(int(zero_deg))
+    model = EncoderModel(**{**baseline_model(rng, "bench"), "zero_offset_rad": np.radians(zero_deg)})
+    report = diagnose(record(model, bench_profile(rng=rng), rng)).report
+    assert [f["cause"] for f in report["findings"]] == ["zero_offset"]
+    assert report["findings"][0]["parameters"]["offset_deg"] == pytest.approx(zero_deg, abs=0.05)
