@@ -51,8 +51,12 @@ def plant(effect, rng, model, style, truth):
     elif effect == "thermal_lag":
         tau = float(rng.uniform(150, 450))
         model["thermal_lag_tau_s"] = tau
-        # a lag only shows through temperature coefficients: make them clearly different per axis
-        model["gain_tc_per_c"] = (float(rng.uniform(-0.003, -0.0025)), float(rng.uniform(-0.001, -0.0005)))
+        # a lag only shows through temperature coefficients: make them clearly different per axis (the
+        # reference sees the difference), or both large (the radius sees the common part)
+        if style == "bench":
+            model["gain_tc_per_c"] = (float(rng.uniform(-0.003, -0.0025)), float(rng.uniform(-0.001, -0.0005)))
+        else:
+            model["gain_tc_per_c"] = (float(rng.uniform(-0.0035, -0.0025)), float(rng.uniform(-0.0035, -0.0025)))
         model["offset_tc_counts_per_c"] = (float(sign * rng.uniform(1.0, 2.0)), float(-sign * rng.uniform(1.0, 2.0)))
         truth[effect] = {"tau_s": tau}
     elif effect == "nonlinear_temperature":
