@@ -39,11 +39,13 @@ def read_recording(path: str | Path) -> Samples:
         wanted = ["t"] + (["d", "q"] if has_dq else list(HALL_COLUMNS)) + [c for c in OPTIONAL if c in header]
         index = {name: header.index(name) for name in wanted}
         columns: dict[str, list[float]] = {name: [] for name in wanted}
+        lines: list[int] = []  # the file line of each data row, for messages about rows
         try:
             for row in reader:
                 line = reader.line_num
                 if not row or all(not cell.strip() for cell in row):
                     continue
+                lines.append(line)
                 if len(row) < len(header):
                     raise InputError(f"{path}, line {line}: {len(row)} fields, expected {len(header)}")
                 for name, col in index.items():
@@ -64,9 +66,9 @@ def read_recording(path: str | Path) -> Samples:
     step = np.diff(t)
     bad = np.flatnonzero(step <= 0)
     if bad.size:
-        # header is line 1, first data row line 2 (blank lines aside)
-        raise InputError(f"{path}, data row {bad[0] + 2}: column 't' does not increase "
-                         f"({t[bad[0]]} then {t[bad[0] + 1]})")
+        row = bad[0] + 1  # the row whose t is not after the one before it
+        raise InputError(f"{path}, line {lines[row]}, column 't': does not increase "
+                         f"({t[row - 1]} on line {lines[row - 1]}, then {t[row]})")
     if has_dq:
         d, q = arrays["d"], arrays["q"]
         halls = None

@@ -78,7 +78,7 @@ def _write(path, header, rows):
 @pytest.mark.parametrize("case,message", [
     ("missing_column", "missing columns: need 'd' and 'q'"),
     ("text_in_number", "line 12, column 'q': not a number: 'abc'"),
-    ("t_not_increasing", "data row 5: column 't' does not increase"),  # row 5 (line 5) is not followed by a later t
+    ("t_not_increasing", "line 6, column 't': does not increase"),  # data row 5 repeats row 4's t
     ("too_few", "too few samples to diagnose: 20"),
     ("coverage", "coverage for a fit: samples fall in 3 of 12 30° sectors"),
 ])

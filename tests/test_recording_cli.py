@@ -38,7 +38,8 @@ def test_simulate_field_without_reference_and_with_halls(tmp_path):
     ("t,d\n0,1\n", "missing columns"),
     ("d,q\n1,2\n", "missing column 't'"),
     ("t,d,q\n0,1,2\n1,x,3\n", r"line 3, column 'd': not a number"),
-    ("t,d,q\n0,1,2\n0,1,3\n", "does not increase"),
+    ("t,d,q\n0,1,2\n0,1,3\n", r"line 3, column 't': does not increase \(0.0 on line 2, then 0.0\)"),
+    ("t,d,q\n0,1,2\n\n1,1,2\n0.5,1,3\n", "line 5, column 't'"),  # a blank line does not shift the count
     ("t,d,q\n0,1,nan\n", "not a finite number"),
     ("t,d,q\n0,1\n", "2 fields, expected 3"),
     ("", "empty"),
