@@ -90,12 +90,15 @@ class FleetService:
             batch = [self._inbox.get()]
             while len(batch) < MAX_BATCH and not self._inbox.empty():
                 batch.append(self._inbox.get_nowait())
-            if batch[-1] is None:
-                done = True
+            done = any(item is None for item in batch)
             items = [item for item in batch if item is not None]
             if not items:
                 continue
-            statuses = self.store.ingest_many(items)
+            try:
+                statuses = self.store.ingest_many(items)
+            except Exception:  # the disk, not the data: nothing of the batch was committed, so no watermark
+                log.exception("storing %d messages failed; the agents will resend them", len(items))
+                continue  # moved past it, and the loop must keep serving what comes next
             with self._lock:
                 for status in statuses:
                     self.counters.count(status)
@@ -125,13 +128,19 @@ class FleetService:
     # --- queries -----------------------------------------------------------------------------------
 
     def _on_coefficients_query(self, query: zenoh.Query) -> None:
-        device = wire.device_from_key(query.key_expr)
+        try:
+            device = wire.device_from_key(query.key_expr)
+        except wire.WireError:
+            return  # a wildcard or foreign key: one device per question
         current = self.store.current_coefficients(device, published_only=True)
         if current is not None:
             query.reply(query.key_expr, wire.encode("coefficients", current))
 
     def _on_received_query(self, query: zenoh.Query) -> None:
-        device = wire.device_from_key(query.key_expr)
+        try:
+            device = wire.device_from_key(query.key_expr)
+        except wire.WireError:
+            return
         body = {"device": device, "contiguous_seq": self.watermark(device)}
         query.reply(query.key_expr, json.dumps(body).encode())
 
