@@ -119,11 +119,12 @@ class EdgeAgent:
         if len(block) == 0:
             return True
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
-        quality = self.angle_quality_deg(block)
+        usable = self.usable(block)
+        quality = self.angle_quality_deg(block, usable)
         if self.pending_ack is not None:
             self.send_ack(self.pending_ack, "applied", quality)
             self.pending_ack = None
-        stats = self.window_stats(block)
+        stats = self.window_stats(block, usable)
         self.seq += 1
         msg = wire.window_message(device=self.device, seq=self.seq, window_start=float(block.t[0]),
                                   window_end=float(block.t[-1]), stats=stats, coefficients_version=self.version,
@@ -140,20 +141,24 @@ class EdgeAgent:
     def correct(self, block: Samples) -> np.ndarray:
         return self.correction.angle(block.d, block.q, block.temp_c)
 
-    def angle_quality_deg(self, block: Samples) -> float:
-        """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""
-        radius = self.correction.radius(block.d, block.q, block.temp_c)
-        ok = plausible_mask(block.d, block.q)
-        if ok.sum() < 8:
-            return 0.0
-        r = radius[ok]
-        return float(np.degrees(np.std(r) / np.mean(r)))
-
-    def window_stats(self, block: Samples) -> WindowStats:
+    @staticmethod
+    def usable(block: Samples) -> np.ndarray:
+        """Samples that say something about the circle: finite, near it, no hall clipped at a rail."""
         keep = plausible_mask(block.d, block.q)
-        if block.halls is not None:  # a hall at a rail is clipped: its sample says nothing about the circle
+        if block.halls is not None:
             for hall in block.halls.values():
                 keep &= (hall > 0) & (hall < 4095)
+        return keep
+
+    def angle_quality_deg(self, block: Samples, usable: np.ndarray) -> float:
+        """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""
+        if usable.sum() < 8:
+            return 0.0
+        r = self.correction.radius(block.d[usable], block.q[usable],
+                                   None if block.temp_c is None else block.temp_c[usable])
+        return float(np.degrees(np.std(r) / np.mean(r)))
+
+    def window_stats(self, block: Samples, keep: np.ndarray) -> WindowStats:
         stats = WindowStats(scale=self.scale)
         stats.add(block.d[keep], block.q[keep], None if block.temp_c is None else block.temp_c[keep])
         stats.rejected = int((~keep).sum())
