@@ -64,7 +64,7 @@ def test_agent_applies_good_sets_and_refuses_bad_ones(setup):
     router.put(key, b'{"schema": "encoder-fleet/coefficients/1", "version": NaN}')
     router.put("encoders/other/coefficients", wire.encode("coefficients", {**coefficient_set(factory, 9),
                                                                            "device": "other"}))
-    time.sleep(0.5)
+    assert wait_for(lambda: agent.inbox.qsize() >= 4)  # its own four; the other device's never comes
     for _ in range(3):
         agent.step()
     assert agent.version == 5
@@ -80,7 +80,7 @@ def test_restarted_agent_resumes_with_its_set(setup):
     agent = make_agent(client)
     agent.start()
     router.put(f"encoders/{DEVICE}/coefficients", wire.encode("coefficients", coefficient_set(factory, 7, 1.02)))
-    time.sleep(0.3)
+    assert wait_for(lambda: agent.inbox.qsize() >= 1)
     agent.step()
     assert agent.version == 7
     seq = agent.seq
