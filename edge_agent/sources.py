@@ -87,12 +87,13 @@ def factory_calibration(model: EncoderModel, seed: int) -> BandedCorrection:
 
 
 def evaluation_set(model: EncoderModel, seed: int, *, n: int = 20000, t_min: float = -40.0,
-                   t_max: float = 85.0) -> Samples:
-    """Truth for scoring a correction: random positions at settled temperatures across the cycle.
-    Only the demo and tests use it; the agent and the service never see it."""
+                   t_max: float = 85.0, hours: float = 0.0) -> Samples:
+    """Truth for scoring a correction: random positions at settled temperatures across the cycle, at
+    an age of `hours` of operation. Only the demo and tests use it; the agent and the service never see it."""
     rng = np.random.default_rng([seed, 3])
     temp = rng.uniform(t_min, t_max, n)
     theta = rng.uniform(0, 2 * np.pi, n)
-    samples, _ = simulate(model.with_(thermal_lag_tau_s=0.0), np.arange(n, dtype=float), theta, temp, rng)
+    t = np.arange(n) * 1e-3  # a snapshot: the drive does not age during it
+    samples, _ = simulate(model.with_(thermal_lag_tau_s=0.0), t, theta, temp, rng, hours_offset=hours)
     return samples
 

@@ -82,6 +82,16 @@ class WindowStats:
                            temp_min=min(self.temp_min, other.temp_min), temp_max=max(self.temp_max, other.temp_max),
                            rejected=self.rejected + other.rejected)
 
+    def subtract(self, other: "WindowStats") -> "WindowStats":
+        """Take a window back out of a sum (merge's inverse for every sum; min and max stay those seen)."""
+        if (self.scale, self.center_d, self.center_q) != (other.scale, other.center_d, other.center_q):
+            raise InputError("cannot subtract window statistics with different normalisation")
+        return WindowStats(scale=self.scale, center_d=self.center_d, center_q=self.center_q,
+                           moments=self.moments - other.moments, bins=self.bins - other.bins,
+                           temp_n=self.temp_n - other.temp_n, temp_sum=self.temp_sum - other.temp_sum,
+                           temp_sq_sum=self.temp_sq_sum - other.temp_sq_sum, temp_min=self.temp_min,
+                           temp_max=self.temp_max, rejected=self.rejected - other.rejected)
+
     def moment(self, i: int, j: int) -> float:
         return float(self.moments[MONOMIALS.index((i, j))])
 

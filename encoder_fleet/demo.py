@@ -20,7 +20,7 @@ from encoder_core.correction import BandedCorrection
 from encoder_core.physics import angle_error_deg, rms
 from encoder_fleet.zenoh_config import free_port, loopback_endpoint
 from service.mcap_export import export_mcap
-from service.runtime import FleetService, HttpServer, open_session
+from service.runtime import BAND_HORIZON, FleetService, HttpServer, open_session
 from service.store import Store
 
 WINDOW_S = 60.0
@@ -89,7 +89,7 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
     names = [f"drive-{i:03d}" for i in range(devices)]
     log = sys.stderr
     print(f"encoder-fleet demo: {devices} drives, {sim_hours:g} simulated hours each (-40…+85 °C cycles)", file=log)
-    store = Store.open(db)
+    store = Store.open(db, band_horizon=BAND_HORIZON)
     session = open_session(listen=[endpoint])
     service = FleetService(store, session, refit_interval_s=1.0).start()
     http = HttpServer(store, http_port).start()

@@ -8,6 +8,7 @@ import threading
 from pathlib import Path
 
 from encoder_core.samples import InputError
+from service.runtime import BAND_HORIZON
 
 
 def device_seed(device: str) -> int:
@@ -69,7 +70,7 @@ def cmd_service(args) -> int:
     from service.runtime import run_service
 
     return run_service(db=args.db, listen=args.listen, connect=args.connect, http_host=args.http_host,
-                       http_port=args.http_port, refit_interval_s=args.refit_interval)
+                       http_port=args.http_port, refit_interval_s=args.refit_interval, band_horizon=args.band_horizon)
 
 
 def cmd_export(args) -> int:
@@ -124,6 +125,8 @@ def register(sub) -> None:
     p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
     p.add_argument("--http-port", type=int, default=8000, help="REST port (0: no REST)")
     p.add_argument("--refit-interval", type=float, default=2.0, help="seconds between refit passes")
+    p.add_argument("--band-horizon", type=int, default=BAND_HORIZON,
+                   help="newest windows per temperature band that refits use, so they follow aging (0: all)")
     p.set_defaults(func=cmd_service)
 
     p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")

@@ -21,6 +21,7 @@ from service.store import Store
 
 log = logging.getLogger("service")
 MAX_BATCH = 500  # messages per ingest transaction
+BAND_HORIZON = 1440  # newest windows per band in the refit's sums (a day of one-minute windows in one band)
 
 
 @dataclass
@@ -243,7 +244,7 @@ class HttpServer:
 
 
 def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None, http_host: str = "127.0.0.1",
-                http_port: int | None, refit_interval_s: float) -> int:
+                http_port: int | None, refit_interval_s: float, band_horizon: int | None = BAND_HORIZON) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM."""
     import signal
 
@@ -251,7 +252,7 @@ def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None,
 
     Path(db).parent.mkdir(parents=True, exist_ok=True)
     listen = listen or ([] if connect else ["tcp/127.0.0.1:7447"])
-    store = Store.open(db)
+    store = Store.open(db, band_horizon=band_horizon or None)
     session = open_session(listen=listen, connect=connect)
     service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
     http = HttpServer(store, http_port, host=http_host).start() if http_port else None

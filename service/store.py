@@ -56,20 +56,23 @@ def _statements(sql: str) -> Iterator[str]:
 
 
 class Store:
-    def __init__(self, conn: sqlite3.Connection, path: str):
+    def __init__(self, conn: sqlite3.Connection, path: str, band_horizon: int | None = None):
         self._conn = conn
         self._lock = threading.RLock()
         self._depth = 0  # open transactions: 0 none, 1 a transaction, more are savepoints inside it
         self.path = path
+        # a band's sum covers at most this many of its newest windows, so refits follow a drive as it
+        # ages; None keeps all history in the sum (every window is stored either way)
+        self.band_horizon = band_horizon
 
     @classmethod
-    def open(cls, path, *, migrations_dir: Path = MIGRATIONS_DIR) -> "Store":
+    def open(cls, path, *, migrations_dir: Path = MIGRATIONS_DIR, band_horizon: int | None = None) -> "Store":
         # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
         conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
         conn.row_factory = sqlite3.Row
         conn.execute("PRAGMA journal_mode=WAL")
         conn.execute("PRAGMA foreign_keys=ON")
-        store = cls(conn, str(path))
+        store = cls(conn, str(path), band_horizon)
         try:
             store._migrate(Path(migrations_dir))
         except BaseException:
@@ -182,22 +185,36 @@ class Store:
             c.execute(f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at) "
                       f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 2))})",
                       [msg[f] for f in WINDOW_FIELDS] + [stats_json, now])
-            row = c.execute("SELECT stats_json FROM band_stats WHERE device = ? AND band = ?", (device, band)).fetchone()
-            if row is not None:
+            row = c.execute("SELECT stats_json, windows, samples, first_seq FROM band_stats WHERE device = ? AND band = ?",
+                            (device, band)).fetchone()
+            if row is None:
+                c.execute("INSERT INTO band_stats (device, band, stats_json, windows, samples, updated_at, first_seq) "
+                          "VALUES (?, ?, ?, 1, ?, ?, 1)", (device, band, _json(stats.to_dict()), msg["samples"], now))
+            elif seq >= row["first_seq"]:  # older ones are past the band's horizon: kept, not summed
                 try:
-                    stats = WindowStats.from_dict(json.loads(row["stats_json"])).merge(stats)
+                    total = WindowStats.from_dict(json.loads(row["stats_json"])).merge(stats)
                 except InputError as exc:
                     raise StoreError("normalisation_mismatch", f"window {device}#{seq}, band {band}: {exc}") from None
-            c.execute("INSERT INTO band_stats (device, band, stats_json, windows, samples, updated_at) "
-                      "VALUES (?, ?, ?, 1, ?, ?) ON CONFLICT(device, band) DO UPDATE SET "
-                      "stats_json = excluded.stats_json, windows = windows + 1, "
-                      "samples = samples + excluded.samples, updated_at = excluded.updated_at",
-                      (device, band, _json(stats.to_dict()), msg["samples"], now))
+                windows, samples, first_seq = row["windows"] + 1, row["samples"] + msg["samples"], row["first_seq"]
+                if self.band_horizon and windows > self.band_horizon:
+                    total, windows, samples, first_seq = self._forget_oldest(c, device, band, total, windows, samples,
+                                                                             first_seq)
+                c.execute("UPDATE band_stats SET stats_json = ?, windows = ?, samples = ?, first_seq = ?, updated_at = ?"
+                          " WHERE device = ? AND band = ?",
+                          (_json(total.to_dict()), windows, samples, first_seq, now, device, band))
             # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
             c.execute("UPDATE devices SET current_version = ? WHERE id = ? AND "
                       "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
                       (msg["coefficients_version"], device, seq, device))
         return True
+
+    def _forget_oldest(self, c, device, band, total, windows, samples, first_seq):
+        """Subtract the band's oldest summed windows until it holds band_horizon of them."""
+        old = c.execute("SELECT seq, samples, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ?"
+                        " ORDER BY seq LIMIT ?", (device, band, first_seq, windows - self.band_horizon)).fetchall()
+        for r in old:
+            total = total.subtract(WindowStats.from_dict(json.loads(r["stats_json"])))
+        return total, windows - len(old), samples - sum(r["samples"] for r in old), old[-1]["seq"] + 1
 
     def dead_letter(self, key_expr: str, reason: str, detail: str, payload: bytes, *,
                     received_at: float | None = None) -> int:
