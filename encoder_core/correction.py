@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .physics import wrap_rad
+from .physics import circular_mean, wrap_rad
 from .samples import InputError
 
 
@@ -81,7 +81,7 @@ def zero_shift(reference: Correction, other: Correction) -> float:
     Gain, offset and harmonic differences average out around the circle; a rotation does not."""
     d, q = other.locus()
     diff = reference.angle(d, q) - other.angle(d, q)
-    return float(np.angle(np.mean(np.exp(1j * diff))))
+    return circular_mean(diff)
 
 
 def harmonic_sum(theta0, harmonics: dict[int, tuple[float, float]]) -> np.ndarray:

@@ -21,7 +21,7 @@ from scipy.ndimage import median_filter, uniform_filter1d
 
 from .correction import BandedCorrection, Correction, from_inverse_matrix
 from .ellipse import fit_from_stats
-from .physics import REFERENCE_TEMP_C, angle, wrap_rad
+from .physics import REFERENCE_TEMP_C, angle, circular_mean, wrap_rad
 from .samples import InputError, Samples, check_angle_coverage, check_fit_input
 from .stats import WindowStats, plausible_mask
 
@@ -284,11 +284,9 @@ class OursLsRef(Method):
         return corr
 
 
-def anchor_zero(correction: Correction, samples: Samples) -> Correction:
-    """Set the zero offset so the circular mean error against the reference is zero."""
-    err = wrap_rad(samples.theta_ref - correction.angle(samples.d, samples.q))
-    correction.zero_offset_rad = float(wrap_rad(correction.zero_offset_rad + np.angle(np.mean(np.exp(1j * err)))))
-    return correction
+def zero_error_rad(correction: Correction, samples: Samples) -> float:
+    """How far the correction's zero is from the reference's: the circular mean of their difference."""
+    return circular_mean(samples.theta_ref - correction.angle(samples.d, samples.q))
 
 
 class OursEllipse(Method):
@@ -308,9 +306,7 @@ class OursEllipse(Method):
         if table is not None:
             ref = Samples(t=np.arange(table.theta.size, dtype=float), d=table.d, q=table.q, theta_ref=table.theta)
             temps = np.array([b.temp_c if b.temp_c is not None else REFERENCE_TEMP_C for b in self.correction.bands])
-            band_at_ref = self.correction.bands[int(np.argmin(np.abs(temps - REFERENCE_TEMP_C)))]
-            at_ref = Correction.from_dict(band_at_ref.to_dict())
-            shift = anchor_zero(at_ref, ref).zero_offset_rad - band_at_ref.zero_offset_rad
+            shift = zero_error_rad(self.correction.bands[int(np.argmin(np.abs(temps - REFERENCE_TEMP_C)))], ref)
             for band in self.correction.bands:
                 band.zero_offset_rad = float(wrap_rad(band.zero_offset_rad + shift))
         return self

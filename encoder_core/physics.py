@@ -26,6 +26,11 @@ def wrap_rad(x) -> np.ndarray:
     return (np.asarray(x, dtype=float) + np.pi) % (2 * np.pi) - np.pi
 
 
+def circular_mean(angles) -> float:
+    """Mean direction of angles in radians (immune to the wrap at ±π)."""
+    return float(np.angle(np.mean(np.exp(1j * np.asarray(angles, dtype=float)))))
+
+
 def angle_error_deg(theta_est, theta_ref) -> np.ndarray:
     """Signed error est - ref in degrees, wrapped to [-180, 180)."""
     return np.degrees(wrap_rad(np.asarray(theta_est) - np.asarray(theta_ref)))

@@ -15,7 +15,7 @@ import numpy as np
 
 from encoder_core.correction import BandedCorrection, Correction, zero_shift
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
-from encoder_core.physics import REFERENCE_TEMP_C, wrap_rad
+from encoder_core.physics import REFERENCE_TEMP_C, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 from encoder_fleet import wire
@@ -52,7 +52,7 @@ def difference_deg(running: Correction, candidate: Correction) -> float:
     the error of the running set if the candidate is right."""
     d, q = candidate.locus()
     diff = wrap_rad(running.angle(d, q) - candidate.angle(d, q))
-    diff = wrap_rad(diff - np.angle(np.mean(np.exp(1j * diff))))
+    diff = wrap_rad(diff - circular_mean(diff))
     return float(np.degrees(np.sqrt(np.mean(diff**2))))
 
 
