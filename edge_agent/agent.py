@@ -42,11 +42,10 @@ def keys(device: str) -> dict[str, str]:
 @dataclass
 class AgentCounters:
     windows: int = 0
-    sent: int = 0
     resent: int = 0
     applied: list[int] = field(default_factory=list)
     refused: list[tuple[int, str]] = field(default_factory=list)
-    offline_syncs: int = 0
+    offline_syncs: int = 0  # watermark queries nobody answered: the service was away
 
 
 class EdgeAgent:
@@ -134,7 +133,6 @@ class EdgeAgent:
         self.put(self.keys["stats"], payload)
         self.outbox.mark_sent([self.seq], time.monotonic())
         self.counters.windows += 1
-        self.counters.sent += 1
         self.sync()
         return True
 

@@ -57,8 +57,9 @@ def cmd_agent(args) -> int:
     try:
         agent.start()
         c = agent.run(real_time_factor=args.real_time_factor, stop=stop)
-        print(f"{args.device}: {c.windows} windows, {c.resent} resent, versions applied {c.applied}, "
-              f"{len(outbox)} left in outbox", flush=True)
+        print(f"{args.device}: {c.windows} windows, {c.resent} resent, {c.offline_syncs} times without the service, "
+              f"versions applied {c.applied}, refused {[v for v, _ in c.refused]}, {len(outbox)} left in outbox",
+              flush=True)
     finally:
         agent.close()
         session.close()
