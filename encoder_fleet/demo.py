@@ -75,7 +75,7 @@ def applied_set(store: Store, device: str) -> dict | None:
     if not applied:
         return None
     version = max(applied)
-    return next(h["message"] for h in store.coefficient_history(device) if h["version"] == version)
+    return store.coefficient_set(device, version)
 
 
 def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) -> int:

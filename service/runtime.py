@@ -48,7 +48,7 @@ class FleetService:
         self._watermarks: dict[str, int] = {}
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
-        self._refitted_at: dict[str, int] = {}  # device -> window count at its last refit
+        self._changed: set[str] = set()  # devices with windows stored since their last refit
         self._lock = threading.Lock()
 
     # --- lifecycle ---------------------------------------------------------------------------------
@@ -63,6 +63,7 @@ class FleetService:
             s.declare_queryable("encoders/*/received", self._on_received_query),
             s.liveliness().declare_subscriber("encoders/*/alive", self._on_alive, history=True),
         ]
+        self._changed.update(d["id"] for d in self.store.devices())  # after a restart, look at everyone once
         self._writer.start()
         if self.refit_interval_s > 0:
             self._thread = threading.Thread(target=self._refit_loop, name="refit", daemon=True)
@@ -101,8 +102,10 @@ class FleetService:
                 log.exception("storing %d messages failed; the agents will resend them", len(items))
                 continue  # moved past it, and the loop must keep serving what comes next
             with self._lock:
-                for status in statuses:
+                for (key, _), status in zip(items, statuses):
                     self.counters.count(status)
+                    if status == "stored" and key.endswith("/stats"):
+                        self._changed.add(wire.device_from_key(key))
 
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""
@@ -157,27 +160,25 @@ class FleetService:
 
     def _refit_loop(self) -> None:
         while not self._stop.wait(self.refit_interval_s):
-            try:
-                self.refit_all()
-            except Exception:  # the loop must outlive one bad device; the error is logged with its trace
-                log.exception("refit pass failed")
+            self.refit_all()
 
     def refit_all(self) -> list[int]:
         """Refit every device that sent windows since its last refit; returns the versions published."""
+        with self._lock:
+            changed, self._changed = sorted(self._changed), set()
         published = []
-        for dev in self.store.devices():
-            device, windows = dev["id"], dev.get("windows", 0)
-            if windows == self._refitted_at.get(device):
+        for device in changed:
+            try:
+                version = self.refit(device)
+            except Exception:  # one bad device must not stop the others; the error is logged with its trace
+                log.exception("%s: refit failed", device)
                 continue
-            self._refitted_at[device] = windows
-            version = self.refit(device)
             if version is not None:
                 published.append(version)
         return published
 
     def refit(self, device: str) -> int | None:
-        history = self.store.coefficient_history(device)
-        factory_msg = next((h["message"] for h in history if h["basis"] == "factory"), None)
+        factory_msg = self.store.coefficient_set(device, 0)
         running_msg = self.store.current_coefficients(device, published_only=True)
         if running_msg is None:
             return None  # no factory set known yet: nothing to anchor a rollout to

@@ -308,6 +308,11 @@ class Store:
                           + " ORDER BY version DESC LIMIT 1", (device,))
         return json.loads(rows[0]["body_json"]) if rows else None
 
+    def coefficient_set(self, device: str, version: int) -> dict | None:
+        """One set (wire message) by version; version 0 is the factory's."""
+        rows = self._rows("SELECT body_json FROM coefficient_sets WHERE device = ? AND version = ?", (device, version))
+        return json.loads(rows[0]["body_json"]) if rows else None
+
     def coefficient_history(self, device: str) -> list[dict]:
         """Every set, newest first: version, created_at, basis, published_at and the wire message."""
         return [{"version": r["version"], "created_at": r["created_at"], "basis": r["basis"],
