@@ -5,6 +5,7 @@ Delivery is at-least-once: each window goes to the durable outbox before it is s
 only when the service's watermark (every seq up to N stored) passes it. The service drops
 duplicates by (device, seq). So the agent can run with the service gone and catch up later.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,8 +36,14 @@ MAX_HARMONIC_RAD = 0.1
 
 def keys(device: str) -> dict[str, str]:
     base = f"encoders/{device}"
-    return {"stats": f"{base}/stats", "coefficients": f"{base}/coefficients", "ack": f"{base}/ack",
-            "alive": f"{base}/alive", "received": f"{base}/received", "factory": f"{base}/factory"}
+    return {
+        "stats": f"{base}/stats",
+        "coefficients": f"{base}/coefficients",
+        "ack": f"{base}/ack",
+        "alive": f"{base}/alive",
+        "received": f"{base}/received",
+        "factory": f"{base}/factory",
+    }
 
 
 @dataclass
@@ -49,9 +56,18 @@ class AgentCounters:
 
 
 class EdgeAgent:
-    def __init__(self, device: str, source: SampleSource, session: zenoh.Session, outbox: Outbox,
-                 factory: BandedCorrection, *, window_s: float = 60.0, resend_after_s: float = 2.0,
-                 query_timeout_s: float = 1.0):
+    def __init__(
+        self,
+        device: str,
+        source: SampleSource,
+        session: zenoh.Session,
+        outbox: Outbox,
+        factory: BandedCorrection,
+        *,
+        window_s: float = 60.0,
+        resend_after_s: float = 2.0,
+        query_timeout_s: float = 1.0,
+    ):
         self.device = device
         self.source = source
         self.session = session
@@ -79,8 +95,11 @@ class EdgeAgent:
 
     def start(self) -> None:
         self._declared.append(self.session.liveliness().declare_token(self.keys["alive"]))
-        self._declared.append(self.session.declare_subscriber(
-            self.keys["coefficients"], lambda sample: self.inbox.put(sample.payload.to_bytes())))
+        self._declared.append(
+            self.session.declare_subscriber(
+                self.keys["coefficients"], lambda sample: self.inbox.put(sample.payload.to_bytes())
+            )
+        )
         replies = self._get(self.keys["coefficients"])
         if replies is None or not replies:
             # the service has nothing for us yet (or is not there): tell it what the factory wrote
@@ -125,9 +144,16 @@ class EdgeAgent:
             self.pending_ack = None
         stats = self.window_stats(block, usable)
         self.seq += 1
-        msg = wire.window_message(device=self.device, seq=self.seq, window_start=float(block.t[0]),
-                                  window_end=float(block.t[-1]), stats=stats, coefficients_version=self.version,
-                                  angle_quality_deg=quality, temp_rate_c_per_s=temp_rate(block))
+        msg = wire.window_message(
+            device=self.device,
+            seq=self.seq,
+            window_start=float(block.t[0]),
+            window_end=float(block.t[-1]),
+            stats=stats,
+            coefficients_version=self.version,
+            angle_quality_deg=quality,
+            temp_rate_c_per_s=temp_rate(block),
+        )
         payload = wire.encode("window", msg)
         self.outbox.add(self.seq, payload)
         self.put(self.keys["stats"], payload)
@@ -152,8 +178,9 @@ class EdgeAgent:
         """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""
         if usable.sum() < 8:
             return 0.0
-        r = self.correction.radius(block.d[usable], block.q[usable],
-                                   None if block.temp_c is None else block.temp_c[usable])
+        r = self.correction.radius(
+            block.d[usable], block.q[usable], None if block.temp_c is None else block.temp_c[usable]
+        )
         return float(np.degrees(np.std(r) / np.mean(r)))
 
     def window_stats(self, block: Samples, keep: np.ndarray) -> WindowStats:
@@ -177,7 +204,7 @@ class EdgeAgent:
             return False
         self.outbox.confirm_through(watermark)
         stale = self.outbox.pending(sent_before=time.monotonic() - self.resend_after_s)
-        for seq, payload in stale:
+        for _, payload in stale:
             self.put(self.keys["stats"], payload)
         if stale:
             self.outbox.mark_sent([s for s, _ in stale], time.monotonic())
@@ -239,8 +266,14 @@ class EdgeAgent:
             self.pending_ack = self.version  # acknowledged with the quality seen on the next block
 
     def send_ack(self, version: int, status: str, quality: float | None, *, reason: str | None = None) -> None:
-        msg = wire.ack_message(device=self.device, version=version, status=status, angle_quality_deg=quality,
-                               at=float(self.source.now), reason=reason)
+        msg = wire.ack_message(
+            device=self.device,
+            version=version,
+            status=status,
+            angle_quality_deg=quality,
+            at=float(self.source.now),
+            reason=reason,
+        )
         self.put(self.keys["ack"], wire.encode("ack", msg))
 
     def factory_message(self) -> dict:
@@ -249,9 +282,14 @@ class EdgeAgent:
 
 def factory_message(device: str, factory: BandedCorrection) -> dict:
     """What the factory wrote into the drive, as coefficient set version 0."""
-    bands = [wire.band_entry(int(np.floor((b.temp_c or REFERENCE_TEMP_C) / 10.0)), b.to_dict(),
-                             {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0})
-             for b in factory.bands]
+    bands = [
+        wire.band_entry(
+            int(np.floor((b.temp_c or REFERENCE_TEMP_C) / 10.0)),
+            b.to_dict(),
+            {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0},
+        )
+        for b in factory.bands
+    ]
     return wire.coefficients_message(device=device, version=0, created_at=0.0, basis="factory", bands=bands)
 
 

@@ -1,5 +1,6 @@
 """The agent's durable outbox: every window is written here before it is sent, and removed only when
 the service says it has stored it. Bounded: past the limit the oldest windows are dropped and counted."""
+
 from __future__ import annotations
 
 import sqlite3
@@ -15,8 +16,9 @@ class Outbox:
         self.lock = threading.Lock()
         self.db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.execute("CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY, payload BLOB NOT NULL,"
-                        " sent_at REAL)")
+        self.db.execute(
+            "CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY, payload BLOB NOT NULL, sent_at REAL)"
+        )
         self.db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value)")
         self.dropped = int(self._meta("dropped", 0))
 
@@ -25,8 +27,10 @@ class Outbox:
         return default if row is None else row[0]
 
     def _set_meta(self, key, value):
-        self.db.execute("INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                        (key, value))
+        self.db.execute(
+            "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+            (key, value),
+        )
 
     def save_coefficients(self, payload: bytes) -> None:
         """The set the agent runs with, so a restart resumes with it even when the service is away."""
@@ -51,7 +55,9 @@ class Outbox:
             self._set_meta("last_seq", max(seq, int(self._meta("last_seq", 0))))
             over = self.db.execute("SELECT count(*) FROM outbox").fetchone()[0] - self.max_windows
             if over > 0:
-                self.db.execute("DELETE FROM outbox WHERE seq IN (SELECT seq FROM outbox ORDER BY seq LIMIT ?)", (over,))
+                self.db.execute(
+                    "DELETE FROM outbox WHERE seq IN (SELECT seq FROM outbox ORDER BY seq LIMIT ?)", (over,)
+                )
                 self.dropped += over
                 self._set_meta("dropped", self.dropped)
             self.db.execute("COMMIT")
@@ -67,8 +73,10 @@ class Outbox:
             if sent_before is None:
                 rows = self.db.execute("SELECT seq, payload FROM outbox ORDER BY seq LIMIT ?", (limit,))
             else:
-                rows = self.db.execute("SELECT seq, payload FROM outbox WHERE sent_at IS NULL OR sent_at < ?"
-                                       " ORDER BY seq LIMIT ?", (sent_before, limit))
+                rows = self.db.execute(
+                    "SELECT seq, payload FROM outbox WHERE sent_at IS NULL OR sent_at < ? ORDER BY seq LIMIT ?",
+                    (sent_before, limit),
+                )
             return [(int(s), bytes(p)) for s, p in rows.fetchall()]
 
     def mark_sent(self, seqs: list[int], at: float) -> None:

@@ -1,4 +1,5 @@
 """Where an agent's samples come from. The agent holds a SampleSource and never knows which one."""
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -25,8 +26,17 @@ class SimulatedDrive(SampleSource):
     """A drive with its own encoder (drawn from a seed), going through heating and cooling between
     t_min and t_max, sampled at random positions. Runs as fast as the caller reads."""
 
-    def __init__(self, seed: int, *, hours: float, sample_hz: float = 20.0, t_min: float = -40.0,
-                 t_max: float = 85.0, cycle_hours: float = 12.0, model: EncoderModel | None = None):
+    def __init__(
+        self,
+        seed: int,
+        *,
+        hours: float,
+        sample_hz: float = 20.0,
+        t_min: float = -40.0,
+        t_max: float = 85.0,
+        cycle_hours: float = 12.0,
+        model: EncoderModel | None = None,
+    ):
         self.seed = seed
         self.model = model or drive_model(seed)
         self.rng = np.random.default_rng([seed, 1])
@@ -40,10 +50,24 @@ class SimulatedDrive(SampleSource):
         if self.now >= self.end_s:
             return None
         hours = min(duration_s, self.end_s - self.now) / 3600.0
-        profile = cycle_profile(hours, sample_s=self.sample_s, t_min=self.t_min, t_max=self.t_max,
-                                cycle_hours=self.cycle_hours, t0=self.now, rng=self.rng)
-        samples, die = simulate(self.model, profile.t, profile.theta, profile.temp_c, self.rng,
-                                hours_offset=self.now / 3600.0, die_temp0=self.die_temp)
+        profile = cycle_profile(
+            hours,
+            sample_s=self.sample_s,
+            t_min=self.t_min,
+            t_max=self.t_max,
+            cycle_hours=self.cycle_hours,
+            t0=self.now,
+            rng=self.rng,
+        )
+        samples, die = simulate(
+            self.model,
+            profile.t,
+            profile.theta,
+            profile.temp_c,
+            self.rng,
+            hours_offset=self.now / 3600.0,
+            die_temp0=self.die_temp,
+        )
         self.now += duration_s
         if die.size:
             self.die_temp = float(die[-1])
@@ -86,8 +110,9 @@ def factory_calibration(model: EncoderModel, seed: int) -> BandedCorrection:
     return method.correction
 
 
-def evaluation_set(model: EncoderModel, seed: int, *, n: int = 20000, t_min: float = -40.0,
-                   t_max: float = 85.0, hours: float = 0.0) -> Samples:
+def evaluation_set(
+    model: EncoderModel, seed: int, *, n: int = 20000, t_min: float = -40.0, t_max: float = 85.0, hours: float = 0.0
+) -> Samples:
     """Truth for scoring a correction: random positions at settled temperatures across the cycle, at
     an age of `hours` of operation. Only the demo and tests use it; the agent and the service never see it."""
     rng = np.random.default_rng([seed, 3])
@@ -96,4 +121,3 @@ def evaluation_set(model: EncoderModel, seed: int, *, n: int = 20000, t_min: flo
     t = np.arange(n) * 1e-3  # a snapshot: the drive does not age during it
     samples, _ = simulate(model.with_(thermal_lag_tau_s=0.0), t, theta, temp, rng, hours_offset=hours)
     return samples
-

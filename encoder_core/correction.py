@@ -8,6 +8,7 @@
 Seed 000's weights are the special case w5 = 0, no zero offset, no harmonics.
 A set of corrections, one per temperature band, is interpolated linearly in temperature.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -38,17 +39,27 @@ class Correction:
         return wrap_rad(theta0 + self.zero_offset_rad + harmonic_sum(theta0, self.harmonics))
 
     def to_dict(self) -> dict:
-        return {"w": [self.w1, self.w2, self.w3, self.w4], "w5": self.w5, "zero_offset_rad": self.zero_offset_rad,
-                "harmonics": [[m, a, b] for m, (a, b) in sorted(self.harmonics.items())],
-                "temp_c": self.temp_c}
+        return {
+            "w": [self.w1, self.w2, self.w3, self.w4],
+            "w5": self.w5,
+            "zero_offset_rad": self.zero_offset_rad,
+            "harmonics": [[m, a, b] for m, (a, b) in sorted(self.harmonics.items())],
+            "temp_c": self.temp_c,
+        }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Correction":
+    def from_dict(cls, data: dict) -> Correction:
         w = data["w"]
-        return cls(w1=w[0], w2=w[1], w3=w[2], w4=w[3], w5=data.get("w5", 0.0),
-                   zero_offset_rad=data.get("zero_offset_rad", 0.0),
-                   harmonics={int(m): (float(a), float(b)) for m, a, b in data.get("harmonics", [])},
-                   temp_c=data.get("temp_c"))
+        return cls(
+            w1=w[0],
+            w2=w[1],
+            w3=w[2],
+            w4=w[3],
+            w5=data.get("w5", 0.0),
+            zero_offset_rad=data.get("zero_offset_rad", 0.0),
+            harmonics={int(m): (float(a), float(b)) for m, a, b in data.get("harmonics", [])},
+            temp_c=data.get("temp_c"),
+        )
 
     def locus(self, n: int = 360) -> tuple[np.ndarray, np.ndarray]:
         """Raw (d, q) points that this correction maps onto the unit circle, evenly in θ0."""
@@ -103,8 +114,7 @@ def from_inverse_matrix(g: np.ndarray, offset: np.ndarray) -> Correction:
     rot = g @ np.linalg.inv(lower)
     theta_z = float(np.arctan2(rot[1, 0], rot[0, 0]))
     m11, m21, m22 = lower[0, 0], lower[1, 0], lower[1, 1]
-    return Correction(w1=m11, w2=-m11 * offset[0], w3=m22, w4=-m22 * offset[1],
-                      w5=m21 / m11, zero_offset_rad=theta_z)
+    return Correction(w1=m11, w2=-m11 * offset[0], w3=m22, w4=-m22 * offset[1], w5=m21 / m11, zero_offset_rad=theta_z)
 
 
 def lower_factor(qform: np.ndarray) -> np.ndarray:
@@ -137,9 +147,16 @@ class BandedCorrection:
         """The correction interpolated to one temperature."""
         orders, p = self._interpolated(np.array([float(temp_c)]))
         p = p[0]
-        return Correction(w1=p[0], w2=p[1], w3=p[2], w4=p[3], w5=p[4], zero_offset_rad=p[5],
-                          harmonics={m: (p[6 + 2 * i], p[7 + 2 * i]) for i, m in enumerate(orders)},
-                          temp_c=float(temp_c))
+        return Correction(
+            w1=p[0],
+            w2=p[1],
+            w3=p[2],
+            w4=p[3],
+            w5=p[4],
+            zero_offset_rad=p[5],
+            harmonics={m: (p[6 + 2 * i], p[7 + 2 * i]) for i, m in enumerate(orders)},
+            temp_c=float(temp_c),
+        )
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
         orders, p = self._interpolated(self._temps_for(d, temp_c))
@@ -176,5 +193,5 @@ class BandedCorrection:
         return {"bands": [b.to_dict() for b in self.bands]}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "BandedCorrection":
+    def from_dict(cls, data: dict) -> BandedCorrection:
         return cls([Correction.from_dict(b) for b in data["bands"]])

@@ -36,13 +36,13 @@ is rejected (and left out of the error). Held-out means leave-one-run-out when t
 `run` column with several runs, else contiguous time blocks. Samples that are stuck at a rail or
 isolated far off the circle never enter a fit (robust fitting), whether or not they become findings.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
-
 from scipy.ndimage import median_filter
 
 from .physics import REFERENCE_TEMP_C, wrap_rad
@@ -59,13 +59,31 @@ MAX_OUTLIER_FRACTION = 0.05
 RADIUS_ITERATIONS = 8
 PARSIMONY = 0.03
 MAX_FOLDS = 5
-N_PARAMS = {"adc_clipping": 0, "zero_offset": 1, "phase_nonorthogonality": 1, "phase_drift": 1, "thermal_lag": 1,
-            "outliers": 1, "harmonic_distortion": 2, "nonlinear_temperature": 4, "aging": 4}
+N_PARAMS = {
+    "adc_clipping": 0,
+    "zero_offset": 1,
+    "phase_nonorthogonality": 1,
+    "phase_drift": 1,
+    "thermal_lag": 1,
+    "outliers": 1,
+    "harmonic_distortion": 2,
+    "nonlinear_temperature": 4,
+    "aging": 4,
+}
 REF_ORDERS = tuple(range(2, 9))
 RADIUS_ORDERS = tuple(range(4, 9))
 
-CAUSES = ("zero_offset", "phase_nonorthogonality", "phase_drift", "harmonic_distortion", "thermal_lag",
-          "nonlinear_temperature", "aging", "outliers", "adc_clipping")
+CAUSES = (
+    "zero_offset",
+    "phase_nonorthogonality",
+    "phase_drift",
+    "harmonic_distortion",
+    "thermal_lag",
+    "nonlinear_temperature",
+    "aging",
+    "outliers",
+    "adc_clipping",
+)
 
 
 @dataclass(frozen=True)
@@ -124,6 +142,7 @@ class _Eval:
 
 # --- preparing the data -------------------------------------------------------------------------
 
+
 class _Data:
     """Normalised arrays, folds and per-sample flags: everything the fits share."""
 
@@ -131,8 +150,9 @@ class _Data:
         n = len(samples)
         if n < MIN_SAMPLES:
             raise InputError(f"too few samples to diagnose: {n}, need at least {MIN_SAMPLES}")
-        check_fit_input(samples.d, samples.q, min_samples=MIN_SAMPLES, theta_ref=samples.theta_ref,
-                        temp_c=samples.temp_c)
+        check_fit_input(
+            samples.d, samples.q, min_samples=MIN_SAMPLES, theta_ref=samples.theta_ref, temp_c=samples.temp_c
+        )
         self.samples = samples
         self.n = n
         self.t = np.asarray(samples.t, float)
@@ -233,6 +253,7 @@ class _Data:
 
 # --- stage A ------------------------------------------------------------------------------------
 
+
 def _basis(data: _Data, spec: Spec) -> np.ndarray:
     cols = [np.ones(data.n)]
     tn = data.temp_n(spec.tau_s)
@@ -311,6 +332,7 @@ def _repair_clipping(data: _Data, x, y):
 
 # --- stage B ------------------------------------------------------------------------------------
 
+
 def _features(data: _Data, spec: Spec, sa: _StageA) -> list[tuple[str, np.ndarray]]:
     ref = data.metric == "reference"
     phi = _target(data, sa)[1]
@@ -324,18 +346,20 @@ def _features(data: _Data, spec: Spec, sa: _StageA) -> list[tuple[str, np.ndarra
         feats.append(("drift", sa.get(("drift", spec.tau_s), lambda: data.temp_n(spec.tau_s) * shape)))
     for n in spec.orders:
         m = n - 1
-        feats.append((f"h{n}c", sa.get(f"h{n}c", lambda: np.cos(m * phi))))
-        feats.append((f"h{n}s", sa.get(f"h{n}s", lambda: np.sin(m * phi))))
+        feats.append((f"h{n}c", sa.get(f"h{n}c", lambda m=m: np.cos(m * phi))))
+        feats.append((f"h{n}s", sa.get(f"h{n}s", lambda m=m: np.sin(m * phi))))
     return feats
 
 
 def _target(data: _Data, sa: _StageA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The error metric before stage B (rad), the corrected angle, and the radius deviation."""
+
     def make():
         phi = np.arctan2(sa.y, sa.x)
         radius = np.hypot(sa.x, sa.y) - 1.0
         e = wrap_rad(phi - data.ref) if data.ref is not None else radius
         return e, phi, radius
+
     return sa.get("target", make)
 
 
@@ -407,6 +431,7 @@ def _fit_model(data: _Data, spec: Spec, train: np.ndarray, phi0=None, stage_a: _
 
 # --- held-out evaluation -------------------------------------------------------------------------
 
+
 class _Evaluator:
     def __init__(self, data: _Data, phi0_by_fold: dict | None = None):
         self.data = data
@@ -448,18 +473,25 @@ class _Evaluator:
 
 # --- the diagnosis ----------------------------------------------------------------------------------
 
+
 def _testable(data: _Data) -> tuple[list[str], list[dict]]:
     not_testable = []
     if data.ref is None:
-        not_testable.append({"cause": "zero_offset", "why": "no theta_ref_deg column: a constant angle offset "
-                             "moves every sample along the circle and leaves no trace in d and q"})
+        not_testable.append(
+            {
+                "cause": "zero_offset",
+                "why": "no theta_ref_deg column: a constant angle offset "
+                "moves every sample along the circle and leaves no trace in d and q",
+            }
+        )
     if data.temp is None:
         for cause in ("phase_drift", "thermal_lag", "nonlinear_temperature"):
             not_testable.append({"cause": cause, "why": "no temp_c column: nothing thermal can be seen"})
     elif data.temp_span < MIN_TEMP_SPAN_C:
         for cause in ("phase_drift", "thermal_lag", "nonlinear_temperature"):
-            not_testable.append({"cause": cause, "why": f"temp_c spans only {data.temp_span:.1f} °C "
-                                 f"(need {MIN_TEMP_SPAN_C:.0f} °C)"})
+            not_testable.append(
+                {"cause": cause, "why": f"temp_c spans only {data.temp_span:.1f} °C (need {MIN_TEMP_SPAN_C:.0f} °C)"}
+            )
     if data.span_s <= 0:
         not_testable.append({"cause": "aging", "why": "the recording has no duration"})
     blocked = {item["cause"] for item in not_testable}
@@ -476,7 +508,7 @@ def _candidates(data: _Data, spec: Spec, testable: list[str]) -> list[tuple[str,
         out.append(("phase_nonorthogonality", replace(spec, phase=True)))
     if "phase_drift" in testable and not spec.drift:
         out.append(("phase_drift", replace(spec, drift=True)))
-    for n in (REF_ORDERS if ref else RADIUS_ORDERS):
+    for n in REF_ORDERS if ref else RADIUS_ORDERS:
         if n not in spec.orders and n * 2 < _distinct_angles(data):
             out.append(("harmonic_distortion", replace(spec, orders=tuple(sorted(spec.orders + (n,))))))
     if "nonlinear_temperature" in testable and not spec.nonlinear:
@@ -515,8 +547,8 @@ def _best_tau(data: _Data, spec: Spec, evaluate: _Evaluator, around: float | Non
         best = min(taus, key=lambda k: results[k].rms)
         i = taus.index(best)
         if 0 < i < len(taus) - 1:
-            x = np.log(taus[i - 1:i + 2])
-            yv = np.array([results[k].rms for k in taus[i - 1:i + 2]])
+            x = np.log(taus[i - 1 : i + 2])
+            yv = np.array([results[k].rms for k in taus[i - 1 : i + 2]])
             a, b, _ = np.polyfit(x, yv, 2)
             if a > 0:
                 tau = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
@@ -592,33 +624,64 @@ def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) 
 
     final = _fit_model(data, current, full)
     findings = []
-    for name, cand, before, after, new_orders in findings_order:
+    for name, _cand, before, after, new_orders in findings_order:
         params, evidence = _describe(name, new_orders, current, final, data, baseline, before, after)
-        findings.append({"cause": name, "parameters": params, "evidence": evidence,
-                         "rms_error_deg_before": round(before.rms, 6), "rms_error_deg_after": round(after.rms, 6)})
-    base_model = ("per-axis gain and offset, each linear in temperature (seed 000)" if data.temp is not None
-                  else "per-axis gain and offset, constant (no temperature recorded)")
-    base_model += ", fitted against the reference angle" if data.ref is not None else ", fitted reference-free (radius = 1)"
+        findings.append(
+            {
+                "cause": name,
+                "parameters": params,
+                "evidence": evidence,
+                "rms_error_deg_before": round(before.rms, 6),
+                "rms_error_deg_after": round(after.rms, 6),
+            }
+        )
+    base_model = (
+        "per-axis gain and offset, each linear in temperature (seed 000)"
+        if data.temp is not None
+        else "per-axis gain and offset, constant (no temperature recorded)"
+    )
+    base_model += (
+        ", fitted against the reference angle" if data.ref is not None else ", fitted reference-free (radius = 1)"
+    )
     report = {
         "samples": data.n,
         "has_reference": data.ref is not None,
         "error_metric": data.metric,
-        "baseline": {"model": base_model, "rms_error_deg": round(baseline.rms, 6),
-                     "max_error_deg": round(baseline.max, 6)},
+        "baseline": {
+            "model": base_model,
+            "rms_error_deg": round(baseline.rms, 6),
+            "max_error_deg": round(baseline.max, 6),
+        },
         "findings": findings,
-        "extended": {"causes": [f["cause"] for f in findings], "rms_error_deg": round(cur_eval.rms, 6),
-                     "max_error_deg": round(cur_eval.max, 6)},
+        "extended": {
+            "causes": [f["cause"] for f in findings],
+            "rms_error_deg": round(cur_eval.rms, 6),
+            "max_error_deg": round(cur_eval.max, 6),
+        },
         "not_testable": not_testable,
         "held_out": {"by": data.fold_kind, "folds": int(data.fold_ids.size)},
     }
     if data.metric == "radius" and not any(f["cause"] == "harmonic_distortion" for f in not_testable):
-        not_testable.append({"cause": "harmonic_distortion", "why": "orders 2 and 3 only: without a reference "
-                             "order 2 looks like an offset and order 3 like gain or phase imbalance "
-                             "(orders 4-8 were tested)"})
+        not_testable.append(
+            {
+                "cause": "harmonic_distortion",
+                "why": "orders 2 and 3 only: without a reference "
+                "order 2 looks like an offset and order 3 like gain or phase imbalance "
+                "(orders 4-8 were tested)",
+            }
+        )
     phi = np.degrees(np.arctan2(final.stage_a.y, final.stage_a.x)) if data.ref is None else np.degrees(data.ref)
-    plots = {"t": data.t, "angle_deg": phi % 360, "temp_c": data.temp, "rate_c_per_min": data.rate,
-             "baseline_error_deg": baseline.err_deg, "extended_error_deg": cur_eval.err_deg,
-             "metric": data.metric, "thermal_view_deg": baseline.err_deg, "thermal_view": "baseline"}
+    plots = {
+        "t": data.t,
+        "angle_deg": phi % 360,
+        "temp_c": data.temp,
+        "rate_c_per_min": data.rate,
+        "baseline_error_deg": baseline.err_deg,
+        "extended_error_deg": cur_eval.err_deg,
+        "metric": data.metric,
+        "thermal_view_deg": baseline.err_deg,
+        "thermal_view": "baseline",
+    }
     no_thermal = replace(current, tau_s=0.0, nonlinear=False, aging=False)
     if data.temp is not None and no_thermal != current and no_thermal != base_spec:
         # what temperature does to the residual once every other named term is modelled
@@ -639,11 +702,12 @@ def measure(samples: Samples, spec: Spec, train) -> dict:
     for name, sp in (("baseline", Spec()), ("extended", spec)):
         fit = _fit_model(data, sp, train)
         e = np.degrees(fit.err[test & ~fit.reject])
-        out[name] = {"rms_error_deg": float(np.sqrt(np.mean(e ** 2))), "max_error_deg": float(np.max(np.abs(e)))}
+        out[name] = {"rms_error_deg": float(np.sqrt(np.mean(e**2))), "max_error_deg": float(np.max(np.abs(e)))}
     return out
 
 
 # --- parameters and evidence -------------------------------------------------------------------------
+
 
 def _coef(fit: _Fit, name: str) -> float:
     return float(fit.coef[fit.names.index(name)]) if name in fit.names else 0.0
@@ -665,17 +729,21 @@ def _rate_split(data: _Data, before: np.ndarray, after: np.ndarray) -> str:
     if data.rate is None:
         return ""
     parts = []
-    for label, mask in (("heating", data.rate > 0.2), ("cooling", data.rate < -0.2),
-                        ("steady", np.abs(data.rate) <= 0.2)):
+    for label, mask in (
+        ("heating", data.rate > 0.2),
+        ("cooling", data.rate < -0.2),
+        ("steady", np.abs(data.rate) <= 0.2),
+    ):
         b = before[mask & np.isfinite(before)]
         a = after[mask & np.isfinite(after)]
         if b.size and a.size:
-            parts.append(f"{label} {np.sqrt(np.mean(b ** 2)):.3f}° -> {np.sqrt(np.mean(a ** 2)):.3f}°")
+            parts.append(f"{label} {np.sqrt(np.mean(b**2)):.3f}° -> {np.sqrt(np.mean(a**2)):.3f}°")
     return ", ".join(parts)
 
 
-def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, baseline: _Eval, before: _Eval,
-              after: _Eval):
+def _describe(
+    name, new_orders: list, current: Spec, final: _Fit, data: _Data, baseline: _Eval, before: _Eval, after: _Eval
+):
     ref = data.metric == "reference"
     what = "angle error" if ref else "radius ripple"
     gain = f"modelling it cuts the held-out RMS {what} from {before.rms:.3f}° to {after.rms:.3f}°"
@@ -686,57 +754,81 @@ def _describe(name, new_orders: list, current: Spec, final: _Fit, data: _Data, b
             # both baseline gains negative: the axis-aligned fit turned the angle by half a turn
             z = float((z + 180.0 + 180.0) % 360.0 - 180.0)
             half = " (the baseline's gains came out negative on both axes: half a turn of it is in the gains)"
-        return ({"offset_deg": round(float(z), 4)},
-                f"the angle error has a constant part of {z:.3f}° at every angle{half}; {gain}.")
+        return (
+            {"offset_deg": round(float(z), 4)},
+            f"the angle error has a constant part of {z:.3f}° at every angle{half}; {gain}.",
+        )
     if name == "phase_nonorthogonality":
         w = _coef(final, "phase")
         beta = np.degrees(w if ref else -2 * w)
-        shape = "β·sin²θ" if ref else "-β/2·sin 2θ (a tilted ellipse; a 3rd harmonic looks the same without a reference)"
-        return ({"phase_error_deg": round(float(beta), 4)},
-                f"the residual follows {shape} with β = {beta:.3f}°, a cross term between the channels; {gain}.")
+        shape = (
+            "β·sin²θ" if ref else "-β/2·sin 2θ (a tilted ellipse; a 3rd harmonic looks the same without a reference)"
+        )
+        return (
+            {"phase_error_deg": round(float(beta), 4)},
+            f"the residual follows {shape} with β = {beta:.3f}°, a cross term between the channels; {gain}.",
+        )
     if name == "phase_drift":
         w = _coef(final, "drift")
         rate = np.degrees(w if ref else -2 * w) / T_SCALE
-        return ({"phase_drift_deg_per_c": round(float(rate), 6)},
-                f"the channels' phase difference changes with temperature by {rate:.4f}°/°C; {gain}.")
+        return (
+            {"phase_drift_deg_per_c": round(float(rate), 6)},
+            f"the channels' phase difference changes with temperature by {rate:.4f}°/°C; {gain}.",
+        )
     if name == "harmonic_distortion":
         n = new_orders[0]
         amp = float(np.hypot(_coef(final, f"h{n}c"), _coef(final, f"h{n}s")))
-        return ({"order": int(n), "amplitude": round(amp, 6)},
-                f"the residual has a {n - 1}-cycle-per-turn component of {np.degrees(amp):.3f}° "
-                f"(harmonic order {n}, seed 001 eq. 18); {gain}.")
+        return (
+            {"order": int(n), "amplitude": round(amp, 6)},
+            f"the residual has a {n - 1}-cycle-per-turn component of {np.degrees(amp):.3f}° "
+            f"(harmonic order {n}, seed 001 eq. 18); {gain}.",
+        )
     if name == "thermal_lag":
-        return ({"tau_s": round(float(current.tau_s), 2)},
-                f"the residual depends on the rate of temperature change, and lagging temp_c fixes it where the "
-                f"temperature moves (held-out RMS {_rate_split(data, before.err_deg, after.err_deg)});"
-                f" the die follows temp_c with a first-order lag of τ = {current.tau_s:.0f} s; {gain}.")
+        return (
+            {"tau_s": round(float(current.tau_s), 2)},
+            f"the residual depends on the rate of temperature change, and lagging temp_c fixes it where the "
+            f"temperature moves (held-out RMS {_rate_split(data, before.err_deg, after.err_deg)});"
+            f" the die follows temp_c with a first-order lag of τ = {current.tau_s:.0f} s; {gain}.",
+        )
     if name == "nonlinear_temperature":
         g, o = _axis_terms(final, data, current, 2)
         g2 = g / T_SCALE**2
         o2 = o / T_SCALE**2
-        return ({"gain_tc2_per_c2": [round(float(v), 9) for v in g2],
-                 "offset_tc2_per_c2": [round(float(v), 9) for v in o2]},
-                f"gains and offsets curve with temperature (d, q gain {g2[0]:.2e}, {g2[1]:.2e} per °C²); {gain}.")
+        return (
+            {
+                "gain_tc2_per_c2": [round(float(v), 9) for v in g2],
+                "offset_tc2_per_c2": [round(float(v), 9) for v in o2],
+            },
+            f"gains and offsets curve with temperature (d, q gain {g2[0]:.2e}, {g2[1]:.2e} per °C²); {gain}.",
+        )
     if name == "aging":
         idx = 2 + (1 if current.nonlinear else 0) if data.temp is not None else 1
         g, o = _axis_terms(final, data, current, idx)
         khours = data.span_s / 3.6e6
         gk = -g / khours
         ok_ = o / khours
-        return ({"gain_loss_per_khour": [round(float(v), 6) for v in gk],
-                 "offset_per_khour": [round(float(v), 4) for v in ok_]},
-                f"gains and offsets trend with operating time at equal temperature (gain loss {gk[0]:.3f}, "
-                f"{gk[1]:.3f} per 1000 h over {data.span_s / 3600:.1f} h); {gain}.")
+        return (
+            {
+                "gain_loss_per_khour": [round(float(v), 6) for v in gk],
+                "offset_per_khour": [round(float(v), 4) for v in ok_],
+            },
+            f"gains and offsets trend with operating time at equal temperature (gain loss {gk[0]:.3f}, "
+            f"{gk[1]:.3f} per 1000 h over {data.span_s / 3600:.1f} h); {gain}.",
+        )
     if name == "outliers":
         frac = after.rejected / data.n
-        return ({"fraction": round(frac, 6)},
-                f"{after.rejected} samples ({100 * frac:.2f} %) jump off the circle, each alone, beyond "
-                f"{OUTLIER_SIGMAS:.0f}× the robust spread of the radius about its running median; rejecting them {gain[len('modelling it '):]}.")
+        return (
+            {"fraction": round(frac, 6)},
+            f"{after.rejected} samples ({100 * frac:.2f} %) jump off the circle, each alone, beyond "
+            f"{OUTLIER_SIGMAS:.0f}× the robust spread of the radius about its running median; "
+            f"rejecting them {gain[len('modelling it ') :]}.",
+        )
     if name == "adc_clipping":
         frac = float(data.clipped.mean())
         where = "; ".join(f"{c['channel']} stuck at {c['value']} in {c['samples']} samples" for c in data.clip_info)
-        return ({"fraction": round(frac, 6), "channels": sorted({c['channel'] for c in data.clip_info})},
-                f"{where} while the other channel keeps moving; rebuilding the clipped channel "
-                f"{gain[len('modelling it '):]}.")
+        return (
+            {"fraction": round(frac, 6), "channels": sorted({c["channel"] for c in data.clip_info})},
+            f"{where} while the other channel keeps moving; rebuilding the clipped channel "
+            f"{gain[len('modelling it ') :]}.",
+        )
     return {}, gain
-

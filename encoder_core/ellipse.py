@@ -10,6 +10,7 @@ A drive that turns, sampled asynchronously, visits every true angle equally ofte
 cumulative share of samples below a corrected angle φ is the true angle: θ(φ) = 2π·F(φ) + c.
 The difference φ - θ(φ), fitted with a few Fourier orders, is the remaining angle error.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -50,8 +51,10 @@ def fit_ellipse(stats: WindowStats) -> EllipseFit:
         raise InputError(f"too few samples for an ellipse fit: {stats.n}, need at least {MIN_SAMPLES}")
     occupied = int(np.count_nonzero(stats.bins[:, 0]))
     if occupied < N_BINS // 2:
-        raise InputError(f"too little angle coverage for an ellipse fit: samples in {occupied} of {N_BINS} "
-                         f"angle bins, need at least {N_BINS // 2}")
+        raise InputError(
+            f"too little angle coverage for an ellipse fit: samples in {occupied} of {N_BINS} "
+            f"angle bins, need at least {N_BINS // 2}"
+        )
     s = scatter_matrix(stats)
     s1, s2, s3 = s[:3, :3], s[:3, 3:], s[3:, 3:]
     try:
@@ -127,15 +130,20 @@ class HarmonicEstimate:
         return {m: ab for m, ab in self.coefficients.items() if np.hypot(*ab) > SIGNIFICANCE * self.noise / m}
 
     @staticmethod
-    def pooled(estimates: list["HarmonicEstimate"]) -> "HarmonicEstimate":
+    def pooled(estimates: list[HarmonicEstimate]) -> HarmonicEstimate:
         """Inverse-variance mean of several estimates of the same harmonics (e.g. a device's bands)."""
         usable = [e for e in estimates if e.noise > 0]
         if not usable:
             return HarmonicEstimate({}, 0.0)
         weights = np.array([1 / e.noise**2 for e in usable])
         orders = sorted({m for e in usable for m in e.coefficients})
-        coef = {m: tuple(float(np.dot(weights, [e.coefficients.get(m, (0.0, 0.0))[i] for e in usable]) / weights.sum())
-                         for i in (0, 1)) for m in orders}
+        coef = {
+            m: tuple(
+                float(np.dot(weights, [e.coefficients.get(m, (0.0, 0.0))[i] for e in usable]) / weights.sum())
+                for i in (0, 1)
+            )
+            for m in orders
+        }
         return HarmonicEstimate(coef, float(1 / np.sqrt(weights.sum())))
 
 
@@ -167,14 +175,17 @@ def radius_ripple_rms(stats: WindowStats, correction_fit: EllipseFit) -> float:
     ok = counts > 0
     mean = stats.bins[ok, 1:3] / counts[ok, None]
     second = stats.bins[ok, 3:6] / counts[ok, None]
-    r2 = (q[0, 0] * second[:, 0] + 2 * q[0, 1] * second[:, 1] + q[1, 1] * second[:, 2]
-          - 2 * mean @ (q @ c) + c @ q @ c)
+    r2 = q[0, 0] * second[:, 0] + 2 * q[0, 1] * second[:, 1] + q[1, 1] * second[:, 2] - 2 * mean @ (q @ c) + c @ q @ c
     dev = np.sqrt(np.maximum(r2, 0.0)) - 1.0
     return float(np.sqrt(np.average(dev**2, weights=counts[ok])))
 
 
 def ellipse_quality(stats: WindowStats, fit: EllipseFit) -> dict:
-    return {"samples": stats.n, "residual_rms_rad": fit.residual_rms, "radius_ripple_rad": radius_ripple_rms(stats, fit)}
+    return {
+        "samples": stats.n,
+        "residual_rms_rad": fit.residual_rms,
+        "radius_ripple_rad": radius_ripple_rms(stats, fit),
+    }
 
 
 def fit_from_stats(stats: WindowStats, *, harmonics_from_density: bool = True) -> tuple[Correction, dict]:

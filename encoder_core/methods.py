@@ -12,6 +12,7 @@
 
 Every method fits one correction per temperature band and interpolates between bands.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -43,7 +44,7 @@ class ReferenceTable:
     q: np.ndarray
 
     @classmethod
-    def from_samples(cls, samples: Samples, points: int = 3600) -> "ReferenceTable":
+    def from_samples(cls, samples: Samples, points: int = 3600) -> ReferenceTable:
         if samples.theta_ref is None:
             raise InputError("a reference table needs the reference angle column theta_ref_deg")
         check_fit_input(samples.d, samples.q, theta_ref=samples.theta_ref)
@@ -58,8 +59,10 @@ class ReferenceTable:
 
     def lookup(self, theta) -> tuple[np.ndarray, np.ndarray]:
         theta = np.asarray(theta, dtype=float) % (2 * np.pi)
-        return (np.interp(theta, self.theta, self.d, period=2 * np.pi),
-                np.interp(theta, self.theta, self.q, period=2 * np.pi))
+        return (
+            np.interp(theta, self.theta, self.d, period=2 * np.pi),
+            np.interp(theta, self.theta, self.q, period=2 * np.pi),
+        )
 
 
 class Method:
@@ -72,7 +75,7 @@ class Method:
     def __init__(self):
         self.correction: BandedCorrection | None = None
 
-    def fit(self, samples: Samples, table: ReferenceTable | None = None) -> "Method":
+    def fit(self, samples: Samples, table: ReferenceTable | None = None) -> Method:
         check_fit_input(samples.d, samples.q, theta_ref=samples.theta_ref, temp_c=samples.temp_c)
         if self.needs_reference and samples.theta_ref is None:
             raise InputError(f"{self.name} needs the reference angle column theta_ref_deg")
@@ -82,7 +85,11 @@ class Method:
         fits = []
         for band in np.unique(bands):
             part = samples.subset(bands == band)
-            where = f" in the {band * BAND_WIDTH_C:g}..{(band + 1) * BAND_WIDTH_C:g} °C band" if samples.temp_c is not None else ""
+            where = (
+                f" in the {band * BAND_WIDTH_C:g}..{(band + 1) * BAND_WIDTH_C:g} °C band"
+                if samples.temp_c is not None
+                else ""
+            )
             theta = part.theta_ref if part.theta_ref is not None else angle(part.d, part.q)
             check_angle_coverage(theta, what=f"angle{where}")
             corr = self.fit_band(part, table)
@@ -102,6 +109,7 @@ class Method:
 
 # --- seed 000 ----------------------------------------------------------------------------------
 
+
 @dataclass
 class GradientDescentResult:
     weights: np.ndarray
@@ -109,8 +117,9 @@ class GradientDescentResult:
     stop_reason: str = ""
 
 
-def seed000_descent(d, q, d_c, q_c, *, step: float = 0.001, max_iter: int = 1000, v_tol: float = 0.0,
-                    w0=(1.0, 0.0, 1.0, 0.0)) -> GradientDescentResult:
+def seed000_descent(
+    d, q, d_c, q_c, *, step: float = 0.001, max_iter: int = 1000, v_tol: float = 0.0, w0=(1.0, 0.0, 1.0, 0.0)
+) -> GradientDescentResult:
     """Eq. 12-20 as printed: V = ½Σ(d_f² + q_f² - d_c² - q_c²)², steepest descent with step T,
     stop when V stops decreasing (or falls below v_tol, or after max_iter)."""
     w = np.array(w0, dtype=float)
@@ -181,6 +190,7 @@ class Seed000(Method):
 
 # --- seed 001 ----------------------------------------------------------------------------------
 
+
 class Seed001(Method):
     """Needs one or more whole revolutions sampled evenly in angle (the paper's constant-speed run);
     with a reference column the samples are put in angle order first."""
@@ -193,13 +203,16 @@ class Seed001(Method):
         self.betas: list[float] = []
 
     def fit_band(self, samples, table):
-        order = np.argsort(samples.theta_ref % (2 * np.pi)) if samples.theta_ref is not None else np.arange(len(samples))
+        order = (
+            np.argsort(samples.theta_ref % (2 * np.pi)) if samples.theta_ref is not None else np.arange(len(samples))
+        )
         if samples.theta_ref is not None:
             check_angle_coverage(samples.theta_ref, min_sectors=12, what="reference angle")
         norm = []
         for sig in (samples.d[order], samples.q[order]):
-            filtered = uniform_filter1d(median_filter(sig, size=self.median_window, mode="wrap"),
-                                        size=self.mean_window, mode="wrap")  # section 3.1
+            filtered = uniform_filter1d(
+                median_filter(sig, size=self.median_window, mode="wrap"), size=self.mean_window, mode="wrap"
+            )  # section 3.1
             spectrum = np.fft.rfft(filtered)
             # §3.2: the amplitude comes from the DFT (|X_1|/(N/2)), so eq. 19's A_in (the swing) is twice
             # that and V_min the fundamental's minimum; min/max of the raw trace would read a 3rd harmonic
@@ -217,6 +230,7 @@ class Seed001(Method):
 
 
 # --- ours ----------------------------------------------------------------------------------------
+
 
 def affine_ls(x, y):
     """y ≈ a·x + b by least squares."""
@@ -268,8 +282,12 @@ class OursLsRef(Method):
     def fit_band(self, samples, table):
         keep = np.ones(len(samples), bool)
         if self.outlier_tolerance:
-            keep = plausible_mask(samples.d, samples.q, center=(np.median(samples.d), np.median(samples.q)),
-                                  tolerance=self.outlier_tolerance)
+            keep = plausible_mask(
+                samples.d,
+                samples.q,
+                center=(np.median(samples.d), np.median(samples.q)),
+                tolerance=self.outlier_tolerance,
+            )
         th, d, q = samples.theta_ref[keep], samples.d[keep], samples.q[keep]
         design = np.column_stack([np.cos(th), np.sin(th), np.ones_like(th)])
         coef, *_ = np.linalg.lstsq(design, np.column_stack([d, q]), rcond=None)
@@ -318,7 +336,9 @@ class OursEllipse(Method):
         return corr
 
 
-def stats_for(samples: Samples, *, scale: float | None = None, center=None, outlier_tolerance: float = 0.12) -> WindowStats:
+def stats_for(
+    samples: Samples, *, scale: float | None = None, center=None, outlier_tolerance: float = 0.12
+) -> WindowStats:
     """Window statistics of samples, normalised by their own radius unless told otherwise."""
     c = center if center is not None else (float(np.median(samples.d)), float(np.median(samples.q)))
     keep = plausible_mask(samples.d, samples.q, center=c, tolerance=outlier_tolerance)

@@ -1,4 +1,5 @@
 """Hall signals to angle (seed 000, eq. 1-3) and the angle-error helpers every part shares."""
+
 from __future__ import annotations
 
 import numpy as np

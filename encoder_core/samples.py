@@ -1,4 +1,5 @@
 """The one in-memory form of a recording: what every method fits on and every tool reads."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
@@ -49,7 +50,7 @@ class Samples:
     def has_temperature(self) -> bool:
         return self.temp_c is not None
 
-    def subset(self, index) -> "Samples":
+    def subset(self, index) -> Samples:
         """Rows selected by a boolean mask or an index array."""
         kwargs = {}
         for f in fields(self):
@@ -69,8 +70,9 @@ def check_finite(name: str, *arrays) -> None:
         arr = np.asarray(arr, dtype=float)
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
-            raise InputError(f"{name}: argument {i} has a non-finite value (NaN or inf) at index {int(bad[0])}"
-                             f" ({bad.size} in all)")
+            raise InputError(
+                f"{name}: argument {i} has a non-finite value (NaN or inf) at index {int(bad[0])} ({bad.size} in all)"
+            )
 
 
 def check_fit_input(d, q, *, min_samples: int = 8, theta_ref=None, temp_c=None) -> tuple[np.ndarray, np.ndarray]:
@@ -97,5 +99,7 @@ def check_angle_coverage(theta, *, min_sectors: int = 6, sectors: int = 12, what
     theta = np.asarray(theta, dtype=float)
     occupied = np.unique(np.floor((theta % (2 * np.pi)) / (2 * np.pi) * sectors).astype(int))
     if occupied.size < min_sectors:
-        raise InputError(f"too little {what} coverage for a fit: samples fall in {occupied.size} of {sectors}"
-                         f" 30° sectors, need at least {min_sectors}")
+        raise InputError(
+            f"too little {what} coverage for a fit: samples fall in {occupied.size} of {sectors}"
+            f" 30° sectors, need at least {min_sectors}"
+        )

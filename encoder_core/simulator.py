@@ -12,9 +12,10 @@ Signal chain, in order (each stage is off at its default):
 6. four halls around the ADC mid-scale, Gaussian noise, impulses,
    12-bit quantisation and clipping at the rails.
 """
+
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from scipy.signal import lfilter
@@ -51,7 +52,7 @@ class EncoderModel:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "EncoderModel":
+    def from_dict(cls, data: dict) -> EncoderModel:
         data = dict(data)
         if "harmonics" in data:
             data["harmonics"] = tuple(tuple(h) for h in data["harmonics"])
@@ -60,7 +61,7 @@ class EncoderModel:
                 data[key] = tuple(value)
         return cls(**data)
 
-    def with_(self, **changes) -> "EncoderModel":
+    def with_(self, **changes) -> EncoderModel:
         return replace(self, **changes)
 
 
@@ -102,9 +103,12 @@ def clean_signals(model: EncoderModel, theta_mech, die_temp_c, hours) -> tuple[n
     out = []
     for axis, sig in ((0, d0), (1, q0)):
         gain = (1 + model.gain_tc_per_c[axis] * dT + model.gain_tc2_per_c2[axis] * dT**2) * aging
-        offset = (model.offset_counts[axis] + model.offset_tc_counts_per_c[axis] * dT
-                  + model.offset_tc2_counts_per_c2[axis] * dT**2
-                  + model.aging_offset_counts_per_khour[axis] * khours)
+        offset = (
+            model.offset_counts[axis]
+            + model.offset_tc_counts_per_c[axis] * dT
+            + model.offset_tc2_counts_per_c2[axis] * dT**2
+            + model.aging_offset_counts_per_khour[axis] * khours
+        )
         out.append(gain * sig + offset)
     return out[0], out[1]
 
@@ -113,8 +117,10 @@ def to_halls(model: EncoderModel, d, q, rng: np.random.Generator) -> dict[str, n
     """Split d/q over four halls around mid-scale, add noise and impulses, then the ADC (stage 6)."""
     n = np.asarray(d).size
     halls = {
-        "a_plus": ADC_MID + q / 2, "a_minus": ADC_MID - q / 2,
-        "b_plus": ADC_MID + d / 2, "b_minus": ADC_MID - d / 2,
+        "a_plus": ADC_MID + q / 2,
+        "a_minus": ADC_MID - q / 2,
+        "b_plus": ADC_MID + d / 2,
+        "b_minus": ADC_MID - d / 2,
     }
     if model.noise_counts > 0:
         for key in halls:
@@ -132,8 +138,16 @@ def to_halls(model: EncoderModel, d, q, rng: np.random.Generator) -> dict[str, n
     return halls
 
 
-def simulate(model: EncoderModel, t, theta_mech, temp_reported_c, rng: np.random.Generator,
-             *, hours_offset: float = 0.0, die_temp0: float | None = None) -> tuple[Samples, np.ndarray]:
+def simulate(
+    model: EncoderModel,
+    t,
+    theta_mech,
+    temp_reported_c,
+    rng: np.random.Generator,
+    *,
+    hours_offset: float = 0.0,
+    die_temp0: float | None = None,
+) -> tuple[Samples, np.ndarray]:
     """Samples as the drive would record them, and the die temperature (kept from the fits)."""
     t = np.asarray(t, dtype=float)
     temp_reported_c = np.asarray(temp_reported_c, dtype=float)
@@ -148,6 +162,7 @@ def simulate(model: EncoderModel, t, theta_mech, temp_reported_c, rng: np.random
 
 # --- operating profiles -----------------------------------------------------------------------
 
+
 @dataclass
 class Profile:
     """Where the rotor is and what the temperature sensor reports, sample by sample."""
@@ -159,9 +174,17 @@ class Profile:
     speed_rpm: np.ndarray | None = None
 
 
-def bench_profile(plateaus=(20.0, -40.0, 60.0, 20.0), *, positions: int = 3600, step_s: float = 0.003,
-                  ramp_rate_c_per_min: float = 2.0, ramp_sample_s: float = 0.5, soak_s: float = 600.0,
-                  soak_sample_s: float = 5.0, rng: np.random.Generator | None = None) -> Profile:
+def bench_profile(
+    plateaus=(20.0, -40.0, 60.0, 20.0),
+    *,
+    positions: int = 3600,
+    step_s: float = 0.003,
+    ramp_rate_c_per_min: float = 2.0,
+    ramp_sample_s: float = 0.5,
+    soak_s: float = 600.0,
+    soak_sample_s: float = 5.0,
+    rng: np.random.Generator | None = None,
+) -> Profile:
     """Seed 000's bench: at each temperature plateau the rotor steps through `positions` equal steps
     (0.1° at 3600, one every 3 ms as in the paper); between plateaus the chamber ramps while the
     rotor keeps turning at the same speed. Soaks before each sweep let the die settle."""
@@ -195,12 +218,25 @@ def bench_profile(plateaus=(20.0, -40.0, 60.0, 20.0), *, positions: int = 3600, 
         runs.append(np.full(positions, k))
         now += positions * step_s
     t = np.concatenate(ts)
-    return Profile(t=t, theta=np.concatenate(thetas) % (2 * np.pi), temp_c=np.concatenate(temps),
-                   run=np.concatenate(runs).astype(float), speed_rpm=np.full(t.size, 60.0 / rev_s))
+    return Profile(
+        t=t,
+        theta=np.concatenate(thetas) % (2 * np.pi),
+        temp_c=np.concatenate(temps),
+        run=np.concatenate(runs).astype(float),
+        speed_rpm=np.full(t.size, 60.0 / rev_s),
+    )
 
 
-def field_profile(days: float = 3.0, *, sample_s: float = 10.0, ambient_c: float = 25.0, ambient_swing_c: float = 8.0,
-                  load_rise_c: float = 40.0, load_tau_s: float = 1200.0, rng: np.random.Generator) -> Profile:
+def field_profile(
+    days: float = 3.0,
+    *,
+    sample_s: float = 10.0,
+    ambient_c: float = 25.0,
+    ambient_swing_c: float = 8.0,
+    load_rise_c: float = 40.0,
+    load_tau_s: float = 1200.0,
+    rng: np.random.Generator,
+) -> Profile:
     """A drive in the field: random positions, temperature = daily ambient cycle plus load heating
     that follows a random duty schedule through a first-order thermal path."""
     t = np.arange(0.0, days * 86400.0, sample_s)
@@ -216,8 +252,16 @@ def field_profile(days: float = 3.0, *, sample_s: float = 10.0, ambient_c: float
     return Profile(t=t, theta=theta, temp_c=ambient + heating, speed_rpm=speed)
 
 
-def cycle_profile(hours: float, *, sample_s: float, t_min: float = -40.0, t_max: float = 85.0,
-                  cycle_hours: float = 12.0, t0: float = 0.0, rng: np.random.Generator) -> Profile:
+def cycle_profile(
+    hours: float,
+    *,
+    sample_s: float,
+    t_min: float = -40.0,
+    t_max: float = 85.0,
+    cycle_hours: float = 12.0,
+    t0: float = 0.0,
+    rng: np.random.Generator,
+) -> Profile:
     """A temperature cycle between t_min and t_max (cosine, starting at +20 °C side) with random
     positions: the fleet's simulated drives run through heating and cooling."""
     t = t0 + np.arange(0.0, hours * 3600.0, sample_s)
@@ -227,15 +271,27 @@ def cycle_profile(hours: float, *, sample_s: float, t_min: float = -40.0, t_max:
     return Profile(t=t, theta=rng.uniform(0.0, 2 * np.pi, t.size), temp_c=temp)
 
 
-def record(model: EncoderModel, profile: Profile, rng: np.random.Generator, *, reference: bool = True,
-           temperature: bool = True, halls: bool = False) -> Samples:
+def record(
+    model: EncoderModel,
+    profile: Profile,
+    rng: np.random.Generator,
+    *,
+    reference: bool = True,
+    temperature: bool = True,
+    halls: bool = False,
+) -> Samples:
     """Run a model through a profile and keep what a recorder would keep."""
     samples, _ = simulate(model, profile.t, profile.theta, profile.temp_c, rng)
-    return Samples(t=samples.t, d=samples.d, q=samples.q,
-                   temp_c=samples.temp_c if temperature else None,
-                   theta_ref=samples.theta_ref if reference else None,
-                   run=profile.run, speed_rpm=profile.speed_rpm,
-                   halls=samples.halls if halls else None)
+    return Samples(
+        t=samples.t,
+        d=samples.d,
+        q=samples.q,
+        temp_c=samples.temp_c if temperature else None,
+        theta_ref=samples.theta_ref if reference else None,
+        run=profile.run,
+        speed_rpm=profile.speed_rpm,
+        halls=samples.halls if halls else None,
+    )
 
 
 def typical_drive(rng: np.random.Generator, **overrides) -> EncoderModel:

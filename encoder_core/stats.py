@@ -10,6 +10,7 @@ to the 4th power lose precision in a sum. A window holds
 
 Two windows with the same normalisation merge by addition, in any order.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -48,7 +49,7 @@ class WindowStats:
     def normalise(self, d, q) -> tuple[np.ndarray, np.ndarray]:
         return (np.asarray(d, float) - self.center_d) / self.scale, (np.asarray(q, float) - self.center_q) / self.scale
 
-    def add(self, d, q, temp_c=None) -> "WindowStats":
+    def add(self, d, q, temp_c=None) -> WindowStats:
         """Accumulate samples in place; returns self."""
         x, y = self.normalise(d, q)
         powers_x = [np.ones_like(x), x, x * x, x * x * x, (x * x) ** 2]
@@ -69,42 +70,67 @@ class WindowStats:
                 self.temp_max = max(self.temp_max, float(temp.max()))
         return self
 
-    def merge(self, other: "WindowStats") -> "WindowStats":
+    def merge(self, other: WindowStats) -> WindowStats:
         """A new statistics object holding both: addition, so order does not matter."""
         if (self.scale, self.center_d, self.center_q) != (other.scale, other.center_d, other.center_q):
-            raise InputError("cannot merge window statistics with different normalisation "
-                             f"({self.scale}, {self.center_d}, {self.center_q}) vs "
-                             f"({other.scale}, {other.center_d}, {other.center_q})")
-        return WindowStats(scale=self.scale, center_d=self.center_d, center_q=self.center_q,
-                           moments=self.moments + other.moments, bins=self.bins + other.bins,
-                           temp_n=self.temp_n + other.temp_n, temp_sum=self.temp_sum + other.temp_sum,
-                           temp_sq_sum=self.temp_sq_sum + other.temp_sq_sum,
-                           temp_min=min(self.temp_min, other.temp_min), temp_max=max(self.temp_max, other.temp_max),
-                           rejected=self.rejected + other.rejected)
+            raise InputError(
+                "cannot merge window statistics with different normalisation "
+                f"({self.scale}, {self.center_d}, {self.center_q}) vs "
+                f"({other.scale}, {other.center_d}, {other.center_q})"
+            )
+        return WindowStats(
+            scale=self.scale,
+            center_d=self.center_d,
+            center_q=self.center_q,
+            moments=self.moments + other.moments,
+            bins=self.bins + other.bins,
+            temp_n=self.temp_n + other.temp_n,
+            temp_sum=self.temp_sum + other.temp_sum,
+            temp_sq_sum=self.temp_sq_sum + other.temp_sq_sum,
+            temp_min=min(self.temp_min, other.temp_min),
+            temp_max=max(self.temp_max, other.temp_max),
+            rejected=self.rejected + other.rejected,
+        )
 
-    def subtract(self, other: "WindowStats") -> "WindowStats":
+    def subtract(self, other: WindowStats) -> WindowStats:
         """Take a window back out of a sum (merge's inverse for every sum; min and max stay those seen)."""
         if (self.scale, self.center_d, self.center_q) != (other.scale, other.center_d, other.center_q):
             raise InputError("cannot subtract window statistics with different normalisation")
-        return WindowStats(scale=self.scale, center_d=self.center_d, center_q=self.center_q,
-                           moments=self.moments - other.moments, bins=self.bins - other.bins,
-                           temp_n=self.temp_n - other.temp_n, temp_sum=self.temp_sum - other.temp_sum,
-                           temp_sq_sum=self.temp_sq_sum - other.temp_sq_sum, temp_min=self.temp_min,
-                           temp_max=self.temp_max, rejected=self.rejected - other.rejected)
+        return WindowStats(
+            scale=self.scale,
+            center_d=self.center_d,
+            center_q=self.center_q,
+            moments=self.moments - other.moments,
+            bins=self.bins - other.bins,
+            temp_n=self.temp_n - other.temp_n,
+            temp_sum=self.temp_sum - other.temp_sum,
+            temp_sq_sum=self.temp_sq_sum - other.temp_sq_sum,
+            temp_min=self.temp_min,
+            temp_max=self.temp_max,
+            rejected=self.rejected - other.rejected,
+        )
 
     def moment(self, i: int, j: int) -> float:
         return float(self.moments[MONOMIALS.index((i, j))])
 
     def to_dict(self) -> dict:
         finite = self.temp_n > 0
-        return {"scale": self.scale, "center_d": self.center_d, "center_q": self.center_q,
-                "moments": self.moments.tolist(), "bins": self.bins.tolist(),
-                "temp_n": self.temp_n, "temp_sum": self.temp_sum, "temp_sq_sum": self.temp_sq_sum,
-                "temp_min": self.temp_min if finite else None, "temp_max": self.temp_max if finite else None,
-                "rejected": self.rejected}
+        return {
+            "scale": self.scale,
+            "center_d": self.center_d,
+            "center_q": self.center_q,
+            "moments": self.moments.tolist(),
+            "bins": self.bins.tolist(),
+            "temp_n": self.temp_n,
+            "temp_sum": self.temp_sum,
+            "temp_sq_sum": self.temp_sq_sum,
+            "temp_min": self.temp_min if finite else None,
+            "temp_max": self.temp_max if finite else None,
+            "rejected": self.rejected,
+        }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "WindowStats":
+    def from_dict(cls, data: dict) -> WindowStats:
         moments = np.asarray(data["moments"], dtype=float)
         bins = np.asarray(data["bins"], dtype=float)
         if moments.shape != (len(MONOMIALS),):
@@ -113,12 +139,19 @@ class WindowStats:
             raise InputError(f"bins must be {N_BINS}x{len(BIN_COLUMNS)}, got shape {bins.shape}")
         if not (np.all(np.isfinite(moments)) and np.all(np.isfinite(bins))):
             raise InputError("window statistics contain a non-finite value")
-        return cls(scale=float(data["scale"]), center_d=float(data["center_d"]), center_q=float(data["center_q"]),
-                   moments=moments, bins=bins, temp_n=int(data["temp_n"]), temp_sum=float(data["temp_sum"]),
-                   temp_sq_sum=float(data["temp_sq_sum"]),
-                   temp_min=float("inf") if data.get("temp_min") is None else float(data["temp_min"]),
-                   temp_max=float("-inf") if data.get("temp_max") is None else float(data["temp_max"]),
-                   rejected=int(data.get("rejected", 0)))
+        return cls(
+            scale=float(data["scale"]),
+            center_d=float(data["center_d"]),
+            center_q=float(data["center_q"]),
+            moments=moments,
+            bins=bins,
+            temp_n=int(data["temp_n"]),
+            temp_sum=float(data["temp_sum"]),
+            temp_sq_sum=float(data["temp_sq_sum"]),
+            temp_min=float("inf") if data.get("temp_min") is None else float(data["temp_min"]),
+            temp_max=float("-inf") if data.get("temp_max") is None else float(data["temp_max"]),
+            rejected=int(data.get("rejected", 0)),
+        )
 
 
 def angle_bin(x, y) -> np.ndarray:

@@ -5,6 +5,7 @@ A publisher process (the fleet's agents, condensed) sends pre-built windows for 
 fast as it can; the service in this process validates, deduplicates and stores them. Then one
 refit pass over every device is timed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,8 +37,6 @@ def template_windows(count: int, samples_per_window: int = 3000) -> list[tuple[W
     return out
 
 
-
-
 def publish(endpoint: str, devices: int, windows: int) -> None:
     """The publisher process: factory sets, then every device's windows, round-robin."""
     import json
@@ -55,8 +54,16 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
             session.put(f"encoders/{name}/factory", payload, congestion_control=block)
         for seq, (stats, start) in enumerate(templates, start=1):
             for name in names:
-                msg = wire.window_message(name, seq, stats, window_start=start, window_end=start + 60.0,
-                                          temp_rate_c_per_s=0.0, coefficients_version=0, angle_quality_deg=0.5)
+                msg = wire.window_message(
+                    name,
+                    seq,
+                    stats,
+                    window_start=start,
+                    window_end=start + 60.0,
+                    temp_rate_c_per_s=0.0,
+                    coefficients_version=0,
+                    angle_quality_deg=0.5,
+                )
                 session.put(f"encoders/{name}/stats", wire.encode("window", msg), congestion_control=block)
         # closing a session drops what it has not sent yet: like an agent, wait until the service has it all
         deadline = time.monotonic() + 300
@@ -80,8 +87,9 @@ def run_size(devices: int, windows: int, workdir: Path) -> dict:
     service = FleetService(store, session, refit_interval_s=0, min_band_samples=2000).start()
     try:
         total = devices * windows
-        proc = subprocess.Popen([sys.executable, "-m", "encoder_fleet.bench_fleet", "--publish", endpoint,
-                                 str(devices), str(windows)])
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "encoder_fleet.bench_fleet", "--publish", endpoint, str(devices), str(windows)]
+        )
         deadline = time.monotonic() + 600
         stored, first, first_at = 0, 0, None  # timed from the first stored window: publisher start-up aside
         while time.monotonic() < deadline:
@@ -96,10 +104,18 @@ def run_size(devices: int, windows: int, workdir: Path) -> dict:
         start = time.perf_counter()
         published = service.refit_all()
         refit_s = time.perf_counter() - start
-        return {"devices": devices, "windows": stored, "expected": total, "ingest_s": ingest_s,
-                "windows_per_s": (stored - first) / ingest_s if ingest_s > 0 else float("nan"), "refits": devices, "refit_s": refit_s,
-                "refits_per_s": devices / refit_s, "rollouts": len(published),
-                "rejected": sum(v for k, v in service.counters.ingested.items() if k not in ("stored", "duplicate"))}
+        return {
+            "devices": devices,
+            "windows": stored,
+            "expected": total,
+            "ingest_s": ingest_s,
+            "windows_per_s": (stored - first) / ingest_s if ingest_s > 0 else float("nan"),
+            "refits": devices,
+            "refit_s": refit_s,
+            "refits_per_s": devices / refit_s,
+            "rollouts": len(published),
+            "rejected": sum(v for k, v in service.counters.ingested.items() if k not in ("stored", "duplicate")),
+        }
     finally:
         service.stop()
         session.close()
@@ -112,13 +128,19 @@ def run_bench(sizes: list[int], windows_per_device: int) -> int:
         for n in sizes:
             print(f"… {n} devices × {windows_per_device} windows", file=sys.stderr, flush=True)
             rows.append(run_size(n, windows_per_device, Path(tmp)))
-    print(f"\n{'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10} {'refit s':>8} {'refits/s':>9}"
-          f" {'rollouts':>9} {'rejected':>9}")
+    print(
+        f"\n{'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10} {'refit s':>8} {'refits/s':>9}"
+        f" {'rollouts':>9} {'rejected':>9}"
+    )
     for r in rows:
-        print(f"{r['devices']:>8} {r['windows']:>9} {r['ingest_s']:>9.2f} {r['windows_per_s']:>10.0f} "
-              f"{r['refit_s']:>8.2f} {r['refits_per_s']:>9.1f} {r['rollouts']:>9} {r['rejected']:>9}")
-    print("\nwindows/s: validated, deduplicated and stored (with the band sums) through a real router and SQLite;"
-          "\nrefits/s: one refit pass over every device (ellipse, pooled harmonics, zero anchor, rollout decision).")
+        print(
+            f"{r['devices']:>8} {r['windows']:>9} {r['ingest_s']:>9.2f} {r['windows_per_s']:>10.0f} "
+            f"{r['refit_s']:>8.2f} {r['refits_per_s']:>9.1f} {r['rollouts']:>9} {r['rejected']:>9}"
+        )
+    print(
+        "\nwindows/s: validated, deduplicated and stored (with the band sums) through a real router and SQLite;"
+        "\nrefits/s: one refit pass over every device (ellipse, pooled harmonics, zero anchor, rollout decision)."
+    )
     return 0
 
 

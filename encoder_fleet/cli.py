@@ -1,4 +1,5 @@
 """`encoder-fleet`: one command, a subcommand per job. Bad input exits 2 with a one-line reason."""
+
 from __future__ import annotations
 
 import argparse
@@ -20,8 +21,10 @@ def cmd_simulate(args) -> int:
     for item in args.set or []:
         key, _, value = item.partition("=")
         if key not in EncoderModel.__dataclass_fields__:
-            raise InputError(f"--set {item!r}: unknown model parameter {key!r} "
-                             f"(known: {', '.join(EncoderModel.__dataclass_fields__)})")
+            raise InputError(
+                f"--set {item!r}: unknown model parameter {key!r} "
+                f"(known: {', '.join(EncoderModel.__dataclass_fields__)})"
+            )
         try:
             parsed = json.loads(value)
         except json.JSONDecodeError:
@@ -32,8 +35,9 @@ def cmd_simulate(args) -> int:
         profile = bench_profile(tuple(args.plateaus), rng=rng)
     else:
         profile = field_profile(args.days, sample_s=args.sample_s, rng=rng)
-    samples = record(model, profile, rng, reference=not args.no_reference, temperature=not args.no_temperature,
-                     halls=args.halls)
+    samples = record(
+        model, profile, rng, reference=not args.no_reference, temperature=not args.no_temperature, halls=args.halls
+    )
     write_recording(samples, args.out, halls=args.halls)
     print(f"wrote {len(samples)} rows to {args.out}")
     return 0
@@ -50,12 +54,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="write a simulated recording (CSV contract of DESIGN.md)")
-    p.add_argument("--scenario", choices=["bench", "field"], default="bench",
-                   help="bench: seed 000's rig, 3600 positions per plateau with ramps; field: a drive for days")
+    p.add_argument(
+        "--scenario",
+        choices=["bench", "field"],
+        default="bench",
+        help="bench: seed 000's rig, 3600 positions per plateau with ramps; field: a drive for days",
+    )
     p.add_argument("--out", required=True)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--typical", action="store_true", help="start from a randomly drawn production encoder")
-    p.add_argument("--set", action="append", metavar="KEY=JSON", help="set a model parameter, e.g. thermal_lag_tau_s=300")
+    p.add_argument(
+        "--set", action="append", metavar="KEY=JSON", help="set a model parameter, e.g. thermal_lag_tau_s=300"
+    )
     p.add_argument("--plateaus", type=float, nargs="+", default=[20.0, -40.0, 60.0, 20.0])
     p.add_argument("--days", type=float, default=3.0)
     p.add_argument("--sample-s", type=float, default=10.0)

@@ -3,6 +3,7 @@ per simulated drive, the rollout as it happens, and a summary scored against the
 
 The truth is used here only, after the run: neither the agents nor the service ever see it.
 """
+
 from __future__ import annotations
 
 import json
@@ -33,15 +34,22 @@ def errors(device_seed: int, bands: list[dict] | None) -> tuple[np.ndarray, np.n
     factory = factory_calibration(model, device_seed)
     truth = evaluation_set(model.with_(noise_counts=0.0), device_seed)
     fleet = BandedCorrection.from_dict({"bands": bands}) if bands else factory
-    return (truth.temp_c, angle_error_deg(factory.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref),
-            angle_error_deg(fleet.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref))
+    return (
+        truth.temp_c,
+        angle_error_deg(factory.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref),
+        angle_error_deg(fleet.angle(truth.d, truth.q, truth.temp_c), truth.theta_ref),
+    )
 
 
 def score(device_seed: int, bands: list[dict] | None) -> dict:
     """RMS and max angle error of factory and fleet coefficients over the cycle."""
     _, f, g = errors(device_seed, bands)
-    return {"rms_error_deg_factory": rms(f), "max_error_deg_factory": float(np.abs(f).max()),
-            "rms_error_deg_fleet": rms(g), "max_error_deg_fleet": float(np.abs(g).max())}
+    return {
+        "rms_error_deg_factory": rms(f),
+        "max_error_deg_factory": float(np.abs(f).max()),
+        "rms_error_deg_fleet": rms(g),
+        "max_error_deg_fleet": float(np.abs(g).max()),
+    }
 
 
 def plot_errors(curves: dict[str, tuple], path: Path) -> None:
@@ -94,11 +102,32 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
     service = FleetService(store, session, refit_interval_s=1.0).start()
     http = HttpServer(store, http_port).start()
     print(f"service: router {endpoint}, REST http://127.0.0.1:{http_port}/docs, database {db}", file=log)
-    agents = [subprocess.Popen([sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", name,
-                                "--seed", str(i), "--connect", endpoint, "--sim-hours", str(sim_hours),
-                                "--window-s", str(WINDOW_S), "--outbox", str(out_dir / "outbox" / f"{name}.sqlite")],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-              for i, name in enumerate(names)]
+    agents = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "encoder_fleet.cli",
+                "agent",
+                "--device",
+                name,
+                "--seed",
+                str(i),
+                "--connect",
+                endpoint,
+                "--sim-hours",
+                str(sim_hours),
+                "--window-s",
+                str(WINDOW_S),
+                "--outbox",
+                str(out_dir / "outbox" / f"{name}.sqlite"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i, name in enumerate(names)
+    ]
     expected = devices * int(round(sim_hours * 3600 / WINDOW_S))
     try:
         with tqdm(total=expected, desc="windows stored", unit="win", file=log, disable=as_json) as bar:
@@ -122,8 +151,11 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
             applied = applied_set(store, name)
             versions = sorted({a["version"] for a in store.acks(name) if a["status"] == "applied"})
             curves[name] = errors(i, applied["bands"] if applied else None)
-            summary["devices"][name] = {**score(i, applied["bands"] if applied else None),
-                                        "windows": store.device(name)["windows"], "coefficient_versions": versions}
+            summary["devices"][name] = {
+                **score(i, applied["bands"] if applied else None),
+                "windows": store.device(name)["windows"],
+                "coefficient_versions": versions,
+            }
         plot_path = out_dir / "angle-error-vs-temperature.png"
         plot_errors(curves, plot_path)
         summary["plot"] = str(plot_path)
@@ -148,20 +180,31 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
 
 
 def format_summary(summary: dict) -> str:
-    lines = ["", "Angle error over a -40…+85 °C cycle (degrees; noise-free signals, so it measures the coefficients)", "",
-             f"{'device':<10} {'windows':>8} {'versions applied':<22} {'factory rms':>11} {'max':>7} "
-             f"{'fleet rms':>10} {'max':>7} {'gain':>6}"]
+    lines = [
+        "",
+        "Angle error over a -40…+85 °C cycle (degrees; noise-free signals, so it measures the coefficients)",
+        "",
+        f"{'device':<10} {'windows':>8} {'versions applied':<22} {'factory rms':>11} {'max':>7} "
+        f"{'fleet rms':>10} {'max':>7} {'gain':>6}",
+    ]
     for name, d in summary["devices"].items():
         versions = ",".join(map(str, d["coefficient_versions"])) or "-"
         if len(versions) > 22:
             versions = versions[:19] + "..."
         gain = d["rms_error_deg_factory"] / d["rms_error_deg_fleet"] if d["rms_error_deg_fleet"] > 0 else float("inf")
-        lines.append(f"{name:<10} {d['windows']:>8} {versions:<22} {d['rms_error_deg_factory']:>11.3f} "
-                     f"{d['max_error_deg_factory']:>7.3f} {d['rms_error_deg_fleet']:>10.3f} "
-                     f"{d['max_error_deg_fleet']:>7.3f} {gain:>5.1f}x")
-    lines += ["", f"database: {summary['database']}", f"MCAP export (open in Foxglove): {summary['mcap']}",
-              f"plot: {summary['plot']}",
-              f"rejected messages: {summary['rejections'] or 'none'}",
-              "inspect: .venv/bin/encoder-fleet service --db " + summary["database"]
-              + " --http-port 8000, then http://127.0.0.1:8000/docs"]
+        lines.append(
+            f"{name:<10} {d['windows']:>8} {versions:<22} {d['rms_error_deg_factory']:>11.3f} "
+            f"{d['max_error_deg_factory']:>7.3f} {d['rms_error_deg_fleet']:>10.3f} "
+            f"{d['max_error_deg_fleet']:>7.3f} {gain:>5.1f}x"
+        )
+    lines += [
+        "",
+        f"database: {summary['database']}",
+        f"MCAP export (open in Foxglove): {summary['mcap']}",
+        f"plot: {summary['plot']}",
+        f"rejected messages: {summary['rejections'] or 'none'}",
+        "inspect: .venv/bin/encoder-fleet service --db "
+        + summary["database"]
+        + " --http-port 8000, then http://127.0.0.1:8000/docs",
+    ]
     return "\n".join(lines)

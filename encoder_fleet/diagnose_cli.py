@@ -1,4 +1,5 @@
 """`encoder-fleet diagnose` and `encoder-fleet bench-diagnose` (registered by encoder_fleet.cli)."""
+
 from __future__ import annotations
 
 import json
@@ -77,8 +78,10 @@ def _finite(obj):
 
 def _print_summary(report: dict) -> None:
     b, e = report["baseline"], report["extended"]
-    print(f"{report['samples']} samples, error metric: {report['error_metric']} (held out by "
-          f"{report.get('held_out', {}).get('by', '?')})")
+    print(
+        f"{report['samples']} samples, error metric: {report['error_metric']} (held out by "
+        f"{report.get('held_out', {}).get('by', '?')})"
+    )
     print(f"baseline: rms {b['rms_error_deg']:.4f}°  max {b['max_error_deg']:.4f}°")
     for f in report["findings"]:
         params = ", ".join(f"{k}={v}" for k, v in f["parameters"].items())
@@ -95,9 +98,16 @@ def bench_recording(rows: int, seed: int = 0):
     from encoder_core.simulator import EncoderModel, bench_profile, record
 
     rng = np.random.default_rng(seed)
-    model = EncoderModel(hall_amplitude=700.0, amplitude_imbalance=0.02, gain_tc_per_c=(-0.002, -0.0008),
-                         offset_counts=(10.0, -15.0), offset_tc_counts_per_c=(0.8, -0.5), noise_counts=1.0,
-                         thermal_lag_tau_s=200.0, harmonics=((5, 0.01, 0.3),))
+    model = EncoderModel(
+        hall_amplitude=700.0,
+        amplitude_imbalance=0.02,
+        gain_tc_per_c=(-0.002, -0.0008),
+        offset_counts=(10.0, -15.0),
+        offset_tc_counts_per_c=(0.8, -0.5),
+        noise_counts=1.0,
+        thermal_lag_tau_s=200.0,
+        harmonics=((5, 0.01, 0.3),),
+    )
     plateaus = [20.0, -40.0, 60.0, 20.0]
     profile = bench_profile(tuple(plateaus), rng=rng)
     while profile.t.size < rows:  # more plateaus until long enough
@@ -112,9 +122,16 @@ def field_recording(rows: int, seed: int = 0):
     from encoder_core.simulator import EncoderModel, field_profile, record
 
     rng = np.random.default_rng(seed)
-    model = EncoderModel(hall_amplitude=700.0, amplitude_imbalance=0.02, gain_tc_per_c=(-0.002, -0.0008),
-                         offset_counts=(10.0, -15.0), offset_tc_counts_per_c=(0.8, -0.5), noise_counts=1.0,
-                         thermal_lag_tau_s=300.0, harmonics=((5, 0.01, 0.3),))
+    model = EncoderModel(
+        hall_amplitude=700.0,
+        amplitude_imbalance=0.02,
+        gain_tc_per_c=(-0.002, -0.0008),
+        offset_counts=(10.0, -15.0),
+        offset_tc_counts_per_c=(0.8, -0.5),
+        noise_counts=1.0,
+        thermal_lag_tau_s=300.0,
+        harmonics=((5, 0.01, 0.3),),
+    )
     profile = field_profile(rows * 10.0 / 86400.0 + 0.001, sample_s=10.0, rng=rng)
     samples = record(model, profile, rng, reference=False)
     return samples.subset(np.arange(rows))
@@ -124,7 +141,9 @@ def cmd_bench_diagnose(args) -> int:
     """Time diagnose on bench-style (reference) and field-style (reference-free) recordings."""
     from encoder_core.diagnose import diagnose
 
-    print(f"{'style':<6} {'rows':>8} {'seconds':>8} {'rows/s':>9}  findings (planted: harmonic_distortion, thermal_lag)")
+    print(
+        f"{'style':<6} {'rows':>8} {'seconds':>8} {'rows/s':>9}  findings (planted: harmonic_distortion, thermal_lag)"
+    )
     for style, make in (("bench", bench_recording), ("field", field_recording)):
         for rows in args.rows:
             samples = make(rows, args.seed)

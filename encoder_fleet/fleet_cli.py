@@ -1,4 +1,5 @@
 """Fleet subcommands: agent, service, export, demo, bench-fleet."""
+
 from __future__ import annotations
 
 import hashlib
@@ -37,7 +38,9 @@ def cmd_agent(args) -> int:
 
         recording = read_recording(args.source.split(":", 1)[1])
         if recording.temp_c is None:
-            raise InputError(f"{args.source}: a replayed recording needs the temp_c column (windows are banded by temperature)")
+            raise InputError(
+                f"{args.source}: a replayed recording needs the temp_c column (windows are banded by temperature)"
+            )
         source = ReplaySource(recording)
         factory = None
     else:
@@ -57,9 +60,11 @@ def cmd_agent(args) -> int:
     try:
         agent.start()
         c = agent.run(real_time_factor=args.real_time_factor, stop=stop)
-        print(f"{args.device}: {c.windows} windows, {c.resent} resent, {c.offline_syncs} times without the service, "
-              f"versions applied {c.applied}, refused {[v for v, _ in c.refused]}, {len(outbox)} left in outbox",
-              flush=True)
+        print(
+            f"{args.device}: {c.windows} windows, {c.resent} resent, {c.offline_syncs} times without the service, "
+            f"versions applied {c.applied}, refused {[v for v, _ in c.refused]}, {len(outbox)} left in outbox",
+            flush=True,
+        )
     finally:
         agent.close()
         session.close()
@@ -70,8 +75,15 @@ def cmd_agent(args) -> int:
 def cmd_service(args) -> int:
     from service.runtime import run_service
 
-    return run_service(db=args.db, listen=args.listen, connect=args.connect, http_host=args.http_host,
-                       http_port=args.http_port, refit_interval_s=args.refit_interval, band_horizon=args.band_horizon)
+    return run_service(
+        db=args.db,
+        listen=args.listen,
+        connect=args.connect,
+        http_host=args.http_host,
+        http_port=args.http_port,
+        refit_interval_s=args.refit_interval,
+        band_horizon=args.band_horizon,
+    )
 
 
 def cmd_export(args) -> int:
@@ -113,8 +125,12 @@ def register(sub) -> None:
     p.add_argument("--sim-hours", type=float, default=24.0)
     p.add_argument("--sample-hz", type=float, default=20.0)
     p.add_argument("--window-s", type=float, default=60.0)
-    p.add_argument("--real-time-factor", type=float, default=0.0,
-                   help="pace the simulated clock at this many times real time (0: as fast as possible)")
+    p.add_argument(
+        "--real-time-factor",
+        type=float,
+        default=0.0,
+        help="pace the simulated clock at this many times real time (0: as fast as possible)",
+    )
     p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
     p.add_argument("--factory", help="the factory coefficient set, JSON (required for replay)")
     p.set_defaults(func=cmd_agent)
@@ -126,8 +142,12 @@ def register(sub) -> None:
     p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
     p.add_argument("--http-port", type=int, default=8000, help="REST port (0: no REST)")
     p.add_argument("--refit-interval", type=float, default=2.0, help="seconds between refit passes")
-    p.add_argument("--band-horizon", type=int, default=BAND_HORIZON,
-                   help="newest windows per temperature band that refits use, so they follow aging (0: all)")
+    p.add_argument(
+        "--band-horizon",
+        type=int,
+        default=BAND_HORIZON,
+        help="newest windows per temperature band that refits use, so they follow aging (0: all)",
+    )
     p.set_defaults(func=cmd_service)
 
     p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")

@@ -1,4 +1,5 @@
 """Recording CSV (the contract in DESIGN.md): read with line-precise errors, write from Samples."""
+
 from __future__ import annotations
 
 import csv
@@ -34,8 +35,10 @@ def read_recording(path: str | Path) -> Samples:
         has_dq = "d" in header and "q" in header
         has_halls = all(h in header for h in HALL_COLUMNS)
         if not (has_dq or has_halls):
-            raise InputError(f"{path}: missing columns: need 'd' and 'q', or all of {', '.join(HALL_COLUMNS)}"
-                             f" (header has: {', '.join(header)})")
+            raise InputError(
+                f"{path}: missing columns: need 'd' and 'q', or all of {', '.join(HALL_COLUMNS)}"
+                f" (header has: {', '.join(header)})"
+            )
         wanted = ["t"] + (["d", "q"] if has_dq else list(HALL_COLUMNS)) + [c for c in OPTIONAL if c in header]
         index = {name: header.index(name) for name in wanted}
         columns: dict[str, list[float]] = {name: [] for name in wanted}
@@ -67,8 +70,10 @@ def read_recording(path: str | Path) -> Samples:
     bad = np.flatnonzero(step <= 0)
     if bad.size:
         row = bad[0] + 1  # the row whose t is not after the one before it
-        raise InputError(f"{path}, line {lines[row]}, column 't': does not increase "
-                         f"({t[row - 1]} on line {lines[row - 1]}, then {t[row]})")
+        raise InputError(
+            f"{path}, line {lines[row]}, column 't': does not increase "
+            f"({t[row - 1]} on line {lines[row - 1]}, then {t[row]})"
+        )
     if has_dq:
         d, q = arrays["d"], arrays["q"]
         halls = None
@@ -76,8 +81,16 @@ def read_recording(path: str | Path) -> Samples:
         halls = {h: arrays[h] for h in HALL_COLUMNS}
         d, q = halls_to_dq(halls["a_plus"], halls["a_minus"], halls["b_plus"], halls["b_minus"])
     theta = np.radians(arrays["theta_ref_deg"]) if "theta_ref_deg" in arrays else None
-    return Samples(t=t, d=d, q=q, temp_c=arrays.get("temp_c"), theta_ref=theta, run=arrays.get("run"),
-                   speed_rpm=arrays.get("speed_rpm"), halls=halls)
+    return Samples(
+        t=t,
+        d=d,
+        q=q,
+        temp_c=arrays.get("temp_c"),
+        theta_ref=theta,
+        run=arrays.get("run"),
+        speed_rpm=arrays.get("speed_rpm"),
+        halls=halls,
+    )
 
 
 def write_recording(samples: Samples, path: str | Path, *, halls: bool = False) -> None:
@@ -99,5 +112,4 @@ def write_recording(samples: Samples, path: str | Path, *, halls: bool = False) 
     path.parent.mkdir(parents=True, exist_ok=True)
     fmt = {"t": "%.4f", "run": "%d"}
     matrix = np.column_stack(list(cols.values()))
-    np.savetxt(path, matrix, delimiter=",", header=",".join(cols), comments="",
-               fmt=[fmt.get(c, "%.6g") for c in cols])
+    np.savetxt(path, matrix, delimiter=",", header=",".join(cols), comments="", fmt=[fmt.get(c, "%.6g") for c in cols])

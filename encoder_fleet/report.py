@@ -1,4 +1,5 @@
 """The diagnose HTML report: the findings table and matplotlib plots embedded as PNG (one file)."""
+
 from __future__ import annotations
 
 import base64
@@ -52,8 +53,11 @@ def _plots(plots: dict) -> list[tuple[str, str]]:
         view_name = plots.get("thermal_view", "baseline")
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), sharey=True)
         for ax, err, name in ((axes[0], view, view_name), (axes[1], ext, "extended")):
-            for mask, colour, what in ((rate > 0.2, "tab:red", "heating"), (rate < -0.2, "tab:blue", "cooling"),
-                                       (np.abs(rate) <= 0.2, "tab:gray", "steady")):
+            for mask, colour, what in (
+                (rate > 0.2, "tab:red", "heating"),
+                (rate < -0.2, "tab:blue", "cooling"),
+                (np.abs(rate) <= 0.2, "tab:gray", "steady"),
+            ):
                 m = idx[mask[idx]]
                 if m.size:
                     ax.plot(temp[m], err[m], ".", ms=1.5, alpha=0.5, color=colour, label=what)
@@ -81,28 +85,37 @@ def _plots(plots: dict) -> list[tuple[str, str]]:
 def render(diagnosis, title: str = "recording") -> str:
     r = diagnosis.report
     esc = html.escape
-    rows = "".join(
-        f"<tr><td>{esc(f['cause'])}</td><td>{esc(', '.join(f'{k}={v}' for k, v in f['parameters'].items()))}</td>"
-        f"<td>{f['rms_error_deg_before']:.4f}</td><td>{f['rms_error_deg_after']:.4f}</td>"
-        f"<td>{esc(f['evidence'])}</td></tr>" for f in r["findings"]) or \
-        "<tr><td colspan=5>no findings: the baseline explains the recording down to its noise</td></tr>"
-    untestable = "".join(f"<li><b>{esc(n['cause'])}</b>: {esc(n['why'])}</li>" for n in r["not_testable"]) or "<li>none</li>"
-    figs = "".join(f"<h3>{esc(name)}</h3><img alt='{esc(name)}' src='data:image/png;base64,{png}'>"
-                   for name, png in _plots(diagnosis.plots))
+    rows = (
+        "".join(
+            f"<tr><td>{esc(f['cause'])}</td><td>{esc(', '.join(f'{k}={v}' for k, v in f['parameters'].items()))}</td>"
+            f"<td>{f['rms_error_deg_before']:.4f}</td><td>{f['rms_error_deg_after']:.4f}</td>"
+            f"<td>{esc(f['evidence'])}</td></tr>"
+            for f in r["findings"]
+        )
+        or "<tr><td colspan=5>no findings: the baseline explains the recording down to its noise</td></tr>"
+    )
+    untestable = (
+        "".join(f"<li><b>{esc(n['cause'])}</b>: {esc(n['why'])}</li>" for n in r["not_testable"]) or "<li>none</li>"
+    )
+    figs = "".join(
+        f"<h3>{esc(name)}</h3><img alt='{esc(name)}' src='data:image/png;base64,{png}'>"
+        for name, png in _plots(diagnosis.plots)
+    )
     b, e = r["baseline"], r["extended"]
     return f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>diagnose: {esc(title)}</title>
 <style>body{{font-family:sans-serif;max-width:1150px;margin:2em auto}}td,th{{border:1px solid #ccc;padding:4px 8px;
 vertical-align:top}}table{{border-collapse:collapse}}img{{max-width:100%}}</style></head><body>
 <h1>diagnose: {esc(title)}</h1>
-<p>{r['samples']} samples; error metric <b>{esc(r['error_metric'])}</b>; every error is measured on held-out data
-(held out by {esc(str(r.get('held_out', {}).get('by', '?')))}).</p>
+<p>{r["samples"]} samples; error metric <b>{esc(r["error_metric"])}</b>; every error is measured on held-out data
+(held out by {esc(str(r.get("held_out", {}).get("by", "?")))}).</p>
 <table><tr><th>model</th><th>RMS (°)</th><th>max (°)</th></tr>
-<tr><td>baseline: {esc(b['model'])}</td><td>{b['rms_error_deg']:.4f}</td><td>{b['max_error_deg']:.4f}</td></tr>
-<tr><td>extended: baseline + {esc(', '.join(e['causes']) or 'nothing')}</td><td>{e['rms_error_deg']:.4f}</td>
-<td>{e['max_error_deg']:.4f}</td></tr></table>
+<tr><td>baseline: {esc(b["model"])}</td><td>{b["rms_error_deg"]:.4f}</td><td>{b["max_error_deg"]:.4f}</td></tr>
+<tr><td>extended: baseline + {esc(", ".join(e["causes"]) or "nothing")}</td><td>{e["rms_error_deg"]:.4f}</td>
+<td>{e["max_error_deg"]:.4f}</td></tr></table>
 <h2>Findings</h2>
-<table><tr><th>cause</th><th>parameters</th><th>RMS before (°)</th><th>RMS after (°)</th><th>evidence</th></tr>{rows}</table>
+<table><tr><th>cause</th><th>parameters</th><th>RMS before (°)</th><th>RMS after (°)</th>
+<th>evidence</th></tr>{rows}</table>
 <h2>Not testable with this recording</h2><ul>{untestable}</ul>
 <h2>Plots</h2>{figs}
 </body></html>

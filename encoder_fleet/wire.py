@@ -4,6 +4,7 @@ docs/wire.md describes them, schemas/*.schema.json are the contract, this module
 directions: `decode` for what arrives, `encode` for what leaves, builders for what we create.
 Kinds are "window" (key suffix "stats"), "coefficients" and "ack".
 """
+
 from __future__ import annotations
 
 import json
@@ -61,8 +62,12 @@ _NUMBER = {"type": "number"}
 
 def _is_plain_numeric_array(node) -> bool:
     """{"type": "array", "minItems", "maxItems", "items": a number or another such array}."""
-    return (isinstance(node, dict) and node.get("type") == "array" and set(node) <= _PLAIN_ARRAY_KEYS
-            and (node.get("items") == _NUMBER or _is_plain_numeric_array(node.get("items"))))
+    return (
+        isinstance(node, dict)
+        and node.get("type") == "array"
+        and set(node) <= _PLAIN_ARRAY_KEYS
+        and (node.get("items") == _NUMBER or _is_plain_numeric_array(node.get("items")))
+    )
 
 
 def _numeric_array_ok(node: dict, value) -> bool:
@@ -107,6 +112,7 @@ def _fast_valid(kind: str, msg) -> bool:
 
 # --- keys -------------------------------------------------------------------------------------
 
+
 def key_for(kind: str, device: str) -> str:
     return f"encoders/{device}/{KEY_SUFFIX[kind]}"
 
@@ -129,6 +135,7 @@ def device_from_key(key_expr: str) -> str:
 
 
 # --- checking ---------------------------------------------------------------------------------
+
 
 class _NonFinite:
     """Stands in for a NaN/Infinity token or an overflowing number while parsing, so we can say where it was."""
@@ -178,7 +185,9 @@ def check(kind: str, msg) -> dict:
     """Raise WireError unless msg is a valid message of this kind; returns msg."""
     found = _find_non_finite(msg)
     if found:
-        raise WireError("non_finite", f"{kind} message: {found[0]}: non-finite number {found[1]} (JSON allows finite numbers only)")
+        raise WireError(
+            "non_finite", f"{kind} message: {found[0]}: non-finite number {found[1]} (JSON allows finite numbers only)"
+        )
     error = None if _fast_valid(kind, msg) else best_match(_validator(kind).iter_errors(msg))
     if error is not None:
         text = error.message if len(error.message) <= 200 else error.message[:200] + "…"
@@ -189,6 +198,7 @@ def check(kind: str, msg) -> dict:
 
 def _check_consistency(kind: str, msg: dict) -> None:
     """What a JSON Schema cannot say: relations between fields."""
+
     def bad(path: str, text: str):
         raise WireError("inconsistent", f"{kind} message: {path}: {text}")
 
@@ -221,13 +231,17 @@ def decode(kind: str, payload: bytes, *, key_device: str | None) -> dict:
     try:
         msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as exc:
-        raise WireError("not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+        raise WireError(
+            "not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
+        ) from None
     except _DuplicateKey as exc:
         raise WireError("not_json", f"{kind} message: key {exc.args[0]!r} appears twice in one object") from None
     check(kind, msg)
     if key_device is not None and msg["device"] != key_device:
-        raise WireError("device_mismatch",
-                        f"{kind} message: $.device: {msg['device']!r} differs from the key's device {key_device!r}")
+        raise WireError(
+            "device_mismatch",
+            f"{kind} message: $.device: {msg['device']!r} differs from the key's device {key_device!r}",
+        )
     return msg
 
 
@@ -242,21 +256,42 @@ def encode(kind: str, msg: dict) -> bytes:
 
 # --- builders ---------------------------------------------------------------------------------
 
-def window_message(device: str, seq: int, stats: WindowStats, *, window_start: float, window_end: float,
-                   temp_rate_c_per_s: float, coefficients_version: int, angle_quality_deg: float) -> dict:
+
+def window_message(
+    device: str,
+    seq: int,
+    stats: WindowStats,
+    *,
+    window_start: float,
+    window_end: float,
+    temp_rate_c_per_s: float,
+    coefficients_version: int,
+    angle_quality_deg: float,
+) -> dict:
     """A window message; samples, rejected, temperatures and band come from the statistics."""
     if stats.temp_n == 0:
         raise WireError("schema", "window message: the statistics hold no temperature; a window needs one for its band")
     temp_mean = float(stats.temp_mean)
-    return check("window", {
-        "schema": SCHEMA_NAME["window"], "device": device, "seq": int(seq),
-        "window_start": float(window_start), "window_end": float(window_end),
-        "samples": stats.n, "rejected": int(stats.rejected),
-        "temp_mean_c": temp_mean, "temp_min_c": float(stats.temp_min), "temp_max_c": float(stats.temp_max),
-        "temp_rate_c_per_s": float(temp_rate_c_per_s), "band": math.floor(temp_mean / 10),
-        "coefficients_version": int(coefficients_version), "angle_quality_deg": float(angle_quality_deg),
-        "stats": stats.to_dict(),
-    })
+    return check(
+        "window",
+        {
+            "schema": SCHEMA_NAME["window"],
+            "device": device,
+            "seq": int(seq),
+            "window_start": float(window_start),
+            "window_end": float(window_end),
+            "samples": stats.n,
+            "rejected": int(stats.rejected),
+            "temp_mean_c": temp_mean,
+            "temp_min_c": float(stats.temp_min),
+            "temp_max_c": float(stats.temp_max),
+            "temp_rate_c_per_s": float(temp_rate_c_per_s),
+            "band": math.floor(temp_mean / 10),
+            "coefficients_version": int(coefficients_version),
+            "angle_quality_deg": float(angle_quality_deg),
+            "stats": stats.to_dict(),
+        },
+    )
 
 
 def band_entry(band: int, correction: dict, quality: dict) -> dict:
@@ -266,16 +301,36 @@ def band_entry(band: int, correction: dict, quality: dict) -> dict:
 
 def coefficients_message(device: str, version: int, created_at: float, basis: str, bands: list[dict]) -> dict:
     """bands: entries from band_entry(), in any order (sent sorted by band)."""
-    return check("coefficients", {
-        "schema": SCHEMA_NAME["coefficients"], "device": device, "version": int(version),
-        "created_at": float(created_at), "basis": basis, "bands": sorted(bands, key=lambda b: b["band"]),
-    })
+    return check(
+        "coefficients",
+        {
+            "schema": SCHEMA_NAME["coefficients"],
+            "device": device,
+            "version": int(version),
+            "created_at": float(created_at),
+            "basis": basis,
+            "bands": sorted(bands, key=lambda b: b["band"]),
+        },
+    )
 
 
-def ack_message(device: str, version: int, status: str, at: float, *, angle_quality_deg: float | None = None,
-                reason: str | None = None) -> dict:
-    msg = {"schema": SCHEMA_NAME["ack"], "device": device, "version": int(version), "status": status,
-           "angle_quality_deg": None if angle_quality_deg is None else float(angle_quality_deg), "at": float(at)}
+def ack_message(
+    device: str,
+    version: int,
+    status: str,
+    at: float,
+    *,
+    angle_quality_deg: float | None = None,
+    reason: str | None = None,
+) -> dict:
+    msg = {
+        "schema": SCHEMA_NAME["ack"],
+        "device": device,
+        "version": int(version),
+        "status": status,
+        "angle_quality_deg": None if angle_quality_deg is None else float(angle_quality_deg),
+        "at": float(at),
+    }
     if reason is not None:
         msg["reason"] = reason
     return check("ack", msg)

@@ -1,4 +1,5 @@
 """Zenoh session configuration shared by the agent, the service and the tests."""
+
 from __future__ import annotations
 
 import json

@@ -4,6 +4,7 @@ FastAPI's bigger-applications layout: one router per resource, the Store reached
 dependency (app.state.store, set by create_app), no globals, so tests and the service each build
 their own app around their own Store.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -16,8 +17,8 @@ from pydantic import BaseModel, Field
 from .mcap_export import iter_mcap
 from .store import Store
 
-
 # --- dependencies -------------------------------------------------------------------------------
+
 
 def get_store(request: Request) -> Store:
     return request.app.state.store
@@ -43,10 +44,12 @@ class TimeRange:
 
 
 def time_range(
-    t_from: Annotated[float | None, Query(alias="from", allow_inf_nan=False,
-                                          description="Start, s on the drive's clock (inclusive).")] = None,
-    t_to: Annotated[float | None, Query(alias="to", allow_inf_nan=False,
-                                        description="End, s on the drive's clock (inclusive).")] = None,
+    t_from: Annotated[
+        float | None, Query(alias="from", allow_inf_nan=False, description="Start, s on the drive's clock (inclusive).")
+    ] = None,
+    t_to: Annotated[
+        float | None, Query(alias="to", allow_inf_nan=False, description="End, s on the drive's clock (inclusive).")
+    ] = None,
 ) -> TimeRange:
     if t_from is not None and t_to is not None and t_from > t_to:
         raise HTTPException(status_code=422, detail=f"'from' ({t_from}) is after 'to' ({t_to})")
@@ -57,6 +60,7 @@ RangeDep = Annotated[TimeRange, Depends(time_range)]
 
 
 # --- response models (for the OpenAPI docs; wire messages stay plain JSON objects) -------------
+
 
 class Device(BaseModel):
     id: str
@@ -165,65 +169,96 @@ def device_health(device: DeviceDep, store: StoreDep):
     latest = store.current_coefficients(dev_id)
     seen = summary["samples"] + summary["rejected"]
     return Health(
-        device=dev_id, online=device["online"], last_seen=device["last_seen"],
-        coefficients=CoefficientsInUse(in_use=recent[0]["coefficients_version"] if recent else None,
-                                       latest_published=published["version"] if published else None,
-                                       latest=latest["version"] if latest else None),
-        angle_error=AngleError(latest_deg=recent[0]["angle_quality_deg"] if recent else None,
-                               mean_recent_deg=(sum(w["angle_quality_deg"] for w in recent) / len(recent)
-                                                if recent else None),
-                               recent_windows=len(recent)),
-        bands=[BandFit(band=f["band"], fit_id=f["id"], created_at=f["created_at"], samples=f["samples"],
-                       quality=f["quality"]) for f in store.latest_fits(dev_id)],
-        windows=summary["windows"], samples=summary["samples"], rejected=summary["rejected"],
-        rejected_share=summary["rejected"] / seen if seen else None)
+        device=dev_id,
+        online=device["online"],
+        last_seen=device["last_seen"],
+        coefficients=CoefficientsInUse(
+            in_use=recent[0]["coefficients_version"] if recent else None,
+            latest_published=published["version"] if published else None,
+            latest=latest["version"] if latest else None,
+        ),
+        angle_error=AngleError(
+            latest_deg=recent[0]["angle_quality_deg"] if recent else None,
+            mean_recent_deg=(sum(w["angle_quality_deg"] for w in recent) / len(recent) if recent else None),
+            recent_windows=len(recent),
+        ),
+        bands=[
+            BandFit(
+                band=f["band"], fit_id=f["id"], created_at=f["created_at"], samples=f["samples"], quality=f["quality"]
+            )
+            for f in store.latest_fits(dev_id)
+        ],
+        windows=summary["windows"],
+        samples=summary["samples"],
+        rejected=summary["rejected"],
+        rejected_share=summary["rejected"] / seen if seen else None,
+    )
 
 
-@coefficients.get("/{device_id}/coefficients", response_model=CoefficientHistory,
-                  summary="Coefficient history with acks")
+@coefficients.get(
+    "/{device_id}/coefficients", response_model=CoefficientHistory, summary="Coefficient history with acks"
+)
 def coefficient_history(device: DeviceDep, store: StoreDep):
     acks = store.acks(device["id"])
-    return CoefficientHistory(device=device["id"], sets=[
-        CoefficientSet(**h, acks=[a for a in acks if a["version"] == h["version"]])
-        for h in store.coefficient_history(device["id"])])
+    return CoefficientHistory(
+        device=device["id"],
+        sets=[
+            CoefficientSet(**h, acks=[a for a in acks if a["version"] == h["version"]])
+            for h in store.coefficient_history(device["id"])
+        ],
+    )
 
 
 @windows.get("/{device_id}/windows", response_model=WindowList, summary="Windows in a time range")
-def list_windows(device: DeviceDep, store: StoreDep, span: RangeDep,
-                 stats: Annotated[bool, Query(description="Include the (large) statistics of each window.")] = False,
-                 limit: Annotated[int, Query(ge=1, le=10000, description="Most windows returned.")] = 1000):
+def list_windows(
+    device: DeviceDep,
+    store: StoreDep,
+    span: RangeDep,
+    stats: Annotated[bool, Query(description="Include the (large) statistics of each window.")] = False,
+    limit: Annotated[int, Query(ge=1, le=10000, description="Most windows returned.")] = 1000,
+):
     found = store.windows(device["id"], span.t_from, span.t_to, stats=stats, limit=limit + 1)
-    return WindowList(device=device["id"], count=min(len(found), limit), truncated=len(found) > limit,
-                      windows=found[:limit])
+    return WindowList(
+        device=device["id"], count=min(len(found), limit), truncated=len(found) > limit, windows=found[:limit]
+    )
 
 
-@export.get("/{device_id}/export.mcap", summary="MCAP file of windows, coefficient sets and acks",
-            response_class=StreamingResponse,
-            responses={200: {"content": {"application/octet-stream": {}},
-                             "description": "MCAP; opens in Foxglove."}})
+@export.get(
+    "/{device_id}/export.mcap",
+    summary="MCAP file of windows, coefficient sets and acks",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"application/octet-stream": {}}, "description": "MCAP; opens in Foxglove."}},
+)
 def export_mcap(device: DeviceDep, store: StoreDep, span: RangeDep):
-    return StreamingResponse(iter_mcap(store, device["id"], span.t_from, span.t_to),
-                             media_type="application/octet-stream",
-                             headers={"Content-Disposition": f'attachment; filename="{device["id"]}.mcap"'})
+    return StreamingResponse(
+        iter_mcap(store, device["id"], span.t_from, span.t_to),
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{device["id"]}.mcap"'},
+    )
 
 
 @ingest.get("/rejections", response_model=Rejections, summary="Rejected input: counts and the latest dead letters")
-def rejections(store: StoreDep,
-               limit: Annotated[int, Query(ge=0, le=1000, description="Dead letters listed.")] = 20):
+def rejections(store: StoreDep, limit: Annotated[int, Query(ge=0, le=1000, description="Dead letters listed.")] = 20):
     counts = store.rejection_counts()
-    latest = [DeadLetter(payload_bytes=len(d["payload"]),
-                         payload_preview=bytes(d["payload"][:200]).decode("utf-8", errors="replace"),
-                         **{k: d[k] for k in ("id", "received_at", "key_expr", "reason", "detail")})
-              for d in store.dead_letters(limit)]
+    latest = [
+        DeadLetter(
+            payload_bytes=len(d["payload"]),
+            payload_preview=bytes(d["payload"][:200]).decode("utf-8", errors="replace"),
+            **{k: d[k] for k in ("id", "received_at", "key_expr", "reason", "detail")},
+        )
+        for d in store.dead_letters(limit)
+    ]
     return Rejections(counts=counts, total=sum(counts.values()), latest=latest)
 
 
 def create_app(store: Store) -> FastAPI:
     """The REST app around one Store; the caller owns the Store (opens and closes it)."""
-    app = FastAPI(title="encoder-fleet service",
-                  description="Fleet health, coefficient history, window statistics and MCAP export "
-                              "for magneto-electric encoders.",
-                  version="1")
+    app = FastAPI(
+        title="encoder-fleet service",
+        description="Fleet health, coefficient history, window statistics and MCAP export "
+        "for magneto-electric encoders.",
+        version="1",
+    )
     app.state.store = store
     for router in (devices, coefficients, windows, export, ingest):
         app.include_router(router)

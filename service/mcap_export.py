@@ -5,11 +5,13 @@ wire, each channel's schema the schemas/ file (encoding "jsonschema"), so Foxglo
 field. Times are the drive's clock in ns: a window at its window_end, a set at created_at, an ack
 at `at`. The file is produced as a stream of byte chunks, so the REST endpoint never holds it.
 """
+
 from __future__ import annotations
 
 import heapq
 import json
-from typing import BinaryIO, Iterator
+from collections.abc import Iterator
+from typing import BinaryIO
 
 from mcap.writer import Writer
 
@@ -55,12 +57,18 @@ def _in_range(t: float, t_from: float | None, t_to: float | None) -> bool:
 def _timeline(store: Store, device: str, t_from, t_to) -> Iterator[tuple[int, int, str, dict]]:
     """(log_time ns, tie order, kind, message), in time order. Windows are selected by window_start
     (as the REST listing), sets by created_at, acks by `at`."""
-    windows = ((_ns(m["window_end"]), ORDER.index("window"), "window", m)
-               for m in store.iter_windows(device, t_from, t_to))
-    sets = [(_ns(h["created_at"]), ORDER.index("coefficients"), "coefficients", h["message"])
-            for h in store.coefficient_history(device) if _in_range(h["created_at"], t_from, t_to)]
+    windows = (
+        (_ns(m["window_end"]), ORDER.index("window"), "window", m) for m in store.iter_windows(device, t_from, t_to)
+    )
+    sets = [
+        (_ns(h["created_at"]), ORDER.index("coefficients"), "coefficients", h["message"])
+        for h in store.coefficient_history(device)
+        if _in_range(h["created_at"], t_from, t_to)
+    ]
     sets.sort(key=lambda item: item[:2])
-    acks = [(_ns(a["at"]), ORDER.index("ack"), "ack", a) for a in store.acks(device) if _in_range(a["at"], t_from, t_to)]
+    acks = [
+        (_ns(a["at"]), ORDER.index("ack"), "ack", a) for a in store.acks(device) if _in_range(a["at"], t_from, t_to)
+    ]
     # store.acks is already in time order (at, then arrival)
     return heapq.merge(windows, sets, acks, key=lambda item: item[:2])
 
@@ -74,12 +82,21 @@ def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: floa
     writer.start(profile="", library="encoder-fleet")
     channels = {}
     for kind in wire.KINDS:
-        schema_id = writer.register_schema(name=wire.SCHEMA_NAME[kind], encoding="jsonschema",
-                                           data=(wire.SCHEMA_DIR / f"{kind}.schema.json").read_bytes())
-        channels[kind] = writer.register_channel(topic=f"/{wire.key_for(kind, device)}", message_encoding="json",
-                                                 schema_id=schema_id, metadata={"device": device})
-    writer.add_metadata("encoder-fleet export", {"device": device, "from": "" if t_from is None else repr(t_from),
-                                                 "to": "" if t_to is None else repr(t_to)})
+        schema_id = writer.register_schema(
+            name=wire.SCHEMA_NAME[kind],
+            encoding="jsonschema",
+            data=(wire.SCHEMA_DIR / f"{kind}.schema.json").read_bytes(),
+        )
+        channels[kind] = writer.register_channel(
+            topic=f"/{wire.key_for(kind, device)}",
+            message_encoding="json",
+            schema_id=schema_id,
+            metadata={"device": device},
+        )
+    writer.add_metadata(
+        "encoder-fleet export",
+        {"device": device, "from": "" if t_from is None else repr(t_from), "to": "" if t_to is None else repr(t_to)},
+    )
     for log_time, _, kind, msg in _timeline(store, device, t_from, t_to):
         # stored messages were checked on the way in; re-validating each one would dominate the export
         data = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
@@ -92,8 +109,9 @@ def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: floa
     yield sink.take()
 
 
-def export_mcap(store: Store, device: str, out: BinaryIO, t_from: float | None = None,
-                t_to: float | None = None) -> None:
+def export_mcap(
+    store: Store, device: str, out: BinaryIO, t_from: float | None = None, t_to: float | None = None
+) -> None:
     """Write the device's windows, coefficient sets and acks in [t_from, t_to] to `out` as MCAP."""
     for chunk in iter_mcap(store, device, t_from, t_to):
         out.write(chunk)

@@ -4,9 +4,10 @@ No I/O here: the service hands in the statistics and the sets, and gets back a d
 
 A candidate band replaces what the device runs at that temperature only when the two differ by
 clearly more than the candidate's own uncertainty (harmonic noise from the sample density, ellipse
-scatter): then the running set is measurably wrong and the candidate is the better estimate. Zero offsets of reference-free fits are anchored to the
-factory calibration, the only fit that ever saw a reference.
+scatter): then the running set is measurably wrong and the candidate is the better estimate.
+Zero offsets of reference-free fits are anchored to the factory calibration, the only fit that ever saw a reference.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -63,8 +64,13 @@ def uncertainty_deg(estimate: HarmonicEstimate, kept: dict, stats: WindowStats, 
     return float(np.degrees(np.sqrt(var)))
 
 
-def refit_device(band_stats: dict[int, WindowStats], running: BandedCorrection,
-                 factory: BandedCorrection | None = None, *, min_samples: int = MIN_BAND_SAMPLES) -> RefitResult:
+def refit_device(
+    band_stats: dict[int, WindowStats],
+    running: BandedCorrection,
+    factory: BandedCorrection | None = None,
+    *,
+    min_samples: int = MIN_BAND_SAMPLES,
+) -> RefitResult:
     candidates: dict[int, tuple[Correction, dict, WindowStats]] = {}
     estimates = []
     for band, stats in sorted(band_stats.items()):
@@ -103,9 +109,18 @@ def refit_device(band_stats: dict[int, WindowStats], running: BandedCorrection,
         candidate = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
         quality = {**quality, "estimated_error_deg": err_new if adopt else err_now}
         result.bands.append(band_entry(band, chosen, quality))
-        result.decisions.append(BandDecision(band=band, temp_c=corr.temp_c, samples=stats.n, running_error_deg=err_now,
-                                             candidate_error_deg=err_new, adopted=adopt, quality=quality,
-                                             candidate=candidate))
+        result.decisions.append(
+            BandDecision(
+                band=band,
+                temp_c=corr.temp_c,
+                samples=stats.n,
+                running_error_deg=err_now,
+                candidate_error_deg=err_new,
+                adopted=adopt,
+                quality=quality,
+                candidate=candidate,
+            )
+        )
     return result
 
 

@@ -3,6 +3,7 @@
 By default it embeds a Zenoh router (mode "router", listening on a local endpoint); with connect
 endpoints it joins external routers as a client instead.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,8 +36,14 @@ class ServiceCounters:
 
 
 class FleetService:
-    def __init__(self, store: Store, session: zenoh.Session, *, refit_interval_s: float = 2.0,
-                 min_band_samples: int = MIN_BAND_SAMPLES):
+    def __init__(
+        self,
+        store: Store,
+        session: zenoh.Session,
+        *,
+        refit_interval_s: float = 2.0,
+        min_band_samples: int = MIN_BAND_SAMPLES,
+    ):
         self.store = store
         self.session = session
         self.refit_interval_s = refit_interval_s
@@ -53,7 +60,7 @@ class FleetService:
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
-    def start(self) -> "FleetService":
+    def start(self) -> FleetService:
         s = self.session
         self._declared += [
             s.declare_subscriber("encoders/*/stats", self._enqueue),
@@ -197,18 +204,33 @@ class FleetService:
             for decision in result.decisions:
                 fit = decision.candidate
                 correction = {k: v for k, v in fit.items() if k not in ("band", "quality")}
-                self.store.record_fit(device, decision.band, correction, fit["quality"], created_at=drive_now,
-                                      version=version, adopted=decision.adopted)
-            msg = wire.coefficients_message(device=device, version=version, created_at=drive_now, basis="fit",
-                                            bands=result.bands)
+                self.store.record_fit(
+                    device,
+                    decision.band,
+                    correction,
+                    fit["quality"],
+                    created_at=drive_now,
+                    version=version,
+                    adopted=decision.adopted,
+                )
+            msg = wire.coefficients_message(
+                device=device, version=version, created_at=drive_now, basis="fit", bands=result.bands
+            )
             self.store.insert_coefficient_set(msg)
-        self.session.put(f"encoders/{device}/coefficients", wire.encode("coefficients", msg),
-                         congestion_control=zenoh.CongestionControl.BLOCK)
+        self.session.put(
+            f"encoders/{device}/coefficients",
+            wire.encode("coefficients", msg),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         self.store.mark_published(device, version)
         with self._lock:
             self.counters.rollouts += 1
-        log.info("%s: published coefficient set v%d (%d bands adopted)", device, version,
-                 sum(d.adopted for d in result.decisions))
+        log.info(
+            "%s: published coefficient set v%d (%d bands adopted)",
+            device,
+            version,
+            sum(d.adopted for d in result.decisions),
+        )
         return version
 
 
@@ -232,7 +254,7 @@ class HttpServer:
         self.server = uvicorn.Server(uvicorn.Config(create_app(store), host=host, port=port, log_level="warning"))
         self.thread = threading.Thread(target=self.server.run, name="http", daemon=True)
 
-    def start(self) -> "HttpServer":
+    def start(self) -> HttpServer:
         self.thread.start()
         deadline = time.monotonic() + 10
         while not self.server.started and time.monotonic() < deadline:
@@ -244,11 +266,18 @@ class HttpServer:
         self.thread.join(timeout=10)
 
 
-def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None, http_host: str = "127.0.0.1",
-                http_port: int | None, refit_interval_s: float, band_horizon: int | None = BAND_HORIZON) -> int:
+def run_service(
+    *,
+    db: str,
+    listen: list[str] | None,
+    connect: list[str] | None,
+    http_host: str = "127.0.0.1",
+    http_port: int | None,
+    refit_interval_s: float,
+    band_horizon: int | None = BAND_HORIZON,
+) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM."""
     import signal
-
     from pathlib import Path
 
     Path(db).parent.mkdir(parents=True, exist_ok=True)
@@ -261,8 +290,11 @@ def run_service(*, db: str, listen: list[str] | None, connect: list[str] | None,
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     where = ", ".join(connect or listen)
-    print(f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
-          + (f"; REST http://{http_host}:{http_port}/docs" if http else ""), flush=True)
+    print(
+        f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
+        + (f"; REST http://{http_host}:{http_port}/docs" if http else ""),
+        flush=True,
+    )
     try:
         stop.wait()
     finally:

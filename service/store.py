@@ -9,15 +9,16 @@ Clocks: devices' first_seen/last_seen, received_at and published_at are the serv
 (unix s); window times, created_at of fits and sets and an ack's `at` are the drive's clock, as
 on the wire (see migrations/001_initial.sql).
 """
+
 from __future__ import annotations
 
 import json
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -26,8 +27,21 @@ from encoder_fleet import wire
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 
 # wire fields of a window stored as columns of the same name, in wire order
-WINDOW_FIELDS = ("device", "seq", "window_start", "window_end", "samples", "rejected", "temp_mean_c", "temp_min_c",
-                 "temp_max_c", "temp_rate_c_per_s", "band", "coefficients_version", "angle_quality_deg")
+WINDOW_FIELDS = (
+    "device",
+    "seq",
+    "window_start",
+    "window_end",
+    "samples",
+    "rejected",
+    "temp_mean_c",
+    "temp_min_c",
+    "temp_max_c",
+    "temp_rate_c_per_s",
+    "band",
+    "coefficients_version",
+    "angle_quality_deg",
+)
 
 
 class StoreError(ValueError):
@@ -66,7 +80,7 @@ class Store:
         self.band_horizon = band_horizon
 
     @classmethod
-    def open(cls, path, *, migrations_dir: Path = MIGRATIONS_DIR, band_horizon: int | None = None) -> "Store":
+    def open(cls, path, *, migrations_dir: Path = MIGRATIONS_DIR, band_horizon: int | None = None) -> Store:
         # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
         conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
         conn.row_factory = sqlite3.Row
@@ -84,7 +98,7 @@ class Store:
         with self._lock:
             self._conn.close()
 
-    def __enter__(self) -> "Store":
+    def __enter__(self) -> Store:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -117,8 +131,10 @@ class Store:
 
     def _migrate(self, migrations_dir: Path) -> None:
         with self._lock:
-            self._conn.execute("CREATE TABLE IF NOT EXISTS schema_migrations "
-                               "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)")
+            self._conn.execute(
+                "CREATE TABLE IF NOT EXISTS schema_migrations "
+                "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)"
+            )
         for path in sorted(migrations_dir.glob("[0-9]*.sql")):
             version = int(path.name.split("_", 1)[0])
             # check inside the write transaction: another process may be migrating the same file
@@ -130,14 +146,19 @@ class Store:
                 c.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", (version, path.name, time.time()))
 
     def migrations(self) -> list[tuple[int, str]]:
-        return [(r["version"], r["name"]) for r in self._rows("SELECT version, name FROM schema_migrations ORDER BY version")]
+        return [
+            (r["version"], r["name"])
+            for r in self._rows("SELECT version, name FROM schema_migrations ORDER BY version")
+        ]
 
     @staticmethod
     def _touch(c: sqlite3.Connection, device: str, now: float, *, heard: bool = True) -> None:
         """Make sure the device row exists; heard=True when the device itself spoke (moves last_seen)."""
-        c.execute("INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
-                  + ("UPDATE SET last_seen = max(last_seen, excluded.last_seen)" if heard else "NOTHING"),
-                  (device, now, now))
+        c.execute(
+            "INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
+            + ("UPDATE SET last_seen = max(last_seen, excluded.last_seen)" if heard else "NOTHING"),
+            (device, now, now),
+        )
 
     # --- ingest -----------------------------------------------------------------------------
 
@@ -157,7 +178,7 @@ class Store:
             return exc.reason
 
     @contextmanager
-    def transaction(self) -> Iterator["Store"]:
+    def transaction(self) -> Iterator[Store]:
         """Several writes as one transaction (one disk sync); any failure undoes them all."""
         with self._tx():
             yield self
@@ -174,22 +195,36 @@ class Store:
         stats = WindowStats.from_dict(msg["stats"])
         stats_json = _json(msg["stats"])
         with self._tx() as c:
-            old = c.execute("SELECT window_start, window_end, stats_json FROM windows WHERE device = ? AND seq = ?",
-                            (device, seq)).fetchone()
+            old = c.execute(
+                "SELECT window_start, window_end, stats_json FROM windows WHERE device = ? AND seq = ?", (device, seq)
+            ).fetchone()
             if old is not None:
-                if (old["window_start"], old["window_end"], old["stats_json"]) == (msg["window_start"], msg["window_end"], stats_json):
+                if (old["window_start"], old["window_end"], old["stats_json"]) == (
+                    msg["window_start"],
+                    msg["window_end"],
+                    stats_json,
+                ):
                     return False  # redelivery: same window again
-                raise StoreError("seq_conflict", f"window {device}#{seq} is already stored with different content "
-                                                 "(agent restarted its sequence?)")
+                raise StoreError(
+                    "seq_conflict",
+                    f"window {device}#{seq} is already stored with different content (agent restarted its sequence?)",
+                )
             self._touch(c, device, now)
-            c.execute(f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at) "
-                      f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 2))})",
-                      [msg[f] for f in WINDOW_FIELDS] + [stats_json, now])
-            row = c.execute("SELECT stats_json, windows, samples, first_seq FROM band_stats WHERE device = ? AND band = ?",
-                            (device, band)).fetchone()
+            c.execute(
+                f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at) "
+                f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 2))})",
+                [msg[f] for f in WINDOW_FIELDS] + [stats_json, now],
+            )
+            row = c.execute(
+                "SELECT stats_json, windows, samples, first_seq FROM band_stats WHERE device = ? AND band = ?",
+                (device, band),
+            ).fetchone()
             if row is None:
-                c.execute("INSERT INTO band_stats (device, band, stats_json, windows, samples, updated_at, first_seq) "
-                          "VALUES (?, ?, ?, 1, ?, ?, 1)", (device, band, _json(stats.to_dict()), msg["samples"], now))
+                c.execute(
+                    "INSERT INTO band_stats (device, band, stats_json, windows, samples, updated_at, first_seq) "
+                    "VALUES (?, ?, ?, 1, ?, ?, 1)",
+                    (device, band, _json(stats.to_dict()), msg["samples"], now),
+                )
             elif seq >= row["first_seq"]:  # older ones are past the band's horizon: kept, not summed
                 try:
                     total = WindowStats.from_dict(json.loads(row["stats_json"])).merge(stats)
@@ -197,36 +232,48 @@ class Store:
                     raise StoreError("normalisation_mismatch", f"window {device}#{seq}, band {band}: {exc}") from None
                 windows, samples, first_seq = row["windows"] + 1, row["samples"] + msg["samples"], row["first_seq"]
                 if self.band_horizon and windows > self.band_horizon:
-                    total, windows, samples, first_seq = self._forget_oldest(c, device, band, total, windows, samples,
-                                                                             first_seq)
-                c.execute("UPDATE band_stats SET stats_json = ?, windows = ?, samples = ?, first_seq = ?, updated_at = ?"
-                          " WHERE device = ? AND band = ?",
-                          (_json(total.to_dict()), windows, samples, first_seq, now, device, band))
+                    total, windows, samples, first_seq = self._forget_oldest(
+                        c, device, band, total, windows, samples, first_seq
+                    )
+                c.execute(
+                    "UPDATE band_stats SET stats_json = ?, windows = ?, samples = ?, first_seq = ?, updated_at = ?"
+                    " WHERE device = ? AND band = ?",
+                    (_json(total.to_dict()), windows, samples, first_seq, now, device, band),
+                )
             # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
-            c.execute("UPDATE devices SET current_version = ? WHERE id = ? AND "
-                      "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
-                      (msg["coefficients_version"], device, seq, device))
+            c.execute(
+                "UPDATE devices SET current_version = ? WHERE id = ? AND "
+                "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
+                (msg["coefficients_version"], device, seq, device),
+            )
         return True
 
     def _forget_oldest(self, c, device, band, total, windows, samples, first_seq):
         """Subtract the band's oldest summed windows until it holds band_horizon of them."""
-        old = c.execute("SELECT seq, samples, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ?"
-                        " ORDER BY seq LIMIT ?", (device, band, first_seq, windows - self.band_horizon)).fetchall()
+        old = c.execute(
+            "SELECT seq, samples, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ?"
+            " ORDER BY seq LIMIT ?",
+            (device, band, first_seq, windows - self.band_horizon),
+        ).fetchall()
         for r in old:
             total = total.subtract(WindowStats.from_dict(json.loads(r["stats_json"])))
         return total, windows - len(old), samples - sum(r["samples"] for r in old), old[-1]["seq"] + 1
 
-    def dead_letter(self, key_expr: str, reason: str, detail: str, payload: bytes, *,
-                    received_at: float | None = None) -> int:
+    def dead_letter(
+        self, key_expr: str, reason: str, detail: str, payload: bytes, *, received_at: float | None = None
+    ) -> int:
         with self._tx() as c:
-            cur = c.execute("INSERT INTO dead_letters (received_at, key_expr, reason, detail, payload) VALUES (?, ?, ?, ?, ?)",
-                            (time.time() if received_at is None else received_at, str(key_expr), reason, detail,
-                             bytes(payload)))
+            cur = c.execute(
+                "INSERT INTO dead_letters (received_at, key_expr, reason, detail, payload) VALUES (?, ?, ?, ?, ?)",
+                (time.time() if received_at is None else received_at, str(key_expr), reason, detail, bytes(payload)),
+            )
             return cur.lastrowid
 
     def rejection_counts(self) -> dict[str, int]:
-        return {r["reason"]: r["n"] for r in
-                self._rows("SELECT reason, count(*) AS n FROM dead_letters GROUP BY reason ORDER BY reason")}
+        return {
+            r["reason"]: r["n"]
+            for r in self._rows("SELECT reason, count(*) AS n FROM dead_letters GROUP BY reason ORDER BY reason")
+        }
 
     def dead_letters(self, limit: int = 20) -> list[dict]:
         """Newest first."""
@@ -236,14 +283,25 @@ class Store:
         now = time.time() if received_at is None else received_at
         with self._tx() as c:
             self._touch(c, msg["device"], now)
-            cur = c.execute("INSERT INTO acks (device, version, status, reason, angle_quality_deg, at, received_at) "
-                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                            (msg["device"], msg["version"], msg["status"], msg.get("reason"),
-                             msg["angle_quality_deg"], msg["at"], now))
+            cur = c.execute(
+                "INSERT INTO acks (device, version, status, reason, angle_quality_deg, at, received_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    msg["device"],
+                    msg["version"],
+                    msg["status"],
+                    msg.get("reason"),
+                    msg["angle_quality_deg"],
+                    msg["at"],
+                    now,
+                ),
+            )
             if msg["status"] == "applied":  # a late ack from a catch-up does not roll the version back
-                c.execute("UPDATE devices SET current_version = ? WHERE id = ? AND "
-                          "? >= (SELECT max(at) FROM acks WHERE device = ? AND status = 'applied')",
-                          (msg["version"], msg["device"], msg["at"], msg["device"]))
+                c.execute(
+                    "UPDATE devices SET current_version = ? WHERE id = ? AND "
+                    "? >= (SELECT max(at) FROM acks WHERE device = ? AND status = 'applied')",
+                    (msg["version"], msg["device"], msg["at"], msg["device"]),
+                )
             return cur.lastrowid
 
     def set_online(self, device: str, online: bool, at: float | None = None) -> None:
@@ -259,53 +317,94 @@ class Store:
 
     def band_stats(self, device: str) -> dict[int, tuple[WindowStats, int, int]]:
         """band -> (merged statistics, windows, samples): everything a refit needs."""
-        return {r["band"]: (WindowStats.from_dict(json.loads(r["stats_json"])), r["windows"], r["samples"])
-                for r in self._rows("SELECT * FROM band_stats WHERE device = ? ORDER BY band", (device,))}
+        return {
+            r["band"]: (WindowStats.from_dict(json.loads(r["stats_json"])), r["windows"], r["samples"])
+            for r in self._rows("SELECT * FROM band_stats WHERE device = ? ORDER BY band", (device,))
+        }
 
-    def record_fit(self, device: str, band: int, correction: dict, quality: dict, *, created_at: float,
-                   version: int | None = None, adopted: bool = True) -> int:
+    def record_fit(
+        self,
+        device: str,
+        band: int,
+        correction: dict,
+        quality: dict,
+        *,
+        created_at: float,
+        version: int | None = None,
+        adopted: bool = True,
+    ) -> int:
         """correction: Correction.to_dict(); quality: as in a coefficient set's band entry;
         created_at: the drive's clock, like the coefficient set the fit goes into (`version`)."""
         with self._tx() as c:
             self._touch(c, device, time.time(), heard=False)
-            cur = c.execute("INSERT INTO fits (device, band, created_at, samples, quality_json, correction_json,"
-                            " version, adopted) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                            (device, band, created_at, int(quality.get("samples", 0)), _json(quality),
-                             _json(correction), version, int(adopted)))
+            cur = c.execute(
+                "INSERT INTO fits (device, band, created_at, samples, quality_json, correction_json,"
+                " version, adopted) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    device,
+                    band,
+                    created_at,
+                    int(quality.get("samples", 0)),
+                    _json(quality),
+                    _json(correction),
+                    version,
+                    int(adopted),
+                ),
+            )
             return cur.lastrowid
 
     def latest_fits(self, device: str) -> list[dict]:
         """The newest fit of each band, by band."""
-        rows = self._rows("SELECT * FROM fits WHERE id IN (SELECT max(id) FROM fits WHERE device = ? GROUP BY band) "
-                          "ORDER BY band", (device,))
-        return [{"id": r["id"], "band": r["band"], "created_at": r["created_at"], "samples": r["samples"],
-                 "quality": json.loads(r["quality_json"]), "correction": json.loads(r["correction_json"])} for r in rows]
+        rows = self._rows(
+            "SELECT * FROM fits WHERE id IN (SELECT max(id) FROM fits WHERE device = ? GROUP BY band) ORDER BY band",
+            (device,),
+        )
+        return [
+            {
+                "id": r["id"],
+                "band": r["band"],
+                "created_at": r["created_at"],
+                "samples": r["samples"],
+                "quality": json.loads(r["quality_json"]),
+                "correction": json.loads(r["correction_json"]),
+            }
+            for r in rows
+        ]
 
     def next_version(self, device: str) -> int:
-        return self._rows("SELECT coalesce(max(version), 0) + 1 AS v FROM coefficient_sets WHERE device = ?",
-                          (device,))[0]["v"]
+        return self._rows(
+            "SELECT coalesce(max(version), 0) + 1 AS v FROM coefficient_sets WHERE device = ?", (device,)
+        )[0]["v"]
 
     def insert_coefficient_set(self, msg: dict) -> None:
         with self._tx() as c:
-            if c.execute("SELECT 1 FROM coefficient_sets WHERE device = ? AND version = ?",
-                         (msg["device"], msg["version"])).fetchone():
+            if c.execute(
+                "SELECT 1 FROM coefficient_sets WHERE device = ? AND version = ?", (msg["device"], msg["version"])
+            ).fetchone():
                 raise StoreError("version_exists", f"coefficient set {msg['device']} v{msg['version']} already exists")
             self._touch(c, msg["device"], time.time(), heard=False)
-            c.execute("INSERT INTO coefficient_sets (device, version, created_at, basis, body_json) VALUES (?, ?, ?, ?, ?)",
-                      (msg["device"], msg["version"], msg["created_at"], msg["basis"], _json(msg)))
+            c.execute(
+                "INSERT INTO coefficient_sets (device, version, created_at, basis, body_json) VALUES (?, ?, ?, ?, ?)",
+                (msg["device"], msg["version"], msg["created_at"], msg["basis"], _json(msg)),
+            )
 
     def mark_published(self, device: str, version: int, at: float | None = None) -> None:
         with self._tx() as c:
-            cur = c.execute("UPDATE coefficient_sets SET published_at = ? WHERE device = ? AND version = ?",
-                            (time.time() if at is None else at, device, version))
+            cur = c.execute(
+                "UPDATE coefficient_sets SET published_at = ? WHERE device = ? AND version = ?",
+                (time.time() if at is None else at, device, version),
+            )
             if cur.rowcount == 0:
                 raise KeyError(f"no coefficient set {device} v{version}")
 
     def current_coefficients(self, device: str, *, published_only: bool = False) -> dict | None:
         """The latest coefficient set (wire message), or None."""
-        rows = self._rows("SELECT body_json FROM coefficient_sets WHERE device = ?"
-                          + (" AND published_at IS NOT NULL" if published_only else "")
-                          + " ORDER BY version DESC LIMIT 1", (device,))
+        rows = self._rows(
+            "SELECT body_json FROM coefficient_sets WHERE device = ?"
+            + (" AND published_at IS NOT NULL" if published_only else "")
+            + " ORDER BY version DESC LIMIT 1",
+            (device,),
+        )
         return json.loads(rows[0]["body_json"]) if rows else None
 
     def coefficient_set(self, device: str, version: int) -> dict | None:
@@ -315,16 +414,29 @@ class Store:
 
     def coefficient_history(self, device: str) -> list[dict]:
         """Every set, newest first: version, created_at, basis, published_at and the wire message."""
-        return [{"version": r["version"], "created_at": r["created_at"], "basis": r["basis"],
-                 "published_at": r["published_at"], "message": json.loads(r["body_json"])}
-                for r in self._rows("SELECT * FROM coefficient_sets WHERE device = ? ORDER BY version DESC", (device,))]
+        return [
+            {
+                "version": r["version"],
+                "created_at": r["created_at"],
+                "basis": r["basis"],
+                "published_at": r["published_at"],
+                "message": json.loads(r["body_json"]),
+            }
+            for r in self._rows("SELECT * FROM coefficient_sets WHERE device = ? ORDER BY version DESC", (device,))
+        ]
 
     def acks(self, device: str) -> list[dict]:
         """Every ack (wire message), in the order the agent sent them."""
         out = []
         for r in self._rows("SELECT * FROM acks WHERE device = ? ORDER BY at, id", (device,)):
-            msg = {"schema": wire.SCHEMA_NAME["ack"], "device": r["device"], "version": r["version"],
-                   "status": r["status"], "angle_quality_deg": r["angle_quality_deg"], "at": r["at"]}
+            msg = {
+                "schema": wire.SCHEMA_NAME["ack"],
+                "device": r["device"],
+                "version": r["version"],
+                "status": r["status"],
+                "angle_quality_deg": r["angle_quality_deg"],
+                "at": r["at"],
+            }
             if r["reason"] is not None:
                 msg["reason"] = r["reason"]
             out.append(msg)
@@ -334,8 +446,14 @@ class Store:
 
     @staticmethod
     def _device_row(r: sqlite3.Row) -> dict:
-        return {"id": r["id"], "first_seen": r["first_seen"], "last_seen": r["last_seen"], "online": bool(r["online"]),
-                "current_version": r["current_version"], "windows": r["windows"]}
+        return {
+            "id": r["id"],
+            "first_seen": r["first_seen"],
+            "last_seen": r["last_seen"],
+            "online": bool(r["online"]),
+            "current_version": r["current_version"],
+            "windows": r["windows"],
+        }
 
     _DEVICE_SQL = "SELECT d.*, (SELECT count(*) FROM windows w WHERE w.device = d.id) AS windows FROM devices d"
 
@@ -350,8 +468,9 @@ class Store:
         """Highest seq with every window from 1 up to it stored; `start` is a watermark known to hold."""
         mark = start
         while True:
-            rows = self._rows("SELECT seq FROM windows WHERE device = ? AND seq > ? ORDER BY seq LIMIT 512",
-                              (device, mark))
+            rows = self._rows(
+                "SELECT seq FROM windows WHERE device = ? AND seq > ? ORDER BY seq LIMIT 512", (device, mark)
+            )
             for r in rows:
                 if r["seq"] != mark + 1:
                     return mark
@@ -370,27 +489,47 @@ class Store:
             msg["stats"] = json.loads(r["stats_json"])
         return msg
 
-    def windows(self, device: str, t_from: float | None = None, t_to: float | None = None, *,
-                stats: bool = False, limit: int | None = None) -> list[dict]:
+    def windows(
+        self,
+        device: str,
+        t_from: float | None = None,
+        t_to: float | None = None,
+        *,
+        stats: bool = False,
+        limit: int | None = None,
+    ) -> list[dict]:
         """Windows with t_from <= window_start <= t_to, by window_start; wire messages (without stats unless asked)."""
         cols = ", ".join(WINDOW_FIELDS) + (", stats_json" if stats else "")
-        sql = f"SELECT {cols} FROM windows WHERE device = ? AND window_start >= ? AND window_start <= ? " \
-              "ORDER BY window_start, seq LIMIT ?"
-        rows = self._rows(sql, (device, -float("inf") if t_from is None else t_from,
-                                float("inf") if t_to is None else t_to, -1 if limit is None else limit))
+        sql = (
+            f"SELECT {cols} FROM windows WHERE device = ? AND window_start >= ? AND window_start <= ? "
+            "ORDER BY window_start, seq LIMIT ?"
+        )
+        rows = self._rows(
+            sql,
+            (
+                device,
+                -float("inf") if t_from is None else t_from,
+                float("inf") if t_to is None else t_to,
+                -1 if limit is None else limit,
+            ),
+        )
         return [self._window(r, stats) for r in rows]
 
-    def iter_windows(self, device: str, t_from: float | None = None, t_to: float | None = None, *,
-                     page: int = 200) -> Iterator[dict]:
+    def iter_windows(
+        self, device: str, t_from: float | None = None, t_to: float | None = None, *, page: int = 200
+    ) -> Iterator[dict]:
         """Full window messages with t_from <= window_start <= t_to, by window_end, a page at a time
         (the lock is not held between pages, so a long export does not stall ingest)."""
         after = (-float("inf"), 0)
         lo = -float("inf") if t_from is None else t_from
         hi = float("inf") if t_to is None else t_to
         while True:
-            rows = self._rows(f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json FROM windows WHERE device = ? "
-                              "AND window_start >= ? AND window_start <= ? AND (window_end, seq) > (?, ?) "
-                              "ORDER BY window_end, seq LIMIT ?", (device, lo, hi, *after, page))
+            rows = self._rows(
+                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json FROM windows WHERE device = ? "
+                "AND window_start >= ? AND window_start <= ? AND (window_end, seq) > (?, ?) "
+                "ORDER BY window_end, seq LIMIT ?",
+                (device, lo, hi, *after, page),
+            )
             for r in rows:
                 yield self._window(r, True)
             if len(rows) < page:
@@ -399,8 +538,14 @@ class Store:
 
     def window_summary(self, device: str, recent: int = 10) -> dict:
         """Totals over all windows and the newest `recent` windows (by seq), newest first."""
-        total = self._rows("SELECT count(*) AS windows, coalesce(sum(samples), 0) AS samples, "
-                           "coalesce(sum(rejected), 0) AS rejected FROM windows WHERE device = ?", (device,))[0]
-        latest = self._rows("SELECT seq, window_start, window_end, coefficients_version, angle_quality_deg "
-                            "FROM windows WHERE device = ? ORDER BY seq DESC LIMIT ?", (device, recent))
+        total = self._rows(
+            "SELECT count(*) AS windows, coalesce(sum(samples), 0) AS samples, "
+            "coalesce(sum(rejected), 0) AS rejected FROM windows WHERE device = ?",
+            (device,),
+        )[0]
+        latest = self._rows(
+            "SELECT seq, window_start, window_end, coefficients_version, angle_quality_deg "
+            "FROM windows WHERE device = ? ORDER BY seq DESC LIMIT ?",
+            (device, recent),
+        )
         return {**dict(total), "recent": [dict(r) for r in latest]}

@@ -1,5 +1,6 @@
 """The agent's side of a rollout over a real Zenoh session: what it applies, what it refuses, and what
 it remembers across a restart."""
+
 import json
 import time
 
@@ -62,8 +63,9 @@ def test_agent_applies_good_sets_and_refuses_bad_ones(setup):
     router.put(key, json.dumps(coefficient_set(factory, 6, scale_w1=100.0)).encode())  # implausible gain
     router.put(key, wire.encode("coefficients", coefficient_set(factory, 3)))  # older than what it holds
     router.put(key, b'{"schema": "encoder-fleet/coefficients/1", "version": NaN}')
-    router.put("encoders/other/coefficients", wire.encode("coefficients", {**coefficient_set(factory, 9),
-                                                                           "device": "other"}))
+    router.put(
+        "encoders/other/coefficients", wire.encode("coefficients", {**coefficient_set(factory, 9), "device": "other"})
+    )
     assert wait_for(lambda: agent.inbox.qsize() >= 4)  # its own four; the other device's never comes
     for _ in range(3):
         agent.step()

@@ -1,4 +1,5 @@
 """Encoders age: with a horizon on each band's sum, refits follow the drive instead of its history."""
+
 import numpy as np
 
 from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
@@ -19,16 +20,27 @@ def test_band_horizon_follows_an_aging_drive(tmp_path):
     model = drive_model(seed).with_(aging_offset_counts_per_khour=(400.0, -300.0))  # +19 / -14 counts in 48 h
     factory = factory_calibration(model, seed)  # written at the factory, when the drive was new
     scale = float(round(1 / factory.bands[0].w1))
-    stores = {"all history": Store.open(tmp_path / "all.sqlite"),
-              "horizon": Store.open(tmp_path / "horizon.sqlite", band_horizon=HORIZON)}
+    stores = {
+        "all history": Store.open(tmp_path / "all.sqlite"),
+        "horizon": Store.open(tmp_path / "horizon.sqlite", band_horizon=HORIZON),
+    }
     source = SimulatedDrive(seed, hours=HOURS, model=model)
     messages = []
     while (block := source.read(60.0)) is not None:
         keep = plausible_mask(block.d, block.q)
         stats = WindowStats(scale=scale).add(block.d[keep], block.q[keep], block.temp_c[keep])
-        messages.append(wire.window_message(DEVICE, len(messages) + 1, stats, window_start=float(block.t[0]),
-                                            window_end=float(block.t[-1]), temp_rate_c_per_s=0.0,
-                                            coefficients_version=0, angle_quality_deg=0.0))
+        messages.append(
+            wire.window_message(
+                DEVICE,
+                len(messages) + 1,
+                stats,
+                window_start=float(block.t[0]),
+                window_end=float(block.t[-1]),
+                temp_rate_c_per_s=0.0,
+                coefficients_version=0,
+                angle_quality_deg=0.0,
+            )
+        )
     truth = evaluation_set(model.with_(noise_counts=0.0), seed, hours=HOURS)  # the drive as it is now
     errors = {}
     for name, store in stores.items():

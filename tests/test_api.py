@@ -1,15 +1,16 @@
 """The REST API: the real app over a real SQLite file, through TestClient."""
+
 import io
 import json
 
 import pytest
 from fastapi.testclient import TestClient
 from mcap.reader import make_reader
+from wire_samples import ack, coefficients, window
 
 from encoder_fleet import wire
 from service.api import create_app
 from service.store import Store
-from wire_samples import ack, coefficients, window
 
 DEVICE = "drive-001"
 
@@ -30,8 +31,15 @@ def client(store):
 def history(store):
     """Three windows at factory coefficients, a fit, set v1 published and applied, two windows on v1."""
     for seq in range(1, 6):
-        store.insert_window(window(seq=seq, version=0 if seq <= 3 else 1, quality=0.3 if seq <= 3 else 0.1,
-                                   temp_c=23.0 if seq != 2 else 33.0), received_at=1000.0 + seq)
+        store.insert_window(
+            window(
+                seq=seq,
+                version=0 if seq <= 3 else 1,
+                quality=0.3 if seq <= 3 else 0.1,
+                temp_c=23.0 if seq != 2 else 33.0,
+            ),
+            received_at=1000.0 + seq,
+        )
     store.record_fit(DEVICE, 2, {"w": [1, 0, 1, 0]}, {"samples": 800, "residual_rms_rad": 0.004}, created_at=190.0)
     store.record_fit(DEVICE, 2, {"w": [1, 0, 1, 0]}, {"samples": 1200, "residual_rms_rad": 0.002}, created_at=195.0)
     store.insert_coefficient_set(coefficients(version=1, created_at=200.0))
@@ -47,8 +55,14 @@ def test_devices(client, history):
     got = client.get("/devices").json()
     assert [d["id"] for d in got] == [DEVICE, "drive-002"]
     d = got[0]
-    assert d == {"id": DEVICE, "first_seen": 1001.0, "last_seen": 1006.0, "online": True, "current_version": 1,
-                 "windows": 5}
+    assert d == {
+        "id": DEVICE,
+        "first_seen": 1001.0,
+        "last_seen": 1006.0,
+        "online": True,
+        "current_version": 1,
+        "windows": 5,
+    }
     assert client.get(f"/devices/{DEVICE}").json() == d
 
 
@@ -58,8 +72,15 @@ def test_health(client, history, store):
     assert h["coefficients"] == {"in_use": 1, "latest_published": 1, "latest": 2}
     assert h["angle_error"]["latest_deg"] == 0.1
     assert h["angle_error"]["mean_recent_deg"] == pytest.approx((3 * 0.3 + 2 * 0.1) / 5)
-    assert h["bands"] == [{"band": 2, "fit_id": 2, "created_at": 195.0, "samples": 1200,
-                           "quality": {"samples": 1200, "residual_rms_rad": 0.002}}]
+    assert h["bands"] == [
+        {
+            "band": 2,
+            "fit_id": 2,
+            "created_at": 195.0,
+            "samples": 1200,
+            "quality": {"samples": 1200, "residual_rms_rad": 0.002},
+        }
+    ]
     wins = store.windows(DEVICE)
     assert h["samples"] == sum(w["samples"] for w in wins) and h["windows"] == 5
     assert h["rejected_share"] == sum(w["rejected"] for w in wins) / (h["samples"] + h["rejected"])
@@ -93,15 +114,25 @@ def test_windows_range_and_stats(client, history, store):
     assert [w["seq"] for w in page["windows"]] == [1, 2] and page["truncated"]
 
 
-@pytest.mark.parametrize("params", [{"from": "yesterday"}, {"to": "nan"}, {"from": "inf"}, {"from": 10, "to": 5},
-                                    {"limit": 0}, {"stats": "maybe"}])
+@pytest.mark.parametrize(
+    "params",
+    [{"from": "yesterday"}, {"to": "nan"}, {"from": "inf"}, {"from": 10, "to": 5}, {"limit": 0}, {"stats": "maybe"}],
+)
 def test_bad_query_values_are_422(client, history, params):
     r = client.get(f"/devices/{DEVICE}/windows", params=params)
     assert r.status_code == 422, r.text
 
 
-@pytest.mark.parametrize("path", ["/devices/drive-404", "/devices/drive-404/health", "/devices/drive-404/coefficients",
-                                  "/devices/drive-404/windows", "/devices/drive-404/export.mcap"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/devices/drive-404",
+        "/devices/drive-404/health",
+        "/devices/drive-404/coefficients",
+        "/devices/drive-404/windows",
+        "/devices/drive-404/export.mcap",
+    ],
+)
 def test_unknown_device_is_404_naming_it(client, history, path):
     r = client.get(path)
     assert r.status_code == 404 and "drive-404" in r.json()["detail"]
@@ -131,6 +162,12 @@ def test_rejections(client, history, store):
 def test_openapi_documents_every_router(client):
     spec = client.get("/openapi.json").json()
     assert spec["info"]["title"] == "encoder-fleet service"
-    assert {"/devices", "/devices/{device_id}/health", "/devices/{device_id}/coefficients",
-            "/devices/{device_id}/windows", "/devices/{device_id}/export.mcap", "/ingest/rejections"} <= set(spec["paths"])
+    assert {
+        "/devices",
+        "/devices/{device_id}/health",
+        "/devices/{device_id}/coefficients",
+        "/devices/{device_id}/windows",
+        "/devices/{device_id}/export.mcap",
+        "/ingest/rejections",
+    } <= set(spec["paths"])
     assert all(op.get("summary") for path in spec["paths"].values() for op in path.values())

@@ -1,4 +1,5 @@
 """docker-compose.yml: a zenohd router, the service and three agents, whose commands the CLI accepts."""
+
 from pathlib import Path
 
 import yaml

@@ -1,12 +1,12 @@
 """Each method recovers planted parameters; bad input gets a clear error."""
+
 import numpy as np
 import pytest
 
 from encoder_core.correction import BandedCorrection, Correction
-from encoder_core.ellipse import fit_ellipse, density_harmonics
-from encoder_core.methods import (OursEllipse, OursLsRef, OursLsTable, ReferenceTable, Seed000, Seed001,
-                                  stats_for)
-from encoder_core.physics import angle, angle_error_deg, error_summary, rms
+from encoder_core.ellipse import density_harmonics, fit_ellipse
+from encoder_core.methods import OursEllipse, OursLsRef, OursLsTable, ReferenceTable, Seed000, Seed001, stats_for
+from encoder_core.physics import angle_error_deg, error_summary, rms
 from encoder_core.samples import InputError, Samples
 from encoder_core.simulator import EncoderModel, bench_profile, record, simulate
 from encoder_core.stats import WindowStats
@@ -57,8 +57,14 @@ def test_seed001_recovers_phase(rng):
 
 
 def test_ls_ref_recovers_zero_offset_phase_and_harmonic(rng):
-    model = EncoderModel(zero_offset_rad=np.radians(7.0), phase_error_rad=np.radians(-2.0), amplitude_imbalance=0.03,
-                         offset_counts=(25.0, -15.0), harmonics=((3, 0.01, 0.4),), noise_counts=1.0)
+    model = EncoderModel(
+        zero_offset_rad=np.radians(7.0),
+        phase_error_rad=np.radians(-2.0),
+        amplitude_imbalance=0.03,
+        offset_counts=(25.0, -15.0),
+        harmonics=((3, 0.01, 0.4),),
+        noise_counts=1.0,
+    )
     train, test = held_out(sweep(model, 20.0, rng))
     method = OursLsRef().fit(train)
     err = error_summary(method.correct(test), test.theta_ref)
@@ -71,8 +77,9 @@ def test_ellipse_recovers_offsets_and_density_finds_hidden_harmonic():
     rng = np.random.default_rng(11)
     k = rng.uniform(0.006, 0.012)
     phase = rng.uniform(-np.pi, np.pi)
-    model = EncoderModel(offset_counts=(30.0, -20.0), amplitude_imbalance=0.04, harmonics=((3, k, phase),),
-                         noise_counts=1.5)
+    model = EncoderModel(
+        offset_counts=(30.0, -20.0), amplitude_imbalance=0.04, harmonics=((3, k, phase),), noise_counts=1.5
+    )
     n = 300_000
     theta = rng.uniform(0, 2 * np.pi, n)
     s, _ = simulate(model, np.arange(n) * 0.01, theta, np.full(n, 20.0), rng)

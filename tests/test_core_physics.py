@@ -1,4 +1,5 @@
 """The simulator's effects move the angle error the way seed 001's small-parameter formulas say."""
+
 import numpy as np
 import pytest
 

@@ -6,6 +6,7 @@ size, records it bench-style (reference angle, temperature plateaus and ramps, r
 (no reference, random angles, load-driven temperature over days), and gives diagnose only the
 Samples. The truth stays here in the test.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -102,8 +103,9 @@ def draw(seed: int, effects: tuple[str, ...], style: str):
         samples = record(EncoderModel(**model), profile, rng)
     else:
         cold = "adc_clipping" in effects
-        profile = field_profile(2.0, sample_s=10.0, rng=rng, ambient_c=-10.0 if cold else 25.0,
-                                load_rise_c=20.0 if cold else 40.0)
+        profile = field_profile(
+            2.0, sample_s=10.0, rng=rng, ambient_c=-10.0 if cold else 25.0, load_rise_c=20.0 if cold else 40.0
+        )
         samples = record(EncoderModel(**model), profile, rng, reference=False)
     return samples, truth
 
@@ -151,22 +153,50 @@ def check(report, truth, style):
 
 
 BENCH = [
-    (0, ()), (1, ()), (2, ()), (3, ()), (4, ()),
-    (10, ("zero_offset",)), (11, ("phase_nonorthogonality",)), (12, ("phase_drift",)),
-    (13, ("harmonic",)), (14, ("harmonic",)), (15, ("harmonic:3",)), (22, ("harmonic",)),
-    (16, ("thermal_lag",)), (17, ("thermal_lag",)), (23, ("thermal_lag",)), (18, ("nonlinear_temperature",)),
+    (0, ()),
+    (1, ()),
+    (2, ()),
+    (3, ()),
+    (4, ()),
+    (10, ("zero_offset",)),
+    (11, ("phase_nonorthogonality",)),
+    (12, ("phase_drift",)),
+    (13, ("harmonic",)),
+    (14, ("harmonic",)),
+    (15, ("harmonic:3",)),
+    (22, ("harmonic",)),
+    (16, ("thermal_lag",)),
+    (17, ("thermal_lag",)),
+    (23, ("thermal_lag",)),
+    (18, ("nonlinear_temperature",)),
     (19, ("aging",)),
-    (20, ("outliers",)), (21, ("adc_clipping",)),
-    (30, ("zero_offset", "harmonic")), (31, ("thermal_lag", "harmonic:3")), (32, ("phase_drift", "outliers")),
-    (33, ("zero_offset", "phase_nonorthogonality")), (34, ("adc_clipping", "harmonic")),
+    (20, ("outliers",)),
+    (21, ("adc_clipping",)),
+    (30, ("zero_offset", "harmonic")),
+    (31, ("thermal_lag", "harmonic:3")),
+    (32, ("phase_drift", "outliers")),
+    (33, ("zero_offset", "phase_nonorthogonality")),
+    (34, ("adc_clipping", "harmonic")),
 ]
 FIELD = [
-    (100, ()), (101, ()), (102, ()), (103, ()), (104, ()),
-    (110, ("phase_nonorthogonality",)), (111, ("phase_drift",)), (112, ("harmonic",)),
-    (113, ("thermal_lag",)), (118, ("thermal_lag",)), (119, ("harmonic",)), (114, ("nonlinear_temperature",)),
+    (100, ()),
+    (101, ()),
+    (102, ()),
+    (103, ()),
+    (104, ()),
+    (110, ("phase_nonorthogonality",)),
+    (111, ("phase_drift",)),
+    (112, ("harmonic",)),
+    (113, ("thermal_lag",)),
+    (118, ("thermal_lag",)),
+    (119, ("harmonic",)),
+    (114, ("nonlinear_temperature",)),
     (115, ("aging",)),
-    (116, ("outliers",)), (117, ("adc_clipping",)),
-    (130, ("thermal_lag", "harmonic")), (131, ("aging", "outliers")), (132, ("adc_clipping", "harmonic")),
+    (116, ("outliers",)),
+    (117, ("adc_clipping",)),
+    (130, ("thermal_lag", "harmonic")),
+    (131, ("aging", "outliers")),
+    (132, ("adc_clipping", "harmonic")),
 ]
 
 
@@ -190,8 +220,14 @@ def test_field_recording_names_what_was_planted(seed, effects):
 
 def test_without_temperature_thermal_causes_are_not_testable():
     rng = np.random.default_rng(3)
-    model = EncoderModel(**{**baseline_model(rng, "bench"), "gain_tc_per_c": (0.0, 0.0),
-                            "offset_tc_counts_per_c": (0.0, 0.0), "harmonics": ((5, 0.01, 1.0),)})
+    model = EncoderModel(
+        **{
+            **baseline_model(rng, "bench"),
+            "gain_tc_per_c": (0.0, 0.0),
+            "offset_tc_counts_per_c": (0.0, 0.0),
+            "harmonics": ((5, 0.01, 1.0),),
+        }
+    )
     samples = record(model, bench_profile(rng=rng), rng, temperature=False)
     report = diagnose(samples).report
     untestable = {n["cause"] for n in report["not_testable"]}

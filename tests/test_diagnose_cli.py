@@ -1,4 +1,5 @@
 """`encoder-fleet diagnose` as a user runs it: JSON contract, HTML report, bad input, bench-diagnose."""
+
 from __future__ import annotations
 
 import json
@@ -21,8 +22,14 @@ def run_cli(*args):
 @pytest.fixture(scope="module")
 def bench_csv(tmp_path_factory):
     rng = np.random.default_rng(7)
-    model = EncoderModel(hall_amplitude=700.0, gain_tc_per_c=(-0.002, -0.0008), offset_counts=(10.0, -5.0),
-                         offset_tc_counts_per_c=(0.5, -0.5), noise_counts=1.0, harmonics=((4, 0.01, 0.5),))
+    model = EncoderModel(
+        hall_amplitude=700.0,
+        gain_tc_per_c=(-0.002, -0.0008),
+        offset_counts=(10.0, -5.0),
+        offset_tc_counts_per_c=(0.5, -0.5),
+        noise_counts=1.0,
+        harmonics=((4, 0.01, 0.5),),
+    )
     path = tmp_path_factory.mktemp("rec") / "bench.csv"
     write_recording(record(model, bench_profile(rng=rng), rng), path)
     return path
@@ -54,8 +61,9 @@ def test_diagnose_halls_without_reference(tmp_path):
     rng = np.random.default_rng(8)
     model = EncoderModel(hall_amplitude=700.0, noise_counts=1.0, phase_error_rad=0.015)
     path = tmp_path / "field.csv"
-    write_recording(record(model, field_profile(0.5, sample_s=5.0, rng=rng), rng, reference=False, halls=True),
-                    path, halls=True)
+    write_recording(
+        record(model, field_profile(0.5, sample_s=5.0, rng=rng), rng, reference=False, halls=True), path, halls=True
+    )
     out = tmp_path / "f.json"
     res = run_cli("diagnose", str(path), "--json", str(out))
     assert res.returncode == 0, res.stderr
@@ -75,13 +83,16 @@ def _write(path, header, rows):
     return path
 
 
-@pytest.mark.parametrize("case,message", [
-    ("missing_column", "missing columns: need 'd' and 'q'"),
-    ("text_in_number", "line 12, column 'q': not a number: 'abc'"),
-    ("t_not_increasing", "line 6, column 't': does not increase"),  # data row 5 repeats row 4's t
-    ("too_few", "too few samples to diagnose: 20"),
-    ("coverage", "coverage for a fit: samples fall in 3 of 12 30° sectors"),
-])
+@pytest.mark.parametrize(
+    "case,message",
+    [
+        ("missing_column", "missing columns: need 'd' and 'q'"),
+        ("text_in_number", "line 12, column 'q': not a number: 'abc'"),
+        ("t_not_increasing", "line 6, column 't': does not increase"),  # data row 5 repeats row 4's t
+        ("too_few", "too few samples to diagnose: 20"),
+        ("coverage", "coverage for a fit: samples fall in 3 of 12 30° sectors"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line_message(tmp_path, case, message):
     rows = _good_rows()
     path = tmp_path / f"{case}.csv"

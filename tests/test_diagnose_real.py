@@ -4,6 +4,7 @@ Three 3-axis magnetic sensors on a rotary jig: 16 reference angles, 3 runs, no t
 seed-000 baseline misses there is the jig's zero (1-3°); a model fitted on one run carries it to the
 other two runs.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -60,8 +61,21 @@ def test_cli_on_real_sensor_writes_json_and_report(tmp_path):
     import sys
 
     out, html = tmp_path / "s2.json", tmp_path / "s2.html"
-    res = subprocess.run([sys.executable, "-m", "encoder_fleet.cli", "diagnose", str(JIG / "jig_sensor02.csv"),
-                          "--json", str(out), "--report", str(html)], capture_output=True, text=True)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "encoder_fleet.cli",
+            "diagnose",
+            str(JIG / "jig_sensor02.csv"),
+            "--json",
+            str(out),
+            "--report",
+            str(html),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode == 0, res.stderr
     report = json.loads(out.read_text())
     assert report["findings"][0]["cause"] == "zero_offset" and report["held_out"]["by"] == "run"

@@ -1,5 +1,6 @@
 """The fleet end to end with real parts: a service (embedded Zenoh router, SQLite file) in this process,
 agents in their own processes over loopback, coefficients rolled out and acknowledged."""
+
 import sqlite3
 import subprocess
 import sys
@@ -21,9 +22,27 @@ from service.store import Store
 
 
 def start_agent(name, seed, endpoint, outbox, hours):
-    return subprocess.Popen([sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", name, "--seed", str(seed),
-                             "--connect", endpoint, "--sim-hours", str(hours), "--outbox", str(outbox)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "encoder_fleet.cli",
+            "agent",
+            "--device",
+            name,
+            "--seed",
+            str(seed),
+            "--connect",
+            endpoint,
+            "--sim-hours",
+            str(hours),
+            "--outbox",
+            str(outbox),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 @pytest.fixture
@@ -68,8 +87,22 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
     assert not any(k for k in store.rejection_counts())
     # the audit export, as a user runs it, read back with the mcap reader
     out = tmp_path / "drive-1.mcap"
-    res = subprocess.run([sys.executable, "-m", "encoder_fleet.cli", "export", "--db", str(store.path),
-                          "--device", "drive-1", "--out", str(out)], capture_output=True, text=True)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "encoder_fleet.cli",
+            "export",
+            "--db",
+            str(store.path),
+            "--device",
+            "drive-1",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode == 0, res.stderr
     with open(out, "rb") as f:
         topics = Counter(channel.topic for _, channel, _ in make_reader(f).iter_messages())
@@ -81,21 +114,39 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
 def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):
     endpoint, store, service, session = fleet
     agent = start_agent("drive-7", 7, endpoint, tmp_path / "ob7.sqlite", 2)
-    bad = [("encoders/drive-7/stats", b"{not json"),
-           ("encoders/drive-7/stats", b'{"schema": "encoder-fleet/window/1", "seq": NaN}'),
-           ("encoders/drive-7/stats", b"x" * (300 * 1024)),
-           ("encoders/drive-7/ack", b'{"schema": "encoder-fleet/ack/1"}')]
+    bad = [
+        ("encoders/drive-7/stats", b"{not json"),
+        ("encoders/drive-7/stats", b'{"schema": "encoder-fleet/window/1", "seq": NaN}'),
+        ("encoders/drive-7/stats", b"x" * (300 * 1024)),
+        ("encoders/drive-7/ack", b'{"schema": "encoder-fleet/ack/1"}'),
+    ]
     for key, payload in bad:
         session.put(key, payload)
     assert agent.wait(timeout=120) == 0
     time.sleep(0.5)
     # drive-7's next window, published under drive-8's key, and drive-7's first window again with new content
     stats = WindowStats(scale=1400.0).add(np.full(50, 1000.0), np.linspace(-900, 900, 50), np.full(50, 25.0))
-    forged = wire.window_message("drive-7", 121, stats, window_start=1e4, window_end=1e4 + 60, temp_rate_c_per_s=0.0,
-                                 coefficients_version=0, angle_quality_deg=0.1)
+    forged = wire.window_message(
+        "drive-7",
+        121,
+        stats,
+        window_start=1e4,
+        window_end=1e4 + 60,
+        temp_rate_c_per_s=0.0,
+        coefficients_version=0,
+        angle_quality_deg=0.1,
+    )
     session.put("encoders/drive-8/stats", wire.encode("window", forged))
-    replay = wire.window_message("drive-7", 1, stats, window_start=0.0, window_end=60.0, temp_rate_c_per_s=0.0,
-                                 coefficients_version=0, angle_quality_deg=0.1)
+    replay = wire.window_message(
+        "drive-7",
+        1,
+        stats,
+        window_start=0.0,
+        window_end=60.0,
+        temp_rate_c_per_s=0.0,
+        coefficients_version=0,
+        angle_quality_deg=0.1,
+    )
     session.put("encoders/drive-7/stats", wire.encode("window", replay))
     time.sleep(0.5)
     counts = store.rejection_counts()

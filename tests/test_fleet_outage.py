@@ -1,5 +1,6 @@
 """Kill the service mid-stream (SIGKILL, its own process) and restart it on the same port and database:
 no window it had stored is lost, none is stored twice, and the agents catch up from their outboxes."""
+
 import sqlite3
 import subprocess
 import sys
@@ -13,8 +14,24 @@ WINDOWS = HOURS * 60
 
 
 def start_service(db, endpoint):
-    proc = subprocess.Popen([sys.executable, "-m", "encoder_fleet.cli", "service", "--db", str(db), "--listen", endpoint,
-                             "--http-port", "0", "--refit-interval", "1"], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "encoder_fleet.cli",
+            "service",
+            "--db",
+            str(db),
+            "--listen",
+            endpoint,
+            "--http-port",
+            "0",
+            "--refit-interval",
+            "1",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     ready = proc.stdout.readline()
     assert ready.startswith("service:"), ready
     return proc
@@ -22,9 +39,29 @@ def start_service(db, endpoint):
 
 def start_agent(name, seed, endpoint, outbox):
     # 1800x real time: 360 windows in about 12 s, so the outage falls in the middle of the stream
-    return subprocess.Popen([sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", name, "--seed", str(seed),
-                             "--connect", endpoint, "--sim-hours", str(HOURS), "--real-time-factor", "1800",
-                             "--outbox", str(outbox)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "encoder_fleet.cli",
+            "agent",
+            "--device",
+            name,
+            "--seed",
+            str(seed),
+            "--connect",
+            endpoint,
+            "--sim-hours",
+            str(HOURS),
+            "--real-time-factor",
+            "1800",
+            "--outbox",
+            str(outbox),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 def stored_seqs(db, device):

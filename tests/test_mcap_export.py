@@ -1,15 +1,16 @@
 """MCAP export read back with mcap's own reader and compared with the database."""
+
 import io
 import json
 
 import pytest
 from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
+from wire_samples import ack, coefficients, window
 
 from encoder_fleet import wire
 from service.mcap_export import export_mcap, iter_mcap
 from service.store import Store
-from wire_samples import ack, coefficients, window
 
 
 @pytest.fixture
@@ -54,7 +55,9 @@ def test_export_matches_the_database(store, tmp_path):
 
     assert [b for _, b in by_topic["stats"]] == list(store.iter_windows("drive-001"))
     assert [t for t, _ in by_topic["stats"]] == [int(round(w["window_end"] * 1e9)) for w in store.windows("drive-001")]
-    assert [b for _, b in by_topic["coefficients"]] == [h["message"] for h in reversed(store.coefficient_history("drive-001"))]
+    assert [b for _, b in by_topic["coefficients"]] == [
+        h["message"] for h in reversed(store.coefficient_history("drive-001"))
+    ]
     assert [b for _, b in by_topic["ack"]] == store.acks("drive-001")
     assert [t for t, _ in by_topic["ack"]] == [170_000_000_000, 340_000_000_000]
 

@@ -1,4 +1,5 @@
 """Recording CSV contract and the CLI's simulate and bench-methods commands, run as a user would."""
+
 import json
 import subprocess
 import sys
@@ -17,8 +18,22 @@ def run_cli(*args):
 
 def test_simulate_bench_round_trips(tmp_path):
     out = tmp_path / "rec.csv"
-    assert main(["simulate", "--scenario", "bench", "--out", str(out), "--set", "thermal_lag_tau_s=120",
-                 "--set", "harmonics=[[3, 0.01, 0.0]]"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--scenario",
+                "bench",
+                "--out",
+                str(out),
+                "--set",
+                "thermal_lag_tau_s=120",
+                "--set",
+                "harmonics=[[3, 0.01, 0.0]]",
+            ]
+        )
+        == 0
+    )
     rec = read_recording(out)
     assert rec.has_reference and rec.has_temperature and len(rec) > 10000
     assert set(np.unique(rec.temp_c[rec.run == 1])) >= {-40.0}
@@ -27,23 +42,28 @@ def test_simulate_bench_round_trips(tmp_path):
 
 def test_simulate_field_without_reference_and_with_halls(tmp_path):
     out = tmp_path / "field.csv"
-    assert main(["simulate", "--scenario", "field", "--days", "0.2", "--no-reference", "--halls", "--out", str(out)]) == 0
+    assert (
+        main(["simulate", "--scenario", "field", "--days", "0.2", "--no-reference", "--halls", "--out", str(out)]) == 0
+    )
     header = out.read_text().splitlines()[0].split(",")
     assert header[:5] == ["t", "a_plus", "a_minus", "b_plus", "b_minus"] and "theta_ref_deg" not in header
     rec = read_recording(out)
     assert not rec.has_reference and rec.halls is not None
 
 
-@pytest.mark.parametrize("body,message", [
-    ("t,d\n0,1\n", "missing columns"),
-    ("d,q\n1,2\n", "missing column 't'"),
-    ("t,d,q\n0,1,2\n1,x,3\n", r"line 3, column 'd': not a number"),
-    ("t,d,q\n0,1,2\n0,1,3\n", r"line 3, column 't': does not increase \(0.0 on line 2, then 0.0\)"),
-    ("t,d,q\n0,1,2\n\n1,1,2\n0.5,1,3\n", "line 5, column 't'"),  # a blank line does not shift the count
-    ("t,d,q\n0,1,nan\n", "not a finite number"),
-    ("t,d,q\n0,1\n", "2 fields, expected 3"),
-    ("", "empty"),
-])
+@pytest.mark.parametrize(
+    "body,message",
+    [
+        ("t,d\n0,1\n", "missing columns"),
+        ("d,q\n1,2\n", "missing column 't'"),
+        ("t,d,q\n0,1,2\n1,x,3\n", r"line 3, column 'd': not a number"),
+        ("t,d,q\n0,1,2\n0,1,3\n", r"line 3, column 't': does not increase \(0.0 on line 2, then 0.0\)"),
+        ("t,d,q\n0,1,2\n\n1,1,2\n0.5,1,3\n", "line 5, column 't'"),  # a blank line does not shift the count
+        ("t,d,q\n0,1,nan\n", "not a finite number"),
+        ("t,d,q\n0,1\n", "2 fields, expected 3"),
+        ("", "empty"),
+    ],
+)
 def test_broken_csv_names_line_and_column(tmp_path, body, message):
     path = tmp_path / "bad.csv"
     path.write_text(body)

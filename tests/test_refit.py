@@ -1,4 +1,5 @@
 """The service's refit, fed the agent's window statistics of a simulated drive (no transport here)."""
+
 import numpy as np
 import pytest
 

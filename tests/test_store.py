@@ -1,14 +1,15 @@
 """The SQLite history: migrations, dedupe, band sums, dead letters, threads. Real files, no mocks."""
+
 import json
 import sqlite3
 import threading
 
 import numpy as np
 import pytest
+from wire_samples import ack, coefficients, window
 
 from encoder_fleet import wire
 from service.store import Store, StoreError
-from wire_samples import ack, coefficients, window
 
 
 @pytest.fixture
@@ -19,6 +20,7 @@ def store(tmp_path):
 
 def test_migrations_apply_once_and_are_recorded(tmp_path):
     from service.store import MIGRATIONS_DIR
+
     files = sorted(p.name for p in MIGRATIONS_DIR.glob("[0-9]*.sql"))
     expected = [(int(name.split("_", 1)[0]), name) for name in files]
     path = tmp_path / "fleet.db"
@@ -35,13 +37,15 @@ def test_migrations_apply_once_and_are_recorded(tmp_path):
 
 def test_new_migration_is_applied_in_order(tmp_path):
     from service.store import MIGRATIONS_DIR
+
     mig = tmp_path / "migrations"
     mig.mkdir()
     (mig / "001_initial.sql").write_text((MIGRATIONS_DIR / "001_initial.sql").read_text())
     with Store.open(tmp_path / "a.db", migrations_dir=mig):
         pass
-    (mig / "002_notes.sql").write_text("-- a later change; kept small\nCREATE TABLE notes (\n  id INTEGER\n);\n"
-                                       "INSERT INTO notes VALUES (7);\n")
+    (mig / "002_notes.sql").write_text(
+        "-- a later change; kept small\nCREATE TABLE notes (\n  id INTEGER\n);\nINSERT INTO notes VALUES (7);\n"
+    )
     with Store.open(tmp_path / "a.db", migrations_dir=mig) as s:
         assert [v for v, _ in s.migrations()] == [1, 2]
     with Store.open(tmp_path / "a.db", migrations_dir=mig) as s:
@@ -50,6 +54,7 @@ def test_new_migration_is_applied_in_order(tmp_path):
 
 def test_failed_migration_leaves_nothing_behind(tmp_path):
     from service.store import MIGRATIONS_DIR
+
     mig = tmp_path / "migrations"
     mig.mkdir()
     (mig / "001_initial.sql").write_text((MIGRATIONS_DIR / "001_initial.sql").read_text())
@@ -121,10 +126,25 @@ def test_ingest_keeps_every_bad_input(store):
         store.ingest("encoders/drive-001/stats", b" " * (wire.MAX_PAYLOAD + 1)),
         store.ingest("sensors/x", b"{}"),
     ]
-    assert outcomes == ["stored", "duplicate", "device_mismatch", "not_json", "schema", "stored", "unexpected_kind",
-                        "too_large", "bad_key"]
-    assert store.rejection_counts() == {"bad_key": 1, "device_mismatch": 1, "not_json": 1, "schema": 1,
-                                        "too_large": 1, "unexpected_kind": 1}
+    assert outcomes == [
+        "stored",
+        "duplicate",
+        "device_mismatch",
+        "not_json",
+        "schema",
+        "stored",
+        "unexpected_kind",
+        "too_large",
+        "bad_key",
+    ]
+    assert store.rejection_counts() == {
+        "bad_key": 1,
+        "device_mismatch": 1,
+        "not_json": 1,
+        "schema": 1,
+        "too_large": 1,
+        "unexpected_kind": 1,
+    }
     letters = store.dead_letters(limit=100)
     assert [d["reason"] for d in letters][:2] == ["bad_key", "too_large"]  # newest first
     garbage = next(d for d in letters if d["reason"] == "not_json")
@@ -136,8 +156,9 @@ def test_coefficients_fits_acks_and_devices(store):
     assert store.next_version("drive-001") == 1 and store.current_coefficients("drive-001") is None
     store.insert_window(window(seq=1, version=0), received_at=5.0)
     store.record_fit("drive-001", 2, {"w": [1, 0, 1, 0]}, {"samples": 10}, created_at=50.0)
-    fit_id = store.record_fit("drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01},
-                              created_at=60.0)
+    fit_id = store.record_fit(
+        "drive-001", 2, {"w": [1.1, 0, 1, 0]}, {"samples": 20, "residual_rms_rad": 0.01}, created_at=60.0
+    )
     store.record_fit("drive-001", 3, {"w": [1, 0, 1, 0]}, {"samples": 5}, created_at=60.0)
     assert [(f["band"], f["samples"]) for f in store.latest_fits("drive-001")] == [(2, 20), (3, 5)]
     assert store.latest_fits("drive-001")[0]["id"] == fit_id
@@ -154,7 +175,10 @@ def test_coefficients_fits_acks_and_devices(store):
     assert store.current_coefficients("drive-001", published_only=True) == c1
     with pytest.raises(KeyError):
         store.mark_published("drive-001", 9)
-    assert [(h["version"], h["published_at"]) for h in store.coefficient_history("drive-001")] == [(2, None), (1, 101.0)]
+    assert [(h["version"], h["published_at"]) for h in store.coefficient_history("drive-001")] == [
+        (2, None),
+        (1, 101.0),
+    ]
 
     a1, a2 = ack(version=1, at=150.0), ack(version=2, at=250.0, status="rejected")
     store.insert_ack(a1, received_at=151.0)

@@ -1,13 +1,14 @@
 """The wire contract: schemas, builders and the decoder agree, and every bad input is named."""
+
 import json
 
 import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
+from wire_samples import ack, coefficients, window
 
 from encoder_core.stats import WindowStats
 from encoder_fleet import wire
-from wire_samples import ack, coefficients, window
 
 BUILT = {"window": window, "coefficients": coefficients, "ack": ack}
 
@@ -74,16 +75,32 @@ def test_constant_temperature_window_is_consistent():
     # seven readings of 0.1 sum to 0.7 - 1e-16: their mean falls just below the minimum
     stats = WindowStats(scale=1400.0).add(np.full(7, 700.0), np.zeros(7), np.full(7, 0.1))
     assert stats.temp_mean < stats.temp_min
-    msg = wire.window_message("d", 1, stats, window_start=0.0, window_end=1.0, temp_rate_c_per_s=0.0,
-                              coefficients_version=0, angle_quality_deg=0.0)
+    msg = wire.window_message(
+        "d",
+        1,
+        stats,
+        window_start=0.0,
+        window_end=1.0,
+        temp_rate_c_per_s=0.0,
+        coefficients_version=0,
+        angle_quality_deg=0.0,
+    )
     assert wire.decode("window", wire.encode("window", msg), key_device="d")["band"] == 0
 
 
 def test_window_needs_temperature():
     stats = WindowStats(scale=1400.0).add(np.full(10, 700.0), np.zeros(10))
     with pytest.raises(wire.WireError, match="no temperature"):
-        wire.window_message("d", 1, stats, window_start=0.0, window_end=1.0, temp_rate_c_per_s=0.0,
-                            coefficients_version=0, angle_quality_deg=0.0)
+        wire.window_message(
+            "d",
+            1,
+            stats,
+            window_start=0.0,
+            window_end=1.0,
+            temp_rate_c_per_s=0.0,
+            coefficients_version=0,
+            angle_quality_deg=0.0,
+        )
 
 
 @pytest.mark.parametrize("kind", wire.KINDS)
@@ -108,37 +125,43 @@ def mutate(path, value):
     return payload(msg)
 
 
-@pytest.mark.parametrize("data, reason, where", [
-    (b"{" + b" " * (wire.MAX_PAYLOAD + 1) + b"}", "too_large", "exceeds"),
-    (b"seq=1", "not_json", "not JSON"),
-    (b"\xff\xfe{}", "not_json", "UTF-8"),
-    (payload(window()).replace(b'"angle_quality_deg": 0.08', b'"angle_quality_deg": NaN'), "non_finite",
-     "$.angle_quality_deg"),
-    (payload(window()).replace(b'"scale": 1400.0', b'"scale": -Infinity'), "non_finite", "$.stats.scale"),
-    (payload(window()).replace(b'"window_end": 60.0', b'"window_end": 1e999'), "non_finite", "$.window_end"),
-    (mutate(["seq"], KeyError), "schema", "'seq'"),
-    (mutate(["samples"], "400"), "schema", "$.samples"),
-    (mutate(["seq"], -1), "schema", "$.seq"),
-    (mutate(["seq"], 0), "schema", "$.seq"),
-    (mutate(["seq"], True), "schema", "$.seq"),
-    (mutate(["device"], "drive/001"), "schema", "$.device"),
-    (mutate(["extra"], 1), "schema", "extra"),
-    (mutate(["stats", "moments"], [1.0] * 14), "schema", "$.stats.moments"),
-    (mutate(["stats", "bins"], [[0.0] * 6] * 63), "schema", "$.stats.bins"),
-    (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 7]), "schema", "$.stats.bins[63]"),
-    (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 5 + ["x"]]), "schema", "$.stats.bins[63][5]"),
-    (mutate(["stats", "moments"], [1.0] * 14 + [True]), "schema", "$.stats.moments[14]"),
-    (mutate(["stats", "moments"], {"0": 1.0}), "schema", "$.stats.moments"),
-    (mutate(["angle_quality_deg"], -0.1), "schema", "$.angle_quality_deg"),
-    (mutate(["samples"], 399), "inconsistent", "$.samples"),
-    (mutate(["rejected"], 2), "inconsistent", "$.rejected"),
-    (mutate(["temp_mean_c"], 40.0), "inconsistent", "$.temp_mean_c"),
-    (mutate(["window_end"], -1.0), "schema", "$.window_end"),
-    (mutate(["band"], 7), "inconsistent", "$.band"),
-    (payload([1, 2]), "schema", "$"),
-    (payload(window()).replace(b'"seq": 1,', b'"seq": 1, "seq": 2,'), "not_json", "'seq' appears twice"),
-    (mutate(["window_start"], 2e10), "schema", "$.window_start"),
-])
+@pytest.mark.parametrize(
+    "data, reason, where",
+    [
+        (b"{" + b" " * (wire.MAX_PAYLOAD + 1) + b"}", "too_large", "exceeds"),
+        (b"seq=1", "not_json", "not JSON"),
+        (b"\xff\xfe{}", "not_json", "UTF-8"),
+        (
+            payload(window()).replace(b'"angle_quality_deg": 0.08', b'"angle_quality_deg": NaN'),
+            "non_finite",
+            "$.angle_quality_deg",
+        ),
+        (payload(window()).replace(b'"scale": 1400.0', b'"scale": -Infinity'), "non_finite", "$.stats.scale"),
+        (payload(window()).replace(b'"window_end": 60.0', b'"window_end": 1e999'), "non_finite", "$.window_end"),
+        (mutate(["seq"], KeyError), "schema", "'seq'"),
+        (mutate(["samples"], "400"), "schema", "$.samples"),
+        (mutate(["seq"], -1), "schema", "$.seq"),
+        (mutate(["seq"], 0), "schema", "$.seq"),
+        (mutate(["seq"], True), "schema", "$.seq"),
+        (mutate(["device"], "drive/001"), "schema", "$.device"),
+        (mutate(["extra"], 1), "schema", "extra"),
+        (mutate(["stats", "moments"], [1.0] * 14), "schema", "$.stats.moments"),
+        (mutate(["stats", "bins"], [[0.0] * 6] * 63), "schema", "$.stats.bins"),
+        (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 7]), "schema", "$.stats.bins[63]"),
+        (mutate(["stats", "bins"], [[0.0] * 6] * 63 + [[0.0] * 5 + ["x"]]), "schema", "$.stats.bins[63][5]"),
+        (mutate(["stats", "moments"], [1.0] * 14 + [True]), "schema", "$.stats.moments[14]"),
+        (mutate(["stats", "moments"], {"0": 1.0}), "schema", "$.stats.moments"),
+        (mutate(["angle_quality_deg"], -0.1), "schema", "$.angle_quality_deg"),
+        (mutate(["samples"], 399), "inconsistent", "$.samples"),
+        (mutate(["rejected"], 2), "inconsistent", "$.rejected"),
+        (mutate(["temp_mean_c"], 40.0), "inconsistent", "$.temp_mean_c"),
+        (mutate(["window_end"], -1.0), "schema", "$.window_end"),
+        (mutate(["band"], 7), "inconsistent", "$.band"),
+        (payload([1, 2]), "schema", "$"),
+        (payload(window()).replace(b'"seq": 1,', b'"seq": 1, "seq": 2,'), "not_json", "'seq' appears twice"),
+        (mutate(["window_start"], 2e10), "schema", "$.window_start"),
+    ],
+)
 def test_bad_window_input_is_named(data, reason, where):
     with pytest.raises(wire.WireError) as exc:
         wire.decode("window", data, key_device="drive-001")
@@ -185,8 +208,13 @@ def test_keys():
     assert wire.key_for("window", "drive-001") == "encoders/drive-001/stats"
     assert wire.parse_key("encoders/drive-001/stats") == ("drive-001", "window")
     assert wire.device_from_key("encoders/d.7_x/ack") == "d.7_x"
-    for key in ("encoders/drive-001", "encoders/a/b/stats", "other/drive-001/ack", "encoders/drive-001/alive",
-                "encoders/*/stats"):
+    for key in (
+        "encoders/drive-001",
+        "encoders/a/b/stats",
+        "other/drive-001/ack",
+        "encoders/drive-001/alive",
+        "encoders/*/stats",
+    ):
         with pytest.raises(wire.WireError) as exc:
             wire.parse_key(key)
         assert exc.value.reason == "bad_key"
