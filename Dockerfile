@@ -3,10 +3,12 @@ FROM python:3.11-slim
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY encoder_core encoder_core
+COPY fleet_wire fleet_wire
 COPY encoder_fleet encoder_fleet
 COPY edge_agent edge_agent
 COPY service service
 COPY schemas schemas
 COPY migrations migrations
-RUN pip install --no-cache-dir -e .
+# a real install (not -e): the schemas and migrations must travel as package data
+RUN pip install --no-cache-dir '.[service]'
 ENTRYPOINT ["encoder-fleet"]

@@ -19,10 +19,11 @@ import numpy as np
 import zenoh
 
 from encoder_core.correction import BandedCorrection
-from encoder_core.physics import REFERENCE_TEMP_C
+from encoder_core.physics import REFERENCE_TEMP_C, band_of
 from encoder_core.samples import InputError, Samples
-from encoder_core.stats import WindowStats, plausible_mask
-from encoder_fleet import wire
+from encoder_core.stats import normalisation_scale, usable_mask, window_stats
+from fleet_wire import keys
+from fleet_wire import messages as wire
 
 from .outbox import Outbox
 from .sources import SampleSource
@@ -32,18 +33,6 @@ log = logging.getLogger("edge_agent")
 # plausible bounds for a coefficient set: gains within 5x of the factory's, harmonics under 6°
 MAX_GAIN_RATIO = 5.0
 MAX_HARMONIC_RAD = 0.1
-
-
-def keys(device: str) -> dict[str, str]:
-    base = f"encoders/{device}"
-    return {
-        "stats": f"{base}/stats",
-        "coefficients": f"{base}/coefficients",
-        "ack": f"{base}/ack",
-        "alive": f"{base}/alive",
-        "received": f"{base}/received",
-        "factory": f"{base}/factory",
-    }
 
 
 @dataclass
@@ -78,14 +67,13 @@ class EdgeAgent:
         self.window_s = window_s
         self.resend_after_s = resend_after_s
         self.query_timeout_s = query_timeout_s
-        self.keys = keys(device)
+        self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
         self.counters = AgentCounters()
         self.inbox: queue.Queue[bytes] = queue.Queue()
         self.pending_ack: int | None = None
         # the statistics' normalisation stays fixed for the device's whole life: windows must merge
-        ref_band = min(factory.bands, key=lambda b: abs((b.temp_c or REFERENCE_TEMP_C) - REFERENCE_TEMP_C))
-        self.scale = float(round(1.0 / abs(ref_band.w1)))
+        self.scale = normalisation_scale(factory)
         self._declared: list = []
         saved = outbox.saved_coefficients()
         if saved is not None:
@@ -137,12 +125,12 @@ class EdgeAgent:
         if len(block) == 0:
             return True
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
-        usable = self.usable(block)
+        usable = usable_mask(block)
         quality = self.angle_quality_deg(block, usable)
         if self.pending_ack is not None:
             self.send_ack(self.pending_ack, "applied", quality)
             self.pending_ack = None
-        stats = self.window_stats(block, usable)
+        stats = window_stats(block, self.scale, usable)
         self.seq += 1
         msg = wire.window_message(
             device=self.device,
@@ -165,15 +153,6 @@ class EdgeAgent:
     def correct(self, block: Samples) -> np.ndarray:
         return self.correction.angle(block.d, block.q, block.temp_c)
 
-    @staticmethod
-    def usable(block: Samples) -> np.ndarray:
-        """Samples that say something about the circle: finite, near it, no hall clipped at a rail."""
-        keep = plausible_mask(block.d, block.q)
-        if block.halls is not None:
-            for hall in block.halls.values():
-                keep &= (hall > 0) & (hall < 4095)
-        return keep
-
     def angle_quality_deg(self, block: Samples, usable: np.ndarray) -> float:
         """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""
         if usable.sum() < 8:
@@ -182,12 +161,6 @@ class EdgeAgent:
             block.d[usable], block.q[usable], None if block.temp_c is None else block.temp_c[usable]
         )
         return float(np.degrees(np.std(r) / np.mean(r)))
-
-    def window_stats(self, block: Samples, keep: np.ndarray) -> WindowStats:
-        stats = WindowStats(scale=self.scale)
-        stats.add(block.d[keep], block.q[keep], None if block.temp_c is None else block.temp_c[keep])
-        stats.rejected = int((~keep).sum())
-        return stats
 
     # --- delivery ----------------------------------------------------------------------------------
 
@@ -198,9 +171,9 @@ class EdgeAgent:
             self.counters.offline_syncs += 1
             return False
         try:
-            watermark = int(json.loads(replies[0])["contiguous_seq"])
-        except (ValueError, KeyError, TypeError):
-            log.warning("%s: unreadable watermark reply %r", self.device, replies[0][:200])
+            watermark = wire.parse_watermark(replies[0], self.device)
+        except wire.WireError as exc:
+            log.warning("%s: %s", self.device, exc)
             return False
         self.outbox.confirm_through(watermark)
         stale = self.outbox.pending(sent_before=time.monotonic() - self.resend_after_s)
@@ -284,7 +257,7 @@ def factory_message(device: str, factory: BandedCorrection) -> dict:
     """What the factory wrote into the drive, as coefficient set version 0."""
     bands = [
         wire.band_entry(
-            int(np.floor((b.temp_c or REFERENCE_TEMP_C) / 10.0)),
+            band_of(REFERENCE_TEMP_C if b.temp_c is None else b.temp_c),
             b.to_dict(),
             {"samples": 0, "residual_rms_rad": 0.0, "radius_ripple_rad": 0.0},
         )

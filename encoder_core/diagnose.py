@@ -1,7 +1,7 @@
 """Diagnose a recording: fit seed 000's baseline, find what it misses, name the cause, measure the gain.
 
 Pure numpy: no file I/O, no printing. `diagnose(samples)` returns a `Diagnosis` whose `report` is the
-"Diagnose JSON" contract of DESIGN.md and whose `plots` holds the arrays the HTML report draws.
+"Diagnose JSON" contract of docs/architecture.md and whose `plots` holds the arrays the HTML report draws.
 
 The model has two stages.
 

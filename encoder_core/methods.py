@@ -22,16 +22,9 @@ from scipy.ndimage import median_filter, uniform_filter1d
 
 from .correction import BandedCorrection, Correction, from_inverse_matrix
 from .ellipse import fit_from_stats
-from .physics import REFERENCE_TEMP_C, angle, circular_mean, wrap_rad
+from .physics import BAND_WIDTH_C, REFERENCE_TEMP_C, angle, band_of, circular_mean, wrap_rad
 from .samples import InputError, Samples, check_angle_coverage, check_fit_input
 from .stats import WindowStats, plausible_mask
-
-BAND_WIDTH_C = 10.0
-
-
-def band_of(temp_c) -> np.ndarray:
-    """Temperature band index: band k holds [10k, 10k + 10) °C."""
-    return np.floor(np.asarray(temp_c, dtype=float) / BAND_WIDTH_C).astype(int)
 
 
 @dataclass

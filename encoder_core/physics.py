@@ -8,6 +8,13 @@ ADC_BITS = 12
 ADC_MAX = 2**ADC_BITS - 1
 ADC_MID = 2 ** (ADC_BITS - 1)
 REFERENCE_TEMP_C = 20.0  # seed 000's target temperature: the +20 °C table
+BAND_WIDTH_C = 10.0  # coefficients are fitted per temperature band of this width
+
+
+def band_of(temp_c):
+    """Temperature band index: band k holds [10k, 10k + 10) °C. An int for a number, an int array for an array."""
+    bands = np.floor(np.asarray(temp_c, dtype=float) / BAND_WIDTH_C).astype(int)
+    return int(bands) if bands.ndim == 0 else bands
 
 
 def halls_to_dq(a_plus, a_minus, b_plus, b_minus) -> tuple[np.ndarray, np.ndarray]:

@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .samples import InputError
+from .correction import BandedCorrection
+from .physics import ADC_MAX, REFERENCE_TEMP_C
+from .samples import InputError, Samples
 
 MONOMIALS: tuple[tuple[int, int], ...] = tuple((i, k - i) for k in range(5) for i in range(k, -1, -1))
 N_BINS = 64
@@ -176,3 +178,28 @@ def plausible_mask(d, q, *, center=(0.0, 0.0), tolerance: float = 0.12) -> np.nd
         return ok
     med = np.median(r[ok])
     return ok & (np.abs(r - med) <= tolerance * med)
+
+
+def usable_mask(samples: Samples) -> np.ndarray:
+    """Samples that say something about the circle: finite, near it, no hall pinned at an ADC rail."""
+    keep = plausible_mask(samples.d, samples.q)
+    if samples.halls is not None:
+        for hall in samples.halls.values():
+            keep &= (hall > 0) & (hall < ADC_MAX)
+    return keep
+
+
+def window_stats(samples: Samples, scale: float, keep: np.ndarray | None = None) -> WindowStats:
+    """The one way statistics are made from samples: the usable ones summed, the others counted as rejected."""
+    keep = usable_mask(samples) if keep is None else keep
+    stats = WindowStats(scale=scale)
+    stats.add(samples.d[keep], samples.q[keep], None if samples.temp_c is None else samples.temp_c[keep])
+    stats.rejected = int((~keep).sum())
+    return stats
+
+
+def normalisation_scale(factory: BandedCorrection) -> float:
+    """A device's fixed statistics scale (its windows must merge for life): the channel amplitude the
+    factory set implies near +20 °C, rounded."""
+    ref = min(factory.bands, key=lambda b: abs((b.temp_c or REFERENCE_TEMP_C) - REFERENCE_TEMP_C))
+    return float(round(1.0 / abs(ref.w1)))

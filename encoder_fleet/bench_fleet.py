@@ -17,9 +17,10 @@ from pathlib import Path
 
 from edge_agent.agent import factory_message
 from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
-from encoder_core.stats import WindowStats, plausible_mask
-from encoder_fleet import wire
-from encoder_fleet.zenoh_config import loopback_endpoint, session_config
+from encoder_core.stats import WindowStats, normalisation_scale, window_stats
+from fleet_wire import keys
+from fleet_wire import messages as wire
+from fleet_wire.session import loopback_endpoint, session_config
 
 TEMPLATE_SEED = 1
 
@@ -27,19 +28,17 @@ TEMPLATE_SEED = 1
 def template_windows(count: int, samples_per_window: int = 3000) -> list[tuple[WindowStats, float]]:
     """Window statistics of one simulated drive across its temperature cycle, reused for every device."""
     factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
-    scale = float(round(1.0 / factory.bands[0].w1))
+    scale = normalisation_scale(factory)
     hours = 12.0
     source = SimulatedDrive(TEMPLATE_SEED, hours=hours, sample_hz=samples_per_window / (hours * 3600 / count))
     out = []
     while len(out) < count and (block := source.read(hours * 3600 / count)) is not None:
-        keep = plausible_mask(block.d, block.q)
-        out.append((WindowStats(scale=scale).add(block.d[keep], block.q[keep], block.temp_c[keep]), float(block.t[0])))
+        out.append((window_stats(block, scale), float(block.t[0])))
     return out
 
 
 def publish(endpoint: str, devices: int, windows: int) -> None:
     """The publisher process: factory sets, then every device's windows, round-robin."""
-    import json
 
     import zenoh
 
@@ -51,7 +50,7 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
         factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
         for name in names:
             payload = wire.encode("coefficients", factory_message(name, factory))
-            session.put(f"encoders/{name}/factory", payload, congestion_control=block)
+            session.put(keys.key(name, keys.FACTORY), payload, congestion_control=block)
         for seq, (stats, start) in enumerate(templates, start=1):
             for name in names:
                 msg = wire.window_message(
@@ -64,13 +63,15 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
                     coefficients_version=0,
                     angle_quality_deg=0.5,
                 )
-                session.put(f"encoders/{name}/stats", wire.encode("window", msg), congestion_control=block)
+                session.put(keys.key(name, keys.STATS), wire.encode("window", msg), congestion_control=block)
         # closing a session drops what it has not sent yet: like an agent, wait until the service has it all
         deadline = time.monotonic() + 300
         for name in names:
             while time.monotonic() < deadline:
-                replies = [r.ok.payload.to_bytes() for r in session.get(f"encoders/{name}/received", timeout=5) if r.ok]
-                if replies and json.loads(replies[0])["contiguous_seq"] >= len(templates):
+                replies = [
+                    r.ok.payload.to_bytes() for r in session.get(keys.key(name, keys.RECEIVED), timeout=5) if r.ok
+                ]
+                if replies and wire.parse_watermark(replies[0], name) >= len(templates):
                     break
                 time.sleep(0.05)
     finally:

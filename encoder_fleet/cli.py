@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="encoder-fleet", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("simulate", help="write a simulated recording (CSV contract of DESIGN.md)")
+    p = sub.add_parser("simulate", help="write a simulated recording (CSV contract of docs/architecture.md)")
     p.add_argument(
         "--scenario",
         choices=["bench", "field"],

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from edge_agent.sources import drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import angle_error_deg, rms
-from encoder_fleet.zenoh_config import free_port, loopback_endpoint
+from fleet_wire.session import free_port, loopback_endpoint
 from service.mcap_export import export_mcap
 from service.runtime import BAND_HORIZON, FleetService, HttpServer, open_session
 from service.store import Store

@@ -15,7 +15,7 @@ PROGRESS_MIN_ROWS = 20000  # a progress bar only on long recordings
 def register(sub) -> None:
     p = sub.add_parser("diagnose", help="name what the seed-000 baseline misses in a recording, with held-out gains")
     p.add_argument("recording", help="recording CSV (t, d, q or the four halls; optional temp_c, theta_ref_deg, run)")
-    p.add_argument("--json", help="write the findings (Diagnose JSON of DESIGN.md) here")
+    p.add_argument("--json", help="write the findings (Diagnose JSON of docs/architecture.md) here")
     p.add_argument("--report", help="write an HTML report with plots here")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_diagnose)

@@ -9,7 +9,6 @@ import threading
 from pathlib import Path
 
 from encoder_core.samples import InputError
-from service.runtime import BAND_HORIZON
 
 
 def device_seed(device: str) -> int:
@@ -26,7 +25,7 @@ def cmd_agent(args) -> int:
     from edge_agent.outbox import Outbox
     from edge_agent.sources import ReplaySource, SimulatedDrive, drive_model, factory_calibration
     from encoder_core.correction import BandedCorrection
-    from encoder_fleet.zenoh_config import session_config
+    from fleet_wire.session import session_config
 
     seed = args.seed if args.seed is not None else device_seed(args.device)
     if args.source == "sim":
@@ -75,6 +74,7 @@ def cmd_agent(args) -> int:
 def cmd_service(args) -> int:
     from service.runtime import run_service
 
+    horizon = {} if args.band_horizon is None else {"band_horizon": args.band_horizon}
     return run_service(
         db=args.db,
         listen=args.listen,
@@ -82,7 +82,7 @@ def cmd_service(args) -> int:
         http_host=args.http_host,
         http_port=args.http_port,
         refit_interval_s=args.refit_interval,
-        band_horizon=args.band_horizon,
+        **horizon,
     )
 
 
@@ -145,8 +145,8 @@ def register(sub) -> None:
     p.add_argument(
         "--band-horizon",
         type=int,
-        default=BAND_HORIZON,
-        help="newest windows per temperature band that refits use, so they follow aging (0: all)",
+        help="newest windows per temperature band that refits use, so they follow aging "
+        "(0: all; default: the service's)",
     )
     p.set_defaults(func=cmd_service)
 

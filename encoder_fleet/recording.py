@@ -1,4 +1,4 @@
-"""Recording CSV (the contract in DESIGN.md): read with line-precise errors, write from Samples."""
+"""Recording CSV (the contract in docs/architecture.md): read with line-precise errors, write from Samples."""
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ from typing import BinaryIO
 
 from mcap.writer import Writer
 
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 
 from .store import Store
 
@@ -85,7 +85,7 @@ def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: floa
         schema_id = writer.register_schema(
             name=wire.SCHEMA_NAME[kind],
             encoding="jsonschema",
-            data=(wire.SCHEMA_DIR / f"{kind}.schema.json").read_bytes(),
+            data=wire.schema_bytes(kind),
         )
         channels[kind] = writer.register_channel(
             topic=f"/{wire.key_for(kind, device)}",

@@ -19,7 +19,7 @@ from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_co
 from encoder_core.physics import REFERENCE_TEMP_C, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 
 MIN_BAND_SAMPLES = 20000
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …

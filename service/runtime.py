@@ -6,9 +6,9 @@ endpoints it joins external routers as a client instead.
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -16,7 +16,9 @@ from dataclasses import dataclass, field
 import zenoh
 
 from encoder_core.correction import BandedCorrection
-from encoder_fleet import wire
+from encoder_core.samples import InputError
+from fleet_wire import keys
+from fleet_wire import messages as wire
 from service.refit import MIN_BAND_SAMPLES, refit_device
 from service.store import Store
 
@@ -63,12 +65,12 @@ class FleetService:
     def start(self) -> FleetService:
         s = self.session
         self._declared += [
-            s.declare_subscriber("encoders/*/stats", self._enqueue),
-            s.declare_subscriber("encoders/*/ack", self._enqueue),
-            s.declare_subscriber("encoders/*/factory", self._on_factory),
-            s.declare_queryable("encoders/*/coefficients", self._on_coefficients_query),
-            s.declare_queryable("encoders/*/received", self._on_received_query),
-            s.liveliness().declare_subscriber("encoders/*/alive", self._on_alive, history=True),
+            s.declare_subscriber(keys.every(keys.STATS), self._enqueue),
+            s.declare_subscriber(keys.every(keys.ACK), self._enqueue),
+            s.declare_subscriber(keys.every(keys.FACTORY), self._on_factory),
+            s.declare_queryable(keys.every(keys.COEFFICIENTS), self._on_coefficients_query),
+            s.declare_queryable(keys.every(keys.RECEIVED), self._on_received_query),
+            s.liveliness().declare_subscriber(keys.every(keys.ALIVE), self._on_alive, history=True),
         ]
         self._changed.update(d["id"] for d in self.store.devices())  # after a restart, look at everyone once
         self._writer.start()
@@ -152,8 +154,7 @@ class FleetService:
             device = wire.device_from_key(query.key_expr)
         except wire.WireError:
             return
-        body = {"device": device, "contiguous_seq": self.watermark(device)}
-        query.reply(query.key_expr, json.dumps(body).encode())
+        query.reply(query.key_expr, wire.watermark_reply(device, self.watermark(device)))
 
     def watermark(self, device: str) -> int:
         """Highest seq with every window up to it stored (so the agent may forget them)."""
@@ -218,7 +219,7 @@ class FleetService:
             )
             self.store.insert_coefficient_set(msg)
         self.session.put(
-            f"encoders/{device}/coefficients",
+            keys.key(device, keys.COEFFICIENTS),
             wire.encode("coefficients", msg),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
@@ -235,12 +236,30 @@ class FleetService:
 
 
 def open_session(*, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Session:
-    """The service's session: an embedded router on `listen`, or a client of external routers."""
-    from encoder_fleet.zenoh_config import session_config
+    """The service's session: an embedded router on `listen`, or a client of external routers.
+    A router that cannot listen (a port taken, an endpoint malformed) raises InputError in one line."""
+    from fleet_wire.session import session_config
 
-    if connect:
-        return zenoh.open(session_config("client", connect=connect))
-    return zenoh.open(session_config("router", listen=listen))
+    try:
+        if connect:
+            return zenoh.open(session_config("client", connect=connect))
+        return zenoh.open(session_config("router", listen=listen))
+    except zenoh.ZError as exc:
+        where = ", ".join(connect or listen or [])
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(
+            f"cannot open the Zenoh {'client of' if connect else 'router on'} {where}: {first_line}"
+        ) from None
+
+
+def check_port_free(host: str, port: int, what: str) -> None:
+    """InputError unless host:port can be bound now (the same SO_REUSEADDR rule servers use)."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as exc:
+            raise InputError(f"{what} port {host}:{port} cannot be used: {exc.strerror or exc}") from None
 
 
 class HttpServer:
@@ -255,10 +274,15 @@ class HttpServer:
         self.thread = threading.Thread(target=self.server.run, name="http", daemon=True)
 
     def start(self) -> HttpServer:
+        config = self.server.config
+        check_port_free(config.host, config.port, "REST")
         self.thread.start()
         deadline = time.monotonic() + 10
-        while not self.server.started and time.monotonic() < deadline:
+        while not self.server.started and self.thread.is_alive() and time.monotonic() < deadline:
             time.sleep(0.05)
+        if not self.server.started:
+            self.stop()
+            raise InputError(f"the REST server did not start on {config.host}:{config.port}")
         return self
 
     def stop(self) -> None:
@@ -278,29 +302,33 @@ def run_service(
 ) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM."""
     import signal
+    from contextlib import ExitStack
     from pathlib import Path
 
-    Path(db).parent.mkdir(parents=True, exist_ok=True)
     listen = listen or ([] if connect else ["tcp/127.0.0.1:7447"])
-    store = Store.open(db, band_horizon=band_horizon or None)
-    session = open_session(listen=listen, connect=connect)
-    service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
-    http = HttpServer(store, http_port, host=http_host).start() if http_port else None
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    where = ", ".join(connect or listen)
-    print(
-        f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
-        + (f"; REST http://{http_host}:{http_port}/docs" if http else ""),
-        flush=True,
-    )
-    try:
+    with ExitStack() as running:  # whatever started is stopped again, in reverse, on any error
+        if http_port:
+            check_port_free(http_host, http_port, "REST")
+        try:
+            Path(db).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
+        store = Store.open(db, band_horizon=band_horizon or None)
+        running.callback(store.close)
+        session = open_session(listen=listen, connect=connect)
+        running.callback(session.close)
+        service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
+        running.callback(service.stop)
+        if http_port:
+            running.callback(HttpServer(store, http_port, host=http_host).start().stop)
+        stop = threading.Event()
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        where = ", ".join(connect or listen)
+        print(
+            f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
+            + (f"; REST http://{http_host}:{http_port}/docs" if http_port else ""),
+            flush=True,
+        )
         stop.wait()
-    finally:
-        if http:
-            http.stop()
-        service.stop()
-        session.close()
-        store.close()
     return 0

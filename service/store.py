@@ -2,7 +2,7 @@
 
 One connection guarded by a lock: Zenoh callbacks, FastAPI's worker threads and the refit loop
 all call in, and SQLite serialises writers anyway. WAL mode lets outside readers (sqlite3 CLI,
-backups) read while we write. Methods take and return wire-shaped dicts (encoder_fleet.wire):
+backups) read while we write. Methods take and return wire-shaped dicts (fleet_wire.messages):
 messages handed in must come from wire.decode or a wire builder, which have checked them.
 
 Clocks: devices' first_seen/last_seen, received_at and published_at are the service's clock
@@ -13,18 +13,23 @@ on the wire (see migrations/001_initial.sql).
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
+from importlib import resources
+from importlib.resources.abc import Traversable
 
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
-from encoder_fleet import wire
+from fleet_wire import keys
+from fleet_wire import messages as wire
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+# numbered SQL files: migrations/ in the repository, shipped as package data (service.migrations)
+MIGRATIONS_DIR = resources.files("service.migrations")
+MIGRATION_NAME = re.compile(r"^(\d+)_[\w.-]*\.sql$")
 
 # wire fields of a window stored as columns of the same name, in wire order
 WINDOW_FIELDS = (
@@ -44,8 +49,9 @@ WINDOW_FIELDS = (
 )
 
 
-class StoreError(ValueError):
-    """A well-formed message the history cannot take (e.g. a seq reused with other content)."""
+class StoreError(InputError):
+    """A well-formed message the history cannot take (e.g. a seq reused with other content), or a database
+    that cannot be used at all (reason 'unavailable')."""
 
     def __init__(self, reason: str, message: str):
         super().__init__(message)
@@ -54,6 +60,19 @@ class StoreError(ValueError):
 
 def _json(value) -> str:
     return json.dumps(value, separators=(",", ":"), allow_nan=False)
+
+
+def migration_files(migrations_dir=MIGRATIONS_DIR) -> list[tuple[int, Traversable]]:
+    """(version, file) of every numbered SQL file, in order; StoreError when there is none (a broken
+    install must stop at start-up, not run on a database without tables)."""
+    found = []
+    for entry in migrations_dir.iterdir():
+        match = MIGRATION_NAME.match(entry.name)
+        if match and entry.is_file():
+            found.append((int(match.group(1)), entry))
+    if not found:
+        raise StoreError("unavailable", f"no migration file (NNN_name.sql) found in {migrations_dir}")
+    return sorted(found, key=lambda vf: vf[0])
 
 
 def _statements(sql: str) -> Iterator[str]:
@@ -80,15 +99,21 @@ class Store:
         self.band_horizon = band_horizon
 
     @classmethod
-    def open(cls, path, *, migrations_dir: Path = MIGRATIONS_DIR, band_horizon: int | None = None) -> Store:
-        # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
-        conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
-        conn.row_factory = sqlite3.Row
-        conn.execute("PRAGMA journal_mode=WAL")
-        conn.execute("PRAGMA foreign_keys=ON")
+    def open(cls, path, *, migrations_dir=MIGRATIONS_DIR, band_horizon: int | None = None) -> Store:
+        """Open (or create) the database and apply the migrations it lacks. A database that cannot be
+        opened raises StoreError('unavailable') with one line that says which file and why."""
+        migrations = migration_files(migrations_dir)
+        try:
+            # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
+            conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
+            conn.row_factory = sqlite3.Row
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA foreign_keys=ON")
+        except sqlite3.Error as exc:
+            raise StoreError("unavailable", f"database {path} cannot be opened: {exc}") from None
         store = cls(conn, str(path), band_horizon)
         try:
-            store._migrate(Path(migrations_dir))
+            store._migrate(migrations)
         except BaseException:
             conn.close()
             raise
@@ -129,14 +154,16 @@ class Store:
         with self._lock:
             return self._conn.execute(sql, args).fetchall()
 
-    def _migrate(self, migrations_dir: Path) -> None:
-        with self._lock:
-            self._conn.execute(
-                "CREATE TABLE IF NOT EXISTS schema_migrations "
-                "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)"
-            )
-        for path in sorted(migrations_dir.glob("[0-9]*.sql")):
-            version = int(path.name.split("_", 1)[0])
+    def _migrate(self, migrations: list[tuple[int, Traversable]]) -> None:
+        try:
+            with self._lock:
+                self._conn.execute(
+                    "CREATE TABLE IF NOT EXISTS schema_migrations "
+                    "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)"
+                )
+        except sqlite3.DatabaseError as exc:  # not a database, corrupt, read-only when new, ...
+            raise StoreError("unavailable", f"database {self.path} cannot be used: {exc}") from None
+        for version, path in migrations:
             # check inside the write transaction: another process may be migrating the same file
             with self._tx() as c:
                 if c.execute("SELECT 1 FROM schema_migrations WHERE version = ?", (version,)).fetchone():
@@ -306,8 +333,8 @@ class Store:
 
     def set_online(self, device: str, online: bool, at: float | None = None) -> None:
         """From the liveliness token: the one source of `online`."""
-        if not wire.DEVICE_RE.match(device):
-            raise ValueError(f"device id {device!r} does not match {wire.DEVICE_RE.pattern}")
+        if not keys.DEVICE_RE.match(device):
+            raise ValueError(f"device id {device!r} does not match {keys.DEVICE_RE.pattern}")
         now = time.time() if at is None else at
         with self._tx() as c:
             self._touch(c, device, now)

@@ -10,8 +10,8 @@ import zenoh
 from edge_agent.agent import EdgeAgent, factory_message
 from edge_agent.outbox import Outbox
 from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
-from encoder_fleet import wire
-from encoder_fleet.zenoh_config import loopback_endpoint, session_config
+from fleet_wire import messages as wire
+from fleet_wire.session import loopback_endpoint, session_config
 from service.runtime import FleetService, open_session
 from service.store import Store
 

@@ -5,8 +5,8 @@ import numpy as np
 from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import angle_error_deg, rms
-from encoder_core.stats import WindowStats, plausible_mask
-from encoder_fleet import wire
+from encoder_core.stats import WindowStats, window_stats
+from fleet_wire import messages as wire
 from service.refit import refit_device
 from service.store import Store
 
@@ -27,8 +27,7 @@ def test_band_horizon_follows_an_aging_drive(tmp_path):
     source = SimulatedDrive(seed, hours=HOURS, model=model)
     messages = []
     while (block := source.read(60.0)) is not None:
-        keep = plausible_mask(block.d, block.q)
-        stats = WindowStats(scale=scale).add(block.d[keep], block.q[keep], block.temp_c[keep])
+        stats = window_stats(block, scale)
         messages.append(
             wire.window_message(
                 DEVICE,

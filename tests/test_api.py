@@ -8,7 +8,7 @@ from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 from wire_samples import ack, coefficients, window
 
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 from service.api import create_app
 from service.store import Store
 

@@ -13,9 +13,9 @@ from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 
 from encoder_core.stats import WindowStats
-from encoder_fleet import wire
 from encoder_fleet.demo import applied_set, score
-from encoder_fleet.zenoh_config import loopback_endpoint
+from fleet_wire import messages as wire
+from fleet_wire.session import loopback_endpoint
 from service.api import create_app
 from service.runtime import FleetService, open_session
 from service.store import Store

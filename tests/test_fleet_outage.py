@@ -6,7 +6,7 @@ import subprocess
 import sys
 import time
 
-from encoder_fleet.zenoh_config import loopback_endpoint
+from fleet_wire.session import loopback_endpoint
 from service.store import Store
 
 HOURS = 6

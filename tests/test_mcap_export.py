@@ -8,7 +8,7 @@ from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 from wire_samples import ack, coefficients, window
 
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 from service.mcap_export import export_mcap, iter_mcap
 from service.store import Store
 

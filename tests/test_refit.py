@@ -1,12 +1,11 @@
 """The service's refit, fed the agent's window statistics of a simulated drive (no transport here)."""
 
-import numpy as np
 import pytest
 
 from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
-from encoder_core.physics import error_summary
-from encoder_core.stats import WindowStats, plausible_mask
+from encoder_core.physics import band_of, error_summary
+from encoder_core.stats import window_stats
 from service.refit import refit_device
 
 
@@ -14,9 +13,8 @@ def band_stats_of(seed, hours, scale):
     bands = {}
     source = SimulatedDrive(seed, hours=hours)
     while (block := source.read(60.0)) is not None:
-        keep = plausible_mask(block.d, block.q)
-        stats = WindowStats(scale=scale).add(block.d[keep], block.q[keep], block.temp_c[keep])
-        band = int(np.floor(stats.temp_mean / 10))
+        stats = window_stats(block, scale)
+        band = band_of(stats.temp_mean)
         bands[band] = bands[band].merge(stats) if band in bands else stats
     return bands
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from wire_samples import ack, coefficients, window
 
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 from service.store import Store, StoreError
 
 
@@ -19,10 +19,10 @@ def store(tmp_path):
 
 
 def test_migrations_apply_once_and_are_recorded(tmp_path):
-    from service.store import MIGRATIONS_DIR
+    from service.store import migration_files
 
-    files = sorted(p.name for p in MIGRATIONS_DIR.glob("[0-9]*.sql"))
-    expected = [(int(name.split("_", 1)[0]), name) for name in files]
+    files = [f.name for _, f in migration_files()]
+    expected = [(version, f.name) for version, f in migration_files()]
     path = tmp_path / "fleet.db"
     with Store.open(path) as s:
         assert s.migrations() == expected and expected[0] == (1, "001_initial.sql")

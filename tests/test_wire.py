@@ -8,7 +8,7 @@ from jsonschema import Draft202012Validator
 from wire_samples import ack, coefficients, window
 
 from encoder_core.stats import WindowStats
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 
 BUILT = {"window": window, "coefficients": coefficients, "ack": ack}
 

@@ -7,7 +7,7 @@ import numpy as np
 from encoder_core.correction import Correction
 from encoder_core.simulator import EncoderModel, simulate
 from encoder_core.stats import WindowStats
-from encoder_fleet import wire
+from fleet_wire import messages as wire
 
 MODEL = EncoderModel(gain_tc_per_c=(-0.001, -0.0015), offset_tc_counts_per_c=(0.3, -0.2), noise_counts=2.0)
 

@@ -9,24 +9,25 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from functools import cache
-from pathlib import Path
+from importlib import resources
 
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import best_match
 
+from encoder_core.physics import BAND_WIDTH_C, band_of
+from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 
-SCHEMA_DIR = Path(__file__).resolve().parent.parent / "schemas"
+from . import keys
+
 KINDS = ("window", "coefficients", "ack")
-KEY_SUFFIX = {"window": "stats", "coefficients": "coefficients", "ack": "ack"}
+KEY_SUFFIX = {"window": keys.STATS, "coefficients": keys.COEFFICIENTS, "ack": keys.ACK}
 SCHEMA_NAME = {kind: f"encoder-fleet/{kind}/1" for kind in KINDS}
 MAX_PAYLOAD = 256 * 1024
-DEVICE_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
 
-class WireError(ValueError):
+class WireError(InputError):
     """A message that cannot be accepted. `reason` is a short code, the message says what and where
     (a JSON path). Codes: too_large, not_json, non_finite, schema, inconsistent, device_mismatch,
     bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
@@ -37,11 +38,16 @@ class WireError(ValueError):
         self.reason = reason
 
 
-def load_schema(kind: str) -> dict:
-    """The JSON Schema of a message kind, freshly read (callers may change their copy)."""
+def schema_bytes(kind: str) -> bytes:
+    """The published JSON Schema file of a message kind (package data: schemas/ in the repository)."""
     if kind not in KINDS:
         raise WireError("unknown_kind", f"unknown message kind {kind!r}; expected one of {', '.join(KINDS)}")
-    return json.loads((SCHEMA_DIR / f"{kind}.schema.json").read_text(encoding="utf-8"))
+    return resources.files("fleet_wire.schemas").joinpath(f"{kind}.schema.json").read_bytes()
+
+
+def load_schema(kind: str) -> dict:
+    """The JSON Schema of a message kind, freshly parsed (callers may change their copy)."""
+    return json.loads(schema_bytes(kind))
 
 
 @cache
@@ -114,24 +120,24 @@ def _fast_valid(kind: str, msg) -> bool:
 
 
 def key_for(kind: str, device: str) -> str:
-    return f"encoders/{device}/{KEY_SUFFIX[kind]}"
+    return keys.key(device, KEY_SUFFIX[kind])
 
 
 def parse_key(key_expr: str) -> tuple[str, str]:
-    """`encoders/<device>/<suffix>` -> (device, kind)."""
-    parts = str(key_expr).split("/")
+    """`encoders/<device>/<suffix>` of a message kind -> (device, kind)."""
     kinds = {suffix: kind for kind, suffix in KEY_SUFFIX.items()}
-    if len(parts) != 3 or parts[0] != "encoders" or parts[2] not in kinds or not DEVICE_RE.match(parts[1]):
-        raise WireError("bad_key", f"key {key_expr!r} is not encoders/<device>/<{'|'.join(kinds)}>")
-    return parts[1], kinds[parts[2]]
+    parts = keys.split(key_expr)
+    if parts is None or parts[1] not in kinds:
+        raise WireError("bad_key", f"key {key_expr!r} is not {keys.PREFIX}/<device>/<{'|'.join(kinds)}>")
+    return parts[0], kinds[parts[1]]
 
 
 def device_from_key(key_expr: str) -> str:
-    """The <device> of any `encoders/<device>/...` key (stats, ack, coefficients, factory, received, alive)."""
-    parts = str(key_expr).split("/")
-    if len(parts) < 3 or parts[0] != "encoders" or not DEVICE_RE.match(parts[1]):
-        raise WireError("bad_key", f"key {key_expr!r} is not encoders/<device>/...")
-    return parts[1]
+    """The <device> of any fleet key (stats, ack, coefficients, factory, received, alive)."""
+    parts = keys.split(key_expr)
+    if parts is None or parts[1] not in keys.SUFFIXES:
+        raise WireError("bad_key", f"key {key_expr!r} is not {keys.PREFIX}/<device>/<{'|'.join(keys.SUFFIXES)}>")
+    return parts[0]
 
 
 # --- checking ---------------------------------------------------------------------------------
@@ -212,8 +218,8 @@ def _check_consistency(kind: str, msg: dict) -> None:
         slack = 1e-9 * max(1.0, abs(msg["temp_min_c"]), abs(msg["temp_max_c"]))  # Σt/n rounds past min/max
         if not msg["temp_min_c"] - slack <= msg["temp_mean_c"] <= msg["temp_max_c"] + slack:
             bad("$.temp_mean_c", f"{msg['temp_mean_c']} is outside [temp_min_c, temp_max_c]")
-        if msg["band"] != math.floor(msg["temp_mean_c"] / 10):
-            bad("$.band", f"{msg['band']} is not floor(temp_mean_c / 10) = {math.floor(msg['temp_mean_c'] / 10)}")
+        if msg["band"] != band_of(msg["temp_mean_c"]):
+            bad("$.band", f"{msg['band']} is not floor(temp_mean_c / {BAND_WIDTH_C:g}) = {band_of(msg['temp_mean_c'])}")
     elif kind == "coefficients":
         bands = [b["band"] for b in msg["bands"]]
         if len(set(bands)) != len(bands):
@@ -286,7 +292,7 @@ def window_message(
             "temp_min_c": float(stats.temp_min),
             "temp_max_c": float(stats.temp_max),
             "temp_rate_c_per_s": float(temp_rate_c_per_s),
-            "band": math.floor(temp_mean / 10),
+            "band": band_of(temp_mean),
             "coefficients_version": int(coefficients_version),
             "angle_quality_deg": float(angle_quality_deg),
             "stats": stats.to_dict(),
@@ -334,3 +340,20 @@ def ack_message(
     if reason is not None:
         msg["reason"] = reason
     return check("ack", msg)
+
+
+def watermark_reply(device: str, contiguous_seq: int) -> bytes:
+    """The service's answer on `received`: every window of `device` with seq <= contiguous_seq is stored."""
+    return json.dumps({"device": device, "contiguous_seq": int(contiguous_seq)}).encode()
+
+
+def parse_watermark(payload: bytes, device: str) -> int:
+    """The contiguous_seq of a watermark reply for `device`; WireError when it is not one."""
+    try:
+        body = json.loads(payload)
+        seq = body["contiguous_seq"]
+        if body["device"] != device or not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+            raise TypeError
+    except (ValueError, KeyError, TypeError):
+        raise WireError("schema", f"not a watermark reply for {device}: {bytes(payload)[:200]!r}") from None
+    return seq
