@@ -49,8 +49,18 @@ def cmd_bench_methods(args) -> int:
     return bench_main(json_path=args.json, png_path=args.png, seed=args.seed)
 
 
+def package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("encoder-fleet")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="encoder-fleet", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="write a simulated recording (CSV contract of docs/architecture.md)")
@@ -102,7 +112,10 @@ def _extensions():
 
 
 def main(argv=None) -> int:
+    from encoder_fleet.logs import configure
+
     args = build_parser().parse_args(argv)
+    configure(getattr(args, "log_level", "warning"))
     try:
         return int(args.func(args) or 0)
     except InputError as exc:

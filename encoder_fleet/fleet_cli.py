@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import hashlib
-import logging
 import signal
 import threading
 from pathlib import Path
 
 from encoder_core.samples import InputError
+from encoder_fleet.logs import add_level_option
 
 
 def device_seed(device: str) -> int:
@@ -133,6 +133,7 @@ def register(sub) -> None:
     )
     p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
     p.add_argument("--factory", help="the factory coefficient set, JSON (required for replay)")
+    add_level_option(p)
     p.set_defaults(func=cmd_agent)
 
     p = sub.add_parser("service", help="run the central service (embeds a Zenoh router by default)")
@@ -148,6 +149,7 @@ def register(sub) -> None:
         help="newest windows per temperature band that refits use, so they follow aging "
         "(0: all; default: the service's)",
     )
+    add_level_option(p)
     p.set_defaults(func=cmd_service)
 
     p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")
@@ -163,11 +165,10 @@ def register(sub) -> None:
     p.add_argument("--sim-hours", type=float, default=24.0)
     p.add_argument("--out", default="out/demo")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    add_level_option(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench-fleet", help="windows ingested and refits per second for fleets of several sizes")
     p.add_argument("--devices", type=int, nargs="+", default=[10, 100, 1000])
     p.add_argument("--windows", type=int, default=20, help="windows per device")
     p.set_defaults(func=cmd_bench_fleet)
-
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")

@@ -8,14 +8,22 @@ their own app around their own Store.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
-from fastapi.responses import StreamingResponse
+from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi_offline import FastAPIOffline
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
 from .mcap_export import iter_mcap
+from .observability import health_checks, metrics_registry
 from .store import Store
+
+if TYPE_CHECKING:
+    from .runtime import FleetService
+
+LIVENESS = ("process", "database", "router")  # /healthz; /readyz asks every check
 
 # --- dependencies -------------------------------------------------------------------------------
 
@@ -135,6 +143,11 @@ class DeadLetter(BaseModel):
     payload_preview: str = Field(description="First 200 bytes, undecodable bytes replaced.")
 
 
+class Checks(BaseModel):
+    status: str = Field(description="'ok' when every check is ok, else 'failing'.")
+    checks: dict[str, str] = Field(description="Component -> 'ok' or what is wrong with it.")
+
+
 class Rejections(BaseModel):
     counts: dict[str, int] = Field(description="Dead letters by reason.")
     total: int
@@ -148,6 +161,7 @@ coefficients = APIRouter(prefix="/devices", tags=["coefficients"])
 windows = APIRouter(prefix="/devices", tags=["windows"])
 export = APIRouter(prefix="/devices", tags=["export"])
 ingest = APIRouter(prefix="/ingest", tags=["ingest"])
+operations = APIRouter(tags=["operations"])
 
 
 @devices.get("", response_model=list[Device], summary="All devices")
@@ -251,15 +265,51 @@ def rejections(store: StoreDep, limit: Annotated[int, Query(ge=0, le=1000, descr
     return Rejections(counts=counts, total=sum(counts.values()), latest=latest)
 
 
-def create_app(store: Store) -> FastAPI:
-    """The REST app around one Store; the caller owns the Store (opens and closes it)."""
-    app = FastAPI(
+def _checks_response(request: Request, names: tuple[str, ...] | None) -> JSONResponse:
+    checks = health_checks(request.app.state.store, request.app.state.service)
+    if names is not None:
+        checks = {k: v for k, v in checks.items() if k in names}
+    ok = all(v == "ok" for v in checks.values())
+    body = Checks(status="ok" if ok else "failing", checks=checks)
+    return JSONResponse(body.model_dump(), status_code=200 if ok else 503)
+
+
+_FAILING = {503: {"model": Checks, "description": "A check failed; `checks` says which and why."}}
+
+
+@operations.get("/healthz", response_model=Checks, responses=_FAILING, summary="Liveness: process, router, database")
+def healthz(request: Request):
+    return _checks_response(request, LIVENESS)
+
+
+@operations.get("/readyz", response_model=Checks, responses=_FAILING, summary="Readiness: every part running")
+def readyz(request: Request):
+    return _checks_response(request, None)
+
+
+@operations.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    response_class=Response,
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus text exposition format."}},
+)
+def metrics(request: Request):
+    return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
+
+
+def create_app(store: Store, service: FleetService | None = None) -> FastAPI:
+    """The REST app around one Store (and, in the service, the running FleetService for its health and
+    counters); the caller owns both. Swagger UI and ReDoc assets are served by the app itself
+    (fastapi-offline), so /docs works on a plant network with no internet."""
+    app = FastAPIOffline(
         title="encoder-fleet service",
         description="Fleet health, coefficient history, window statistics and MCAP export "
         "for magneto-electric encoders.",
         version="1",
     )
     app.state.store = store
-    for router in (devices, coefficients, windows, export, ingest):
+    app.state.service = service
+    app.state.metrics = metrics_registry(store, service)
+    for router in (devices, coefficients, windows, export, ingest, operations):
         app.include_router(router)
     return app

@@ -36,6 +36,9 @@ class ServiceCounters:
     def count(self, status: str) -> None:
         self.ingested[status] = self.ingested.get(status, 0) + 1
 
+    def snapshot(self) -> dict:
+        return {"ingested": dict(self.ingested), "refits": self.refits, "rollouts": self.rollouts}
+
 
 class FleetService:
     def __init__(
@@ -88,6 +91,14 @@ class FleetService:
             self._thread.join()
         self._inbox.put(None)  # the writer stores what is queued, then ends
         self._writer.join()
+
+    def checks(self) -> dict[str, str]:
+        """Component -> 'ok' or what is wrong (for /healthz and /readyz)."""
+        return {
+            "router": "closed" if self.session.is_closed() else "ok",
+            "ingest": "ok" if self._writer.is_alive() else "the ingest writer is not running",
+            "refit": "ok" if self._thread is None or self._thread.is_alive() else "the refit loop is not running",
+        }
 
     # --- ingest ------------------------------------------------------------------------------------
 
@@ -227,10 +238,8 @@ class FleetService:
         with self._lock:
             self.counters.rollouts += 1
         log.info(
-            "%s: published coefficient set v%d (%d bands adopted)",
-            device,
-            version,
-            sum(d.adopted for d in result.decisions),
+            "published coefficient set",
+            extra={"device": device, "version": version, "bands_adopted": sum(d.adopted for d in result.decisions)},
         )
         return version
 
@@ -265,12 +274,15 @@ def check_port_free(host: str, port: int, what: str) -> None:
 class HttpServer:
     """The REST API on a background thread (uvicorn), stoppable."""
 
-    def __init__(self, store: Store, port: int, host: str = "127.0.0.1"):
+    def __init__(self, store: Store, port: int, host: str = "127.0.0.1", service: FleetService | None = None):
         import uvicorn
 
         from service.api import create_app
 
-        self.server = uvicorn.Server(uvicorn.Config(create_app(store), host=host, port=port, log_level="warning"))
+        app = create_app(store, service)
+        # log_config=None: uvicorn's loggers go through the process's own (structured) handlers and level
+        config = uvicorn.Config(app, host=host, port=port, log_config=None, log_level=logging.getLogger().level)
+        self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="http", daemon=True)
 
     def start(self) -> HttpServer:
@@ -320,7 +332,7 @@ def run_service(
         service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
         running.callback(service.stop)
         if http_port:
-            running.callback(HttpServer(store, http_port, host=http_host).start().stop)
+            running.callback(HttpServer(store, http_port, host=http_host, service=service).start().stop)
         stop = threading.Event()
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -330,5 +342,7 @@ def run_service(
             + (f"; REST http://{http_host}:{http_port}/docs" if http_port else ""),
             flush=True,
         )
+        log.info("service started", extra={"zenoh": where, "database": db, "http_port": http_port or None})
         stop.wait()
+        log.info("service stopping")
     return 0

@@ -484,6 +484,22 @@ class Store:
 
     _DEVICE_SQL = "SELECT d.*, (SELECT count(*) FROM windows w WHERE w.device = d.id) AS windows FROM devices d"
 
+    def check(self) -> str:
+        """'ok' when the database answers a read, else what went wrong (for /healthz)."""
+        try:
+            self._rows("SELECT count(*) FROM schema_migrations")
+        except sqlite3.Error as exc:
+            return f"database error: {exc}"
+        return "ok"
+
+    def device_counts(self) -> dict[str, int]:
+        """Devices by liveliness state: {'online': n, 'offline': m}."""
+        rows = self._rows("SELECT online, count(*) AS n FROM devices GROUP BY online")
+        counts = {"online": 0, "offline": 0}
+        for r in rows:
+            counts["online" if r["online"] else "offline"] += r["n"]
+        return counts
+
     def devices(self) -> list[dict]:
         return [self._device_row(r) for r in self._rows(self._DEVICE_SQL + " ORDER BY d.id")]
 

@@ -171,3 +171,57 @@ def test_openapi_documents_every_router(client):
         "/ingest/rejections",
     } <= set(spec["paths"])
     assert all(op.get("summary") for path in spec["paths"].values() for op in path.values())
+
+
+def test_healthz_readyz_and_metrics_over_a_real_service(tmp_path):
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+
+    store = Store.open(tmp_path / "svc.db")
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0)
+    client = TestClient(create_app(store, service))
+    assert client.get("/readyz").status_code == 503  # created, not started: the ingest writer is not running
+    service.start()
+    try:
+        assert client.get("/healthz").json() == {
+            "status": "ok",
+            "checks": {"process": "ok", "database": "ok", "router": "ok"},
+        }
+        assert client.get("/readyz").status_code == 200
+        store.ingest("encoders/drive-001/stats", wire.encode("window", window()))
+        service.counters.count("stored")
+        service.counters.count("not_json")
+        text = client.get("/metrics").text
+    finally:
+        service.stop()
+        session.close()
+    gone = client.get("/healthz")
+    assert gone.status_code == 503 and gone.json()["checks"]["router"] == "closed"
+    store.close()
+
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    assert all(name.startswith("encoder_fleet_") for name in families)
+    for family in families.values():
+        for sample in family.samples:
+            assert "device" not in sample.labels  # no per-device series
+            if family.type == "counter" and not sample.name.endswith("_created"):
+                assert sample.name.endswith("_total"), sample.name
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value for f in families.values() for s in f.samples}
+    assert samples[("encoder_fleet_devices", (("state", "offline"),))] == 1
+    assert samples[("encoder_fleet_messages_ingested_total", (("outcome", "stored"),))] == 1
+    assert samples[("encoder_fleet_ingest_rejections_total", (("reason", "not_json"),))] == 1
+
+
+def test_docs_and_redoc_load_every_asset_from_the_service_itself(client):
+    import re
+
+    for page in ("/docs", "/redoc"):
+        html = client.get(page).text
+        assets = re.findall(r'(?:src|href)="([^"]+)"', html)
+        assert assets, page
+        for url in assets:
+            assert url.startswith("/"), f"{page} loads {url} from elsewhere"
+            assert client.get(url).status_code == 200, url

@@ -1,0 +1,37 @@
+"""Structured logs: one JSON object per line on stderr, so a log shipper needs no parser of its own."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+
+LEVELS = ("debug", "info", "warning", "error")
+# attributes every LogRecord has; anything else was passed as `extra=` and becomes a field of the event
+_STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message", "asctime", "taskName"}
+
+
+class JsonLines(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        event = {
+            "ts": round(record.created, 3),
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "event": record.getMessage(),
+        }
+        event.update({k: v for k, v in vars(record).items() if k not in _STANDARD})
+        if record.exc_info:
+            event["exception"] = self.formatException(record.exc_info)
+        return json.dumps(event, default=str)
+
+
+def configure(level: str = "warning") -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonLines())
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+def add_level_option(parser) -> None:
+    parser.add_argument("--log-level", choices=LEVELS, default="warning", help="log events at this level and above")

@@ -1,0 +1,74 @@
+"""Liveness, readiness and Prometheus metrics of the service.
+
+Metric names follow Prometheus' conventions: the `encoder_fleet_` prefix, base units, `_total` for
+counters, no per-device label (a fleet of 100,000 drives must not become 100,000 series).
+The counters live in the service (service.runtime.ServiceCounters); this collector reads them and the
+store at scrape time, so there is one place that counts and no second bookkeeping.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from .store import Store
+
+if TYPE_CHECKING:
+    from .runtime import FleetService
+
+# what the ingest writer calls a message it stored or skipped; every other status is a rejection reason
+INGESTED_OK = ("stored", "duplicate")
+
+
+def health_checks(store: Store, service: FleetService | None) -> dict[str, str]:
+    """component -> 'ok' or what is wrong with it. Without a running service (a bare REST app over a
+    store, as in tests) only the process and the database are checked."""
+    checks = {"process": "ok", "database": store.check()}
+    if service is not None:
+        checks.update(service.checks())
+    return checks
+
+
+class FleetCollector(Collector):
+    def __init__(self, store: Store, service: FleetService | None):
+        self.store = store
+        self.service = service
+
+    def collect(self) -> Iterator[Metric]:
+        devices = GaugeMetricFamily("encoder_fleet_devices", "Devices known, by liveliness state.", labels=["state"])
+        for state, count in sorted(self.store.device_counts().items()):
+            devices.add_metric([state], count)
+        yield devices
+        if self.service is None:
+            return
+        counters = self.service.counters.snapshot()
+        ingested = counters["ingested"]
+        windows = CounterMetricFamily(
+            "encoder_fleet_messages_ingested", "Messages taken by the ingest writer, by outcome.", labels=["outcome"]
+        )
+        for outcome in INGESTED_OK:
+            windows.add_metric([outcome], ingested.get(outcome, 0))
+        yield windows
+        rejected = CounterMetricFamily(
+            "encoder_fleet_ingest_rejections",
+            "Messages refused and kept as dead letters, by reason.",
+            labels=["reason"],
+        )
+        for reason, count in sorted(ingested.items()):
+            if reason not in INGESTED_OK:
+                rejected.add_metric([reason], count)
+        yield rejected
+        yield CounterMetricFamily("encoder_fleet_refits", "Device refits run.", value=counters["refits"])
+        rollouts = CounterMetricFamily("encoder_fleet_rollouts", "Coefficient sets by outcome.", labels=["outcome"])
+        rollouts.add_metric(["published"], counters["rollouts"])
+        yield rollouts
+
+
+def metrics_registry(store: Store, service: FleetService | None) -> CollectorRegistry:
+    registry = CollectorRegistry()
+    registry.register(FleetCollector(store, service))
+    return registry
