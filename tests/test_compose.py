@@ -34,3 +34,50 @@ def test_image_builds_from_the_project_files():
             for src in line.split()[1:-1]:
                 assert (ROOT / src).exists(), src
     assert 'ENTRYPOINT ["encoder-fleet"]' in dockerfile
+
+
+def test_compose_waits_for_health_restarts_on_failure_and_binds_loopback():
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    assert {"zenohd", "service", "prometheus", "grafana"} <= set(services)
+    for name, svc in services.items():
+        assert svc.get("restart") == "on-failure", name
+        for port in svc.get("ports", []):
+            assert port.startswith("127.0.0.1:"), (name, port)  # nothing published beyond the host
+        for needed in svc.get("depends_on", {}):
+            assert svc["depends_on"][needed] == {"condition": "service_healthy"}, name
+            assert "healthcheck" in services[needed], needed
+    assert services["service"]["depends_on"] == {"zenohd": {"condition": "service_healthy"}}
+    assert "/healthz" in " ".join(services["service"]["healthcheck"]["test"])
+    for mount in services["prometheus"]["volumes"] + services["grafana"]["volumes"]:
+        assert (ROOT / mount.split(":")[0]).exists(), mount
+
+
+def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_exports(tmp_path):
+    import json
+    import re
+
+    from fastapi.testclient import TestClient
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from fleet_wire.session import loopback_endpoint
+    from service.api import create_app
+    from service.runtime import FleetService, open_session
+    from service.store import Store
+
+    scrape = yaml.safe_load((ROOT / "ops" / "prometheus.yml").read_text())["scrape_configs"][0]
+    assert scrape["metrics_path"] == "/metrics" and scrape["static_configs"][0]["targets"] == ["service:8000"]
+
+    store = Store.open(tmp_path / "f.sqlite")
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0).start()
+    try:
+        service.counters.count("schema")  # so every family has a sample
+        text = TestClient(create_app(store, service)).get("/metrics").text
+    finally:
+        service.stop()
+        session.close()
+        store.close()
+    exported = {s.name for f in text_string_to_metric_families(text) for s in f.samples}
+    dashboard = json.loads((ROOT / "ops" / "grafana" / "dashboards" / "encoder-fleet.json").read_text())
+    drawn = {n for p in dashboard["panels"] for t in p["targets"] for n in re.findall(r"encoder_fleet_\w+", t["expr"])}
+    assert drawn and drawn <= exported, drawn - exported
