@@ -42,6 +42,7 @@ class AgentCounters:
     applied: list[int] = field(default_factory=list)
     refused: list[tuple[int, str]] = field(default_factory=list)
     offline_syncs: int = 0  # watermark queries nobody answered: the service was away
+    bad_signatures: int = 0  # sets refused as unsigned or not signed by the service's key
 
 
 class EdgeAgent:
@@ -56,6 +57,7 @@ class EdgeAgent:
         window_s: float = 60.0,
         resend_after_s: float = 2.0,
         query_timeout_s: float = 1.0,
+        verifier=None,
     ):
         self.device = device
         self.source = source
@@ -67,6 +69,7 @@ class EdgeAgent:
         self.window_s = window_s
         self.resend_after_s = resend_after_s
         self.query_timeout_s = query_timeout_s
+        self.verifier = verifier  # fleet_wire.security.SetVerifier: sets must carry the service's signature
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
         self.counters = AgentCounters()
@@ -89,7 +92,7 @@ class EdgeAgent:
             )
         )
         replies = self._get(self.keys["coefficients"])
-        if replies is None or not replies:
+        if not any(self.trusted(payload) for payload in replies or []):
             # the service has nothing for us yet (or is not there): tell it what the factory wrote
             self.put(self.keys["factory"], wire.encode("coefficients", self.factory_message()))
         for payload in replies or []:
@@ -218,9 +221,25 @@ class EdgeAgent:
                 return
             self.on_coefficients(payload)
 
+    def trusted(self, payload: bytes) -> bool:
+        """A set that decodes for this device and carries the service's signature (when one is required)."""
+        try:
+            msg = wire.decode("coefficients", payload, key_device=self.device)
+            if self.verifier is not None:
+                self.verifier.verify(msg)
+        except wire.WireError:
+            return False
+        return True
+
     def on_coefficients(self, payload: bytes, *, acknowledge: bool = True) -> None:
         try:
             msg = wire.decode("coefficients", payload, key_device=self.device)
+            if self.verifier is not None and msg["version"] > 0:
+                try:
+                    self.verifier.verify(msg)  # before anything else: an unsigned set is not even compared
+                except wire.WireError:
+                    self.counters.bad_signatures += 1
+                    raise
             if msg["version"] <= self.version:
                 return  # an old or repeated set: nothing to do, nothing to say
             candidate = BandedCorrection.from_dict({"bands": msg["bands"]})

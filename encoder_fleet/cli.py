@@ -100,7 +100,12 @@ def _extensions():
     import importlib
 
     found = []
-    for name in ("encoder_fleet.diagnose_cli", "encoder_fleet.fleet_cli"):
+    for name in (
+        "encoder_fleet.diagnose_cli",
+        "encoder_fleet.fleet_cli",
+        "encoder_fleet.pki",
+        "encoder_fleet.tokens_cli",
+    ):
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:

@@ -20,6 +20,8 @@ from edge_agent.sources import drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import angle_error_deg, rms
 from fleet_wire.session import free_port, loopback_endpoint
+from service.auth import TokenAuth
+from service.guard import service_security
 from service.mcap_export import export_mcap
 from service.runtime import BAND_HORIZON, FleetService, HttpServer, open_session
 from service.store import Store
@@ -86,7 +88,19 @@ def applied_set(store: Store, device: str) -> dict | None:
     return store.coefficient_set(device, version)
 
 
-def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) -> int:
+def demo_pki(pki_dir: Path, names: list[str]) -> Path:
+    """The demo's own CA, the service's certificate and signing key, one certificate per drive."""
+    from encoder_fleet.pki import init_ca, issue
+    from fleet_wire.security import ROLE_SERVICE, SERVICE_NAME
+
+    init_ca(pki_dir)
+    issue(pki_dir, SERVICE_NAME, ROLE_SERVICE)
+    for name in names:
+        issue(pki_dir, name)
+    return pki_dir
+
+
+def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool, insecure: bool = False) -> int:
     out_dir = Path(out_dir)
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -97,11 +111,24 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
     names = [f"drive-{i:03d}" for i in range(devices)]
     log = sys.stderr
     print(f"encoder-fleet demo: {devices} drives, {sim_hours:g} simulated hours each (-40…+85 °C cycles)", file=log)
+    if insecure:
+        pki, security_args = None, ["--insecure"]
+        print("WARNING: demo --insecure: plain TCP, no certificates, no ACL, unsigned sets, open REST", file=log)
+    else:
+        endpoint = endpoint.replace("tcp/", "tls/", 1)
+        pki = demo_pki(out_dir / "pki", names)
+        security_args = ["--pki", str(pki)]
     store = Store.open(db, band_horizon=BAND_HORIZON)
-    session = open_session(listen=[endpoint])
-    service = FleetService(store, session, refit_interval_s=1.0).start()
-    http = HttpServer(store, http_port).start()
+    session = open_session(listen=[endpoint], pki=pki)
+    service = FleetService(store, session, refit_interval_s=1.0, **service_security(store, pki)).start()
+    auth = None
+    if not insecure:
+        auth = TokenAuth(store)
+        token_file = auth.first_admin_token(out_dir / "admin-token")
+    http = HttpServer(store, http_port, auth=auth).start()
     print(f"service: router {endpoint}, REST http://127.0.0.1:{http_port}/docs, database {db}", file=log)
+    if pki is not None:
+        print(f"security: PKI {pki} (mTLS, ACL, signed sets); admin REST token in {token_file}", file=log)
     agents = [
         subprocess.Popen(
             [
@@ -121,6 +148,7 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
                 str(WINDOW_S),
                 "--outbox",
                 str(out_dir / "outbox" / f"{name}.sqlite"),
+                *security_args,
             ],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
@@ -164,6 +192,7 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
             export_mcap(store, names[0], out)
         summary["mcap"] = str(mcap_path)
         summary["rejections"] = store.rejection_counts()
+        summary["security"] = "insecure" if insecure else f"mTLS + ACL + signed sets, PKI {pki}"
     finally:
         for a in agents:
             if a.poll() is None:
@@ -203,8 +232,14 @@ def format_summary(summary: dict) -> str:
         f"MCAP export (open in Foxglove): {summary['mcap']}",
         f"plot: {summary['plot']}",
         f"rejected messages: {summary['rejections'] or 'none'}",
+        f"security: {summary.get('security', '?')}",
         "inspect: .venv/bin/encoder-fleet service --db "
         + summary["database"]
-        + " --http-port 8000, then http://127.0.0.1:8000/docs",
+        + (
+            " --insecure"
+            if summary.get("security") == "insecure"
+            else f" --pki {Path(summary['database']).parent / 'pki'}"
+        )
+        + " --http-port 8000, then http://127.0.0.1:8000/docs (REST token: admin-token beside the database)",
     ]
     return "\n".join(lines)

@@ -51,9 +51,15 @@ def cmd_agent(args) -> int:
             raise InputError(f"--factory {args.factory}: not a coefficient set: {exc}") from None
     if factory is None:
         raise InputError("a replayed recording needs --factory FILE (a coefficient set as JSON)")
+    identity, verifier = agent_security(args)
     outbox = Outbox(args.outbox or Path("out") / "outbox" / f"{args.device}.sqlite")
-    session = zenoh.open(session_config("client", connect=args.connect))
-    agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s)
+    try:
+        session = zenoh.open(session_config("client", connect=args.connect, identity=identity))
+    except zenoh.ZError as exc:
+        outbox.close()
+        first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise InputError(f"cannot connect to {', '.join(args.connect)}: {first_line}") from None
+    agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s, verifier=verifier)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
@@ -71,11 +77,48 @@ def cmd_agent(args) -> int:
     return 0
 
 
+def insecure_or_pki(args, what: str) -> None:
+    """Secure unless asked: --pki DIR, or --insecure said out loud."""
+    import sys
+
+    if args.pki and args.insecure:
+        raise InputError("--pki and --insecure exclude each other")
+    if not args.pki and not args.insecure:
+        raise InputError(
+            f"{what} needs --pki DIR (TLS with client certificates, access control, signed coefficient sets; "
+            "`encoder-fleet pki init DIR` makes one) or --insecure for local tinkering"
+        )
+    if args.insecure:
+        print(
+            f"WARNING: {what} runs --insecure: plain TCP, no certificates, no access control, no signature "
+            "checks; anyone who reaches the endpoint can speak for any device. Local tinkering only.",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def agent_security(args):
+    """(identity, verifier) of an agent: its certificate (CN = --device) and the service's public key."""
+    from fleet_wire.security import ROLE_DEVICE, Identity, SecurityError, SetVerifier
+
+    insecure_or_pki(args, f"agent {args.device}")
+    if args.insecure:
+        return None, None
+    plain = [e for e in args.connect if not e.startswith("tls/")]
+    if plain:
+        raise SecurityError(f"with --pki every endpoint must be tls/HOST:PORT, not {', '.join(plain)}")
+    return Identity.load(args.pki, args.device, ROLE_DEVICE), SetVerifier.load(args.pki)
+
+
 def cmd_service(args) -> int:
     from service.runtime import run_service
 
+    insecure_or_pki(args, "the service")
     horizon = {} if args.band_horizon is None else {"band_horizon": args.band_horizon}
     return run_service(
+        pki=args.pki,
+        admin_token_file=args.admin_token_file,
+        rest_auth=not args.insecure or bool(args.admin_token_file),
         db=args.db,
         listen=args.listen,
         connect=args.connect,
@@ -107,7 +150,13 @@ def cmd_export(args) -> int:
 def cmd_demo(args) -> int:
     from encoder_fleet.demo import run_demo
 
-    return run_demo(devices=args.devices, sim_hours=args.sim_hours, out_dir=Path(args.out), as_json=args.json)
+    return run_demo(
+        devices=args.devices,
+        sim_hours=args.sim_hours,
+        out_dir=Path(args.out),
+        as_json=args.json,
+        insecure=args.insecure,
+    )
 
 
 def cmd_bench_fleet(args) -> int:
@@ -133,12 +182,18 @@ def register(sub) -> None:
     )
     p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
     p.add_argument("--factory", help="the factory coefficient set, JSON (required for replay)")
+    add_security_options(p, "DEVICE.crt/.key, ca.crt and signing.pub")
     add_level_option(p)
     p.set_defaults(func=cmd_agent)
 
     p = sub.add_parser("service", help="run the central service (embeds a Zenoh router by default)")
     p.add_argument("--db", default="out/fleet.sqlite")
-    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="router endpoint (default tcp/127.0.0.1:7447)")
+    p.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="router endpoint (default tls/127.0.0.1:7447, tcp/ with --insecure)",
+    )
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="join external routers instead")
     p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
     p.add_argument("--http-port", type=int, default=8000, help="REST port (0: no REST)")
@@ -148,6 +203,12 @@ def register(sub) -> None:
         type=int,
         help="newest windows per temperature band that refits use, so they follow aging "
         "(0: all; default: the service's)",
+    )
+    add_security_options(p, "service.crt/.key, ca.crt, signing.key and the device certificates (the registry)")
+    p.add_argument(
+        "--admin-token-file",
+        help="where the first admin REST token is written (0600) at first start (default: beside --db); "
+        "with --insecure, REST tokens are required only when this is given",
     )
     add_level_option(p)
     p.set_defaults(func=cmd_service)
@@ -165,6 +226,7 @@ def register(sub) -> None:
     p.add_argument("--sim-hours", type=float, default=24.0)
     p.add_argument("--out", default="out/demo")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--insecure", action="store_true", help="no PKI: plain TCP, no ACL, unsigned sets, open REST")
     add_level_option(p)
     p.set_defaults(func=cmd_demo)
 
@@ -172,3 +234,12 @@ def register(sub) -> None:
     p.add_argument("--devices", type=int, nargs="+", default=[10, 100, 1000])
     p.add_argument("--windows", type=int, default=20, help="windows per device")
     p.set_defaults(func=cmd_bench_fleet)
+
+
+def add_security_options(p, holds: str) -> None:
+    p.add_argument("--pki", metavar="DIR", help=f"the PKI folder ({holds}): TLS, mTLS, signed coefficient sets")
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="plain TCP, no certificates, no access control, no signature checks (local tinkering only)",
+    )

@@ -8,8 +8,17 @@ import socket
 import zenoh
 
 
-def session_config(mode: str, *, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
-    """Multicast scouting off and explicit endpoints only: nothing leaves the endpoints we name."""
+def session_config(
+    mode: str,
+    *,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    identity=None,
+    access_control: dict | None = None,
+) -> zenoh.Config:
+    """Multicast scouting off and explicit endpoints only: nothing leaves the endpoints we name.
+    identity (fleet_wire.security.Identity): TLS with mutual authentication; access_control: the router's
+    ACL (fleet_wire.security.access_control)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -17,6 +26,11 @@ def session_config(mode: str, *, listen: list[str] | None = None, connect: list[
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if identity is not None:
+        for path, value in identity.tls(listen=bool(listen), connect=bool(connect)).items():
+            conf.insert_json5(path, json.dumps(value))
+    if access_control is not None:
+        conf.insert_json5("access_control", json.dumps(access_control))
     return conf
 
 

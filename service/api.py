@@ -16,6 +16,7 @@ from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
+from .auth import TokenAuth, authorize, tokens
 from .mcap_export import iter_mcap
 from .observability import health_checks, metrics_registry
 from .store import Store
@@ -297,11 +298,13 @@ def metrics(request: Request):
     return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
 
 
-def create_app(store: Store, service: FleetService | None = None) -> FastAPI:
+def create_app(store: Store, service: FleetService | None = None, auth: TokenAuth | None = None) -> FastAPI:
     """The REST app around one Store (and, in the service, the running FleetService for its health and
     counters); the caller owns both. Swagger UI and ReDoc assets are served by the app itself
-    (fastapi-offline), so /docs works on a plant network with no internet."""
+    (fastapi-offline), so /docs works on a plant network with no internet.
+    auth: every endpoint but /healthz needs a bearer token (service/auth.py); None leaves REST open."""
     app = FastAPIOffline(
+        dependencies=[Depends(authorize)],
         title="encoder-fleet service",
         description="Fleet health, coefficient history, window statistics and MCAP export "
         "for magneto-electric encoders.",
@@ -309,7 +312,10 @@ def create_app(store: Store, service: FleetService | None = None) -> FastAPI:
     )
     app.state.store = store
     app.state.service = service
+    app.state.auth = auth
     app.state.metrics = metrics_registry(store, service)
     for router in (devices, coefficients, windows, export, ingest, operations):
         app.include_router(router)
+    if auth is not None:
+        app.include_router(tokens)
     return app

@@ -48,8 +48,12 @@ class FleetService:
         *,
         refit_interval_s: float = 2.0,
         min_band_samples: int = MIN_BAND_SAMPLES,
+        signer=None,
+        guard=None,
     ):
         self.store = store
+        self.signer = signer  # fleet_wire.security.SetSigner: every published set is signed
+        self.guard = guard  # service.guard.IngestGuard: registry, forged and replayed acks
         self.session = session
         self.refit_interval_s = refit_interval_s
         self.min_band_samples = min_band_samples
@@ -103,7 +107,20 @@ class FleetService:
     # --- ingest ------------------------------------------------------------------------------------
 
     def _enqueue(self, sample: zenoh.Sample) -> None:
-        self._inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        if not self._admitted(key, payload):
+            return
+        self._inbox.put((key, payload))
+
+    def _admitted(self, key: str, payload: bytes) -> bool:
+        """The guard's checks (service/guard.py); what it refuses is dead-lettered and counted."""
+        refused = self.guard.refuse(key, payload) if self.guard is not None else None
+        if refused is None:
+            return True
+        self.store.dead_letter(key, refused[0], refused[1], payload)
+        with self._lock:
+            self.counters.count(refused[0])
+        return False
 
     def _write_loop(self) -> None:
         """Group commit: whatever arrived while the last batch was written goes in one transaction."""
@@ -130,6 +147,8 @@ class FleetService:
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        if not self._admitted(key, payload):
+            return
         try:
             device = wire.device_from_key(key)
             msg = wire.decode("coefficients", payload, key_device=device)
@@ -146,6 +165,8 @@ class FleetService:
         try:
             device = wire.device_from_key(sample.key_expr)
         except wire.WireError:
+            return
+        if self.guard is not None and not self.guard.admits(device):
             return
         self.store.set_online(device, sample.kind == zenoh.SampleKind.PUT)
 
@@ -228,6 +249,8 @@ class FleetService:
             msg = wire.coefficients_message(
                 device=device, version=version, created_at=drive_now, basis="fit", bands=result.bands
             )
+            if self.signer is not None:
+                msg = self.signer.sign(msg)  # stored signed: the queryable replies with the same bytes' meaning
             self.store.insert_coefficient_set(msg)
         self.session.put(
             keys.key(device, keys.COEFFICIENTS),
@@ -244,15 +267,20 @@ class FleetService:
         return version
 
 
-def open_session(*, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Session:
+def open_session(*, listen: list[str] | None = None, connect: list[str] | None = None, pki=None) -> zenoh.Session:
     """The service's session: an embedded router on `listen`, or a client of external routers.
-    A router that cannot listen (a port taken, an endpoint malformed) raises InputError in one line."""
+    A router that cannot listen (a port taken, an endpoint malformed) raises InputError in one line.
+    pki (a PKI folder): TLS with mutual authentication as the service's certificate; an embedded router
+    also enforces the access control generated from the device registry (service/guard.py)."""
     from fleet_wire.session import session_config
 
+    from .guard import router_security
+
+    identity, acl = router_security(pki, listen=listen, connect=connect)
     try:
         if connect:
-            return zenoh.open(session_config("client", connect=connect))
-        return zenoh.open(session_config("router", listen=listen))
+            return zenoh.open(session_config("client", connect=connect, identity=identity))
+        return zenoh.open(session_config("router", listen=listen, identity=identity, access_control=acl))
     except zenoh.ZError as exc:
         where = ", ".join(connect or listen or [])
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -274,12 +302,14 @@ def check_port_free(host: str, port: int, what: str) -> None:
 class HttpServer:
     """The REST API on a background thread (uvicorn), stoppable."""
 
-    def __init__(self, store: Store, port: int, host: str = "127.0.0.1", service: FleetService | None = None):
+    def __init__(
+        self, store: Store, port: int, host: str = "127.0.0.1", service: FleetService | None = None, auth=None
+    ):
         import uvicorn
 
         from service.api import create_app
 
-        app = create_app(store, service)
+        app = create_app(store, service, auth)
         # log_config=None: uvicorn's loggers go through the process's own (structured) handlers and level
         config = uvicorn.Config(app, host=host, port=port, log_config=None, log_level=logging.getLogger().level)
         self.server = uvicorn.Server(config)
@@ -311,13 +341,17 @@ def run_service(
     http_port: int | None,
     refit_interval_s: float,
     band_horizon: int | None = BAND_HORIZON,
+    pki=None,
+    admin_token_file=None,
+    rest_auth: bool = True,
 ) -> int:
-    """`encoder-fleet service`: until SIGINT or SIGTERM."""
+    """`encoder-fleet service`: until SIGINT or SIGTERM. pki: TLS, mTLS, ACL and signed sets (None: insecure);
+    rest_auth: bearer tokens on REST, the first admin token written to admin_token_file."""
     import signal
     from contextlib import ExitStack
     from pathlib import Path
 
-    listen = listen or ([] if connect else ["tcp/127.0.0.1:7447"])
+    listen = listen or ([] if connect else ["tls/127.0.0.1:7447" if pki else "tcp/127.0.0.1:7447"])
     with ExitStack() as running:  # whatever started is stopped again, in reverse, on any error
         if http_port:
             check_port_free(http_host, http_port, "REST")
@@ -327,12 +361,22 @@ def run_service(
             raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
         store = Store.open(db, band_horizon=band_horizon or None)
         running.callback(store.close)
-        session = open_session(listen=listen, connect=connect)
+        session = open_session(listen=listen, connect=connect, pki=pki)
         running.callback(session.close)
-        service = FleetService(store, session, refit_interval_s=refit_interval_s).start()
+        from .guard import service_security
+
+        secured = service_security(store, pki)
+        service = FleetService(store, session, refit_interval_s=refit_interval_s, **secured).start()
         running.callback(service.stop)
+        auth, written = None, None
+        if rest_auth:
+            from .auth import TokenAuth
+
+            auth = TokenAuth(store)
+            token_file = admin_token_file or Path(db).parent / "admin-token"
+            written = auth.first_admin_token(token_file)
         if http_port:
-            running.callback(HttpServer(store, http_port, host=http_host, service=service).start().stop)
+            running.callback(HttpServer(store, http_port, host=http_host, service=service, auth=auth).start().stop)
         stop = threading.Event()
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -342,7 +386,25 @@ def run_service(
             + (f"; REST http://{http_host}:{http_port}/docs" if http_port else ""),
             flush=True,
         )
+        print(security_summary(pki, connect, auth, written), flush=True)
         log.info("service started", extra={"zenoh": where, "database": db, "http_port": http_port or None})
         stop.wait()
         log.info("service stopping")
     return 0
+
+
+def security_summary(pki, connect, auth, token_file) -> str:
+    """One line on what protects this service; loud when something does not."""
+    parts = []
+    if pki is None:
+        parts.append("INSECURE: plain TCP, no client certificates, no access control, coefficient sets unsigned")
+    else:
+        acl = "the external router's access control" if connect else "access control from the device registry"
+        parts.append(f"TLS with client certificates from {pki}, {acl}, coefficient sets signed")
+    if auth is None:
+        parts.append("INSECURE: REST needs no token")
+    elif token_file is not None:
+        parts.append(f"first admin REST token written to {token_file} (0600)")
+    else:
+        parts.append("REST needs a bearer token")
+    return "service: " + "; ".join(parts)

@@ -1,0 +1,48 @@
+"""`encoder-fleet token`: REST bearer tokens in the service's database (service/auth.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from encoder_core.samples import InputError
+
+
+def cmd_token(args) -> int:
+    from service.auth import TokenAuth
+    from service.store import Store
+
+    if not Path(args.db).exists():
+        raise InputError(f"--db {args.db}: no such database (start the service once, or give its --db)")
+    store = Store.open(args.db)
+    try:
+        auth = TokenAuth(store)
+        if args.token_command == "create":
+            token_id, token = auth.create(args.scope, args.name or "")
+            print(token)  # stdout only, once: the database keeps its hash
+            print(f"token {token_id} ({args.scope}) created; it is shown once, keep it safe", flush=True)
+        elif args.token_command == "list":
+            for t in auth.tokens():
+                state = "revoked" if t["revoked_at"] else "live"
+                print(f"{t['id']:>4} {t['scope']:<6} {state:<8} {t['name']}")
+        elif args.token_command == "revoke":
+            if not auth.revoke(args.id):
+                raise InputError(f"no live token {args.id}")
+            print(f"token {args.id} revoked")
+    finally:
+        store.close()
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("token", help="REST bearer tokens (read, admin) in the service's database")
+    tsub = p.add_subparsers(dest="token_command", required=True)
+    q = tsub.add_parser("create", help="a new token, printed once (only its hash is stored)")
+    q.add_argument("--scope", choices=["read", "admin"], required=True)
+    q.add_argument("--name", help="what the token is for")
+    q.add_argument("--db", default="out/fleet.sqlite")
+    q = tsub.add_parser("list", help="tokens: id, scope, state, name (never the token)")
+    q.add_argument("--db", default="out/fleet.sqlite")
+    q = tsub.add_parser("revoke", help="revoke a token by id")
+    q.add_argument("id", type=int)
+    q.add_argument("--db", default="out/fleet.sqlite")
+    p.set_defaults(func=cmd_token)

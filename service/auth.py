@@ -1,0 +1,169 @@
+"""REST bearer tokens: two scopes (read, admin), kept hashed in the service's database, compared in constant
+time, never logged.
+
+A token is `efr_` (read) or `efa_` (admin) plus 43 random URL-safe characters (256 bits), so a plain SHA-256
+is the right hash: there is nothing to guess that a slow hash would protect. Every endpoint except /healthz
+needs a token (the app-level dependency `authorize`); admin endpoints (the /tokens router) need an admin one.
+When the app is built without a TokenAuth (tests, `--insecure` without --admin-token-file), REST is open.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import secrets
+import time
+from pathlib import Path
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi import Path as PathParam
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, Field
+
+from .store import Store
+
+SCOPES = ("read", "admin")
+PUBLIC_PATHS = frozenset({"/healthz"})
+_PREFIX = {"read": "efr_", "admin": "efa_"}
+
+
+def _digest(token: str) -> str:
+    return hashlib.sha256(token.encode("utf-8", errors="replace")).hexdigest()
+
+
+class TokenAuth:
+    """Tokens in the store's database (migration 030_tokens.sql)."""
+
+    def __init__(self, store: Store):
+        self.store = store
+
+    def create(self, scope: str, name: str = "") -> tuple[int, str]:
+        """(id, token); the token is returned once and only its hash is kept."""
+        if scope not in SCOPES:
+            raise ValueError(f"scope must be one of {SCOPES}, not {scope!r}")
+        token = _PREFIX[scope] + secrets.token_urlsafe(32)
+        with self.store._tx() as c:
+            cur = c.execute(
+                "INSERT INTO api_tokens (name, scope, token_sha256, created_at) VALUES (?, ?, ?, ?)",
+                (name or scope, scope, _digest(token), time.time()),
+            )
+            return cur.lastrowid, token
+
+    def scope_of(self, token: str) -> str | None:
+        """The token's scope, or None. Every live token's hash is compared, each in constant time."""
+        wanted = _digest(token)
+        found = None
+        for row in self.store._rows("SELECT scope, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
+            if hmac.compare_digest(row["token_sha256"], wanted):
+                found = row["scope"]
+        return found
+
+    def tokens(self) -> list[dict]:
+        rows = self.store._rows("SELECT id, name, scope, created_at, revoked_at FROM api_tokens ORDER BY id")
+        return [dict(r) for r in rows]
+
+    def revoke(self, token_id: int) -> bool:
+        with self.store._tx() as c:
+            cur = c.execute(
+                "UPDATE api_tokens SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL", (time.time(), token_id)
+            )
+            return cur.rowcount > 0
+
+    def count(self) -> int:
+        return self.store._rows("SELECT count(*) AS n FROM api_tokens WHERE revoked_at IS NULL")[0]["n"]
+
+    def first_admin_token(self, path) -> Path | None:
+        """At first start (no token yet): an admin token written to `path`, 0600. None if tokens exist."""
+        if self.count():
+            return None
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _, token = self.create("admin", "first admin (written at first start)")
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as out:
+            out.write(token + "\n")
+        os.chmod(path, 0o600)
+        return path
+
+
+# --- FastAPI ----------------------------------------------------------------------------------------
+
+bearer = HTTPBearer(auto_error=False, description="A token from `encoder-fleet token create --scope read|admin`.")
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
+
+
+def _unauthorized(detail: str) -> HTTPException:
+    return HTTPException(status_code=401, detail=detail, headers={"WWW-Authenticate": "Bearer"})
+
+
+def authorize(request: Request, credentials: Credentials) -> str | None:
+    """App-level dependency: the caller's scope; 401 without a valid token (except the public paths)."""
+    auth: TokenAuth | None = getattr(request.app.state, "auth", None)
+    route = request.scope.get("route")
+    path = getattr(route, "path", request.url.path)
+    if auth is None or path in PUBLIC_PATHS:
+        return None
+    if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
+        raise _unauthorized("a bearer token is required (encoder-fleet token create)")
+    scope = auth.scope_of(credentials.credentials)
+    if scope is None:
+        raise _unauthorized("the token is not valid")
+    request.state.scope = scope
+    return scope
+
+
+def require_admin(request: Request) -> None:
+    if getattr(request.app.state, "auth", None) is not None and getattr(request.state, "scope", None) != "admin":
+        raise HTTPException(status_code=403, detail="this endpoint needs an admin token")
+
+
+class TokenInfo(BaseModel):
+    id: int
+    name: str
+    scope: Literal["read", "admin"]
+    created_at: float = Field(description="Service clock, unix s.")
+    revoked_at: float | None
+
+
+class NewToken(BaseModel):
+    scope: Literal["read", "admin"]
+    name: str = Field("", max_length=200, description="What the token is for (shown in the list).")
+
+
+class CreatedToken(TokenInfo):
+    token: str = Field(description="Shown once: only its hash is kept.")
+
+
+tokens = APIRouter(prefix="/tokens", tags=["tokens"], dependencies=[Depends(require_admin)])
+
+
+def _auth(request: Request) -> TokenAuth:
+    return request.app.state.auth
+
+
+@tokens.get("", response_model=list[TokenInfo], summary="REST tokens (admin): names and scopes, never the tokens")
+def list_tokens(request: Request):
+    return _auth(request).tokens()
+
+
+@tokens.post("", response_model=CreatedToken, status_code=201, summary="Create a REST token (admin)")
+def create_token(body: NewToken, request: Request):
+    auth = _auth(request)
+    token_id, token = auth.create(body.scope, body.name)
+    info = next(t for t in auth.tokens() if t["id"] == token_id)
+    return CreatedToken(**info, token=token)
+
+
+@tokens.delete(
+    "/{token_id}",
+    status_code=204,
+    response_class=Response,
+    responses={404: {"description": "No such live token."}},
+    summary="Revoke a REST token (admin)",
+)
+def revoke_token(token_id: Annotated[int, PathParam(ge=1, le=2**62)], request: Request):
+    if not _auth(request).revoke(token_id):
+        raise HTTPException(status_code=404, detail=f"no live token {token_id}")
+    return Response(status_code=204)

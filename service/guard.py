@@ -1,0 +1,88 @@
+"""The service's own checks on what arrives over Zenoh, behind the router's access control (defence in depth
+for a router whose ACL is stale, misconfigured or absent):
+
+- a message's device (its key, and the message's "device", which the wire decoder matches to the key) must
+  be a device of the registry: the only identities the router can have authenticated. On a router with the
+  generated ACL a certificate may put only on its own keys, so key device == certificate common name.
+  (The Python API does not hand a subscriber the sender's certificate, so the key is where the
+  authenticated identity shows.)
+- an ack must be for a version the service published to that device (else: forged), and each
+  (device, version, status) is taken once (else: replayed).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+
+from fleet_wire import keys
+
+from .store import Store
+
+ACK_MEMORY = 100_000  # (device, version, status) remembered in memory, beside the acks table
+
+
+class IngestGuard:
+    def __init__(self, store: Store, devices: list[str] | None):
+        self.store = store
+        self.devices = None if devices is None else set(devices)
+        self._acks: set[tuple[str, int, str]] = set()
+        self._lock = threading.Lock()
+
+    def refuse(self, key_expr: str, payload: bytes) -> tuple[str, str] | None:
+        """(reason, detail) if the message must not be taken; None lets it through to the usual decoding."""
+        parsed = keys.split(key_expr)
+        if parsed is None:
+            return None  # the decoder dead-letters malformed keys with its own reason
+        device, suffix = parsed
+        if self.devices is not None and device not in self.devices:
+            return "unknown_device", f"{key_expr}: {device!r} holds no certificate of this fleet's registry"
+        if suffix == keys.ACK:
+            return self._check_ack(device, payload)
+        return None
+
+    def _check_ack(self, device: str, payload: bytes) -> tuple[str, str] | None:
+        try:
+            msg = json.loads(payload)
+            version, status = int(msg["version"]), str(msg["status"])
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+            return None  # not an ack at all: the decoder says why
+        published = {h["version"] for h in self.store.coefficient_history(device) if h["published_at"] is not None}
+        if version not in published:
+            return "forged_ack", f"ack from {device} for version {version}, which the service never published to it"
+        mark = (device, version, status)
+        with self._lock:
+            if mark in self._acks or any(
+                a["version"] == version and a["status"] == status for a in self.store.acks(device)
+            ):
+                return "replayed_ack", f"ack from {device} for version {version} ({status}) was already taken"
+            if len(self._acks) >= ACK_MEMORY:
+                self._acks.clear()  # the acks table still remembers; this set only covers the ingest queue
+            self._acks.add(mark)
+        return None
+
+    def admits(self, device: str) -> bool:
+        return self.devices is None or device in self.devices
+
+
+def router_security(pki, *, listen: list[str] | None, connect: list[str] | None) -> tuple:
+    """(identity, access control) of the service's Zenoh session: (None, None) when insecure. Every endpoint
+    must be TLS when a PKI is given (a tcp/ listener would take clients without a certificate)."""
+    if pki is None:
+        return None, None
+    from fleet_wire.security import ROLE_SERVICE, SERVICE_NAME, Identity, SecurityError, access_control, registry
+
+    plain = [e for e in (connect or listen or []) if not str(e).startswith("tls/")]
+    if plain:
+        raise SecurityError(f"with --pki every endpoint must be tls/HOST:PORT, not {', '.join(plain)}")
+    identity = Identity.load(pki, SERVICE_NAME, ROLE_SERVICE)
+    return identity, None if connect else access_control(registry(pki))
+
+
+def service_security(store: Store, pki) -> dict:
+    """FleetService's signer and guard for a PKI folder (none when insecure)."""
+    if pki is None:
+        return {}
+    from fleet_wire.security import SetSigner, registry
+
+    return {"signer": SetSigner.load(pki), "guard": IngestGuard(store, registry(pki))}
