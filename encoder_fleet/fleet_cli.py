@@ -77,8 +77,9 @@ def cmd_agent(args) -> int:
     return 0
 
 
-def insecure_or_pki(args, what: str) -> None:
-    """Secure unless asked: --pki DIR, or --insecure said out loud."""
+def insecure_or_pki(args, what: str, *, warn: bool = True) -> None:
+    """Secure unless asked: --pki DIR, or --insecure said out loud (the service says it in its start-up
+    lines on stdout instead, so its stderr stays one JSON event per line)."""
     import sys
 
     if args.pki and args.insecure:
@@ -88,7 +89,7 @@ def insecure_or_pki(args, what: str) -> None:
             f"{what} needs --pki DIR (TLS with client certificates, access control, signed coefficient sets; "
             "`encoder-fleet pki init DIR` makes one) or --insecure for local tinkering"
         )
-    if args.insecure:
+    if args.insecure and warn:
         print(
             f"WARNING: {what} runs --insecure: plain TCP, no certificates, no access control, no signature "
             "checks; anyone who reaches the endpoint can speak for any device. Local tinkering only.",
@@ -113,7 +114,7 @@ def agent_security(args):
 def cmd_service(args) -> int:
     from service.runtime import run_service
 
-    insecure_or_pki(args, "the service")
+    insecure_or_pki(args, "the service", warn=False)
     horizon = {} if args.band_horizon is None else {"band_horizon": args.band_horizon}
     return run_service(
         pki=args.pki,

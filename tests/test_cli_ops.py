@@ -18,7 +18,15 @@ def test_version_is_the_installed_package_version():
 
 def test_service_logs_one_json_event_per_line_at_the_level_asked(tmp_path):
     command = [sys.executable, "-m", "encoder_fleet.cli", "service", "--db", str(tmp_path / "f.sqlite")]
-    command += ["--listen", f"tcp/127.0.0.1:{free_port()}", "--http-port", str(free_port()), "--log-level", "info"]
+    command += [
+        "--insecure",
+        "--listen",
+        f"tcp/127.0.0.1:{free_port()}",
+        "--http-port",
+        str(free_port()),
+        "--log-level",
+        "info",
+    ]
     service = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert service.stdout.readline().startswith("service:")

@@ -17,11 +17,12 @@ from encoder_fleet.demo import applied_set, score
 from fleet_wire import messages as wire
 from fleet_wire.session import loopback_endpoint
 from service.api import create_app
+from service.guard import service_security
 from service.runtime import FleetService, open_session
 from service.store import Store
 
 
-def start_agent(name, seed, endpoint, outbox, hours):
+def start_agent(name, seed, endpoint, outbox, hours, pki):
     return subprocess.Popen(
         [
             sys.executable,
@@ -38,6 +39,8 @@ def start_agent(name, seed, endpoint, outbox, hours):
             str(hours),
             "--outbox",
             str(outbox),
+            "--pki",  # TLS with its certificate, the router's ACL, signed sets (tests/conftest.py)
+            str(pki),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -46,20 +49,20 @@ def start_agent(name, seed, endpoint, outbox, hours):
 
 
 @pytest.fixture
-def fleet(tmp_path):
-    endpoint = loopback_endpoint()
+def fleet(tmp_path, pki):
+    endpoint = loopback_endpoint().replace("tcp/", "tls/")
     store = Store.open(tmp_path / "fleet.sqlite")
-    session = open_session(listen=[endpoint])
-    service = FleetService(store, session, refit_interval_s=0.5).start()
-    yield endpoint, store, service, session
+    session = open_session(listen=[endpoint], pki=pki)
+    service = FleetService(store, session, refit_interval_s=0.5, **service_security(store, pki)).start()
+    yield endpoint, store, service, session, pki
     service.stop()
     session.close()
     store.close()
 
 
 def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
-    endpoint, store, service, session = fleet
-    agents = [start_agent(f"drive-{i}", i, endpoint, tmp_path / f"ob{i}.sqlite", 24) for i in (1, 2)]
+    endpoint, store, service, session, pki = fleet
+    agents = [start_agent(f"drive-{i}", i, endpoint, tmp_path / f"ob{i}.sqlite", 24, pki) for i in (1, 2)]
     api = TestClient(create_app(store))
     seen_online = set()
     while any(a.poll() is None for a in agents):  # the liveliness tokens, as the REST API shows them
@@ -78,6 +81,7 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
         assert store.contiguous_seq(name) == 24 * 60
         applied = applied_set(store, name)
         assert applied is not None and applied["version"] >= 1, store.acks(name)
+        assert applied["signature"]  # the sets the agents applied carry the service's signature
         versions = {h["version"] for h in store.coefficient_history(name) if h["basis"] == "fit"}
         with sqlite3.connect(store.path) as conn:  # every fit is kept, tagged with the set it was made for
             fits = conn.execute("SELECT version, adopted FROM fits WHERE device = ?", (name,)).fetchall()
@@ -112,8 +116,8 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
 
 
 def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):
-    endpoint, store, service, session = fleet
-    agent = start_agent("drive-7", 7, endpoint, tmp_path / "ob7.sqlite", 2)
+    endpoint, store, service, session, pki = fleet
+    agent = start_agent("drive-7", 7, endpoint, tmp_path / "ob7.sqlite", 2, pki)
     bad = [
         ("encoders/drive-7/stats", b"{not json"),
         ("encoders/drive-7/stats", b'{"schema": "encoder-fleet/window/1", "seq": NaN}'),

@@ -13,7 +13,7 @@ HOURS = 6
 WINDOWS = HOURS * 60
 
 
-def start_service(db, endpoint):
+def start_service(db, endpoint, pki):
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -28,6 +28,10 @@ def start_service(db, endpoint):
             "0",
             "--refit-interval",
             "1",
+            "--pki",  # TLS, the ACL of the registry, signed sets (tests/conftest.py)
+            str(pki),
+            "--admin-token-file",
+            str(db.parent / "admin-token"),
         ],
         stdout=subprocess.PIPE,
         text=True,
@@ -37,7 +41,7 @@ def start_service(db, endpoint):
     return proc
 
 
-def start_agent(name, seed, endpoint, outbox):
+def start_agent(name, seed, endpoint, outbox, pki):
     # 1800x real time: 360 windows in about 12 s, so the outage falls in the middle of the stream
     return subprocess.Popen(
         [
@@ -57,6 +61,8 @@ def start_agent(name, seed, endpoint, outbox):
             "1800",
             "--outbox",
             str(outbox),
+            "--pki",
+            str(pki),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -72,12 +78,12 @@ def stored_seqs(db, device):
         conn.close()
 
 
-def test_service_killed_mid_stream_loses_nothing(tmp_path):
-    endpoint = loopback_endpoint()
+def test_service_killed_mid_stream_loses_nothing(tmp_path, pki):
+    endpoint = loopback_endpoint().replace("tcp/", "tls/")
     db = tmp_path / "fleet.sqlite"
     names = ["drive-a", "drive-b"]
-    service = start_service(db, endpoint)
-    agents = [start_agent(n, i, endpoint, tmp_path / f"{n}.outbox") for i, n in enumerate(names)]
+    service = start_service(db, endpoint, pki)
+    agents = [start_agent(n, i, endpoint, tmp_path / f"{n}.outbox", pki) for i, n in enumerate(names)]
     try:
         deadline = time.monotonic() + 60
         while min(len(stored_seqs(db, n)) for n in names) < 20 and time.monotonic() < deadline:
@@ -87,7 +93,7 @@ def test_service_killed_mid_stream_loses_nothing(tmp_path):
         before = {n: stored_seqs(db, n) for n in names}
         assert all(0 < len(s) < WINDOWS for s in before.values()), {n: len(s) for n, s in before.items()}
         time.sleep(3)  # the agents keep correcting and buffering while the service is gone
-        service = start_service(db, endpoint)
+        service = start_service(db, endpoint, pki)
         outputs = [a.communicate(timeout=180)[0] for a in agents]
         assert all(a.returncode == 0 for a in agents), outputs
     finally:

@@ -101,7 +101,7 @@ def test_installed_wheel_runs_help_diagnose_and_a_service_from_outside_the_repo(
     zenoh_port, http_port = free_port(), free_port()
     service = subprocess.Popen(
         [str(fresh_venv / "bin" / "encoder-fleet"), "service", "--db", str(db)]
-        + ["--listen", f"tcp/127.0.0.1:{zenoh_port}", "--http-port", str(http_port)],
+        + ["--insecure", "--listen", f"tcp/127.0.0.1:{zenoh_port}", "--http-port", str(http_port)],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -147,9 +147,9 @@ def test_service_on_a_taken_port_says_so_in_one_line(tmp_path):
         taken.listen()
         port = taken.getsockname()[1]
         zenoh_taken = cli("service", "--db", str(tmp_path / "a.sqlite"), "--http-port", "0",
-                          "--listen", f"tcp/127.0.0.1:{port}", cwd=tmp_path)  # fmt: skip
+                          "--insecure", "--listen", f"tcp/127.0.0.1:{port}", cwd=tmp_path)  # fmt: skip
         http_taken = cli("service", "--db", str(tmp_path / "b.sqlite"), "--http-port", str(port),
-                         "--listen", f"tcp/127.0.0.1:{free_port()}", cwd=tmp_path)  # fmt: skip
+                         "--insecure", "--listen", f"tcp/127.0.0.1:{free_port()}", cwd=tmp_path)  # fmt: skip
     assert_one_line_error(zenoh_taken, f"127.0.0.1:{port}")
     assert_one_line_error(http_taken, f"127.0.0.1:{port}", "REST")
 
@@ -159,8 +159,8 @@ def test_a_database_that_cannot_be_opened_is_one_line_not_a_traceback(tmp_path):
     garbage.write_bytes(b"this is not a database at all" * 200)
     started = time.monotonic()
     for db in (garbage, tmp_path):  # a file of junk; a directory
-        done = cli("service", "--db", str(db), "--http-port", "0", "--listen", f"tcp/127.0.0.1:{free_port()}",
-                   cwd=tmp_path)  # fmt: skip
+        done = cli("service", "--db", str(db), "--http-port", "0", "--insecure",
+                   "--listen", f"tcp/127.0.0.1:{free_port()}", cwd=tmp_path)  # fmt: skip
         assert_one_line_error(done, str(db))
     assert time.monotonic() - started < 60  # and it exits, it does not hang
     assert_one_line_error(cli("export", "--db", str(garbage), "--device", "d", "--out", "x.mcap", cwd=tmp_path),

@@ -1,0 +1,31 @@
+"""Fixtures shared by the test modules: the fleet's PKI, made once per test session."""
+
+from __future__ import annotations
+
+import pytest
+
+# every device a secured test starts; the registry (and so the router's ACL) is these certificates
+DEVICES = ["drive-a", "drive-b", "drive-c", "drive-t"] + [f"drive-{i}" for i in range(10)]
+
+
+def make_pki(path, devices):
+    from encoder_fleet.pki import init_ca, issue
+    from fleet_wire.security import ROLE_SERVICE, SERVICE_NAME
+
+    init_ca(path)
+    issue(path, SERVICE_NAME, ROLE_SERVICE)
+    for device in devices:
+        issue(path, device)
+    return path
+
+
+@pytest.fixture(scope="session")
+def pki(tmp_path_factory):
+    """A CA, the service (certificate and signing key) and a certificate for each of DEVICES."""
+    return make_pki(tmp_path_factory.mktemp("pki"), DEVICES)
+
+
+@pytest.fixture(scope="session")
+def foreign_pki(tmp_path_factory):
+    """Another CA with the same names: what an attacker can make for themselves."""
+    return make_pki(tmp_path_factory.mktemp("foreign-pki"), ["drive-a", "drive-b"])
