@@ -1,0 +1,354 @@
+"""Issue 10 with the real router: mutual TLS, the access control generated from the registry, signed coefficient
+sets, the service's own checks, REST tokens. Each attack here worked before the security model (a plain
+client could connect, speak for any device, publish sets and answer the watermark)."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+import wire_samples as ws
+import zenoh
+from fastapi.testclient import TestClient
+
+from edge_agent.agent import EdgeAgent
+from edge_agent.outbox import Outbox
+from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
+from fleet_wire import keys
+from fleet_wire import messages as wire
+from fleet_wire.security import ROLE_DEVICE, Identity, SetSigner, SetVerifier, access_control, canonical, registry
+from fleet_wire.session import free_port, loopback_endpoint, session_config
+from service.api import create_app
+from service.auth import TokenAuth
+from service.guard import service_security
+from service.runtime import FleetService, open_session
+from service.store import Store
+
+A, B = "drive-a", "drive-b"
+
+
+def wait_for(predicate, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return predicate()
+
+
+class Secured:
+    """The service with its embedded router (TLS, mTLS, ACL, signer, guard) and clients by certificate."""
+
+    def __init__(self, tmp_path, pki):
+        self.pki = pki
+        self.endpoint = loopback_endpoint().replace("tcp/", "tls/")
+        self.store = Store.open(tmp_path / "fleet.sqlite")
+        self.router = open_session(listen=[self.endpoint], pki=pki)
+        self.service = FleetService(self.store, self.router, refit_interval_s=0, **service_security(self.store, pki))
+        self.service.start()
+        self.sessions = []
+
+    def client(self, name, pki=None):
+        identity = Identity.load(pki or self.pki, name, ROLE_DEVICE)
+        session = zenoh.open(session_config("client", connect=[self.endpoint], identity=identity))
+        self.sessions.append(session)
+        return session
+
+    def publish(self, msg: dict) -> dict:
+        """What the service does for a new set: sign, store, mark published, put."""
+        signed = self.service.signer.sign(msg)
+        self.store.insert_coefficient_set(signed)
+        self.store.mark_published(msg["device"], msg["version"])
+        self.router.put(keys.key(msg["device"], keys.COEFFICIENTS), wire.encode("coefficients", signed))
+        return signed
+
+    def close(self):
+        for session in self.sessions:
+            session.close()
+        self.service.stop()
+        self.router.close()
+        self.store.close()
+
+
+@pytest.fixture
+def secured(tmp_path, pki):
+    s = Secured(tmp_path, pki)
+    yield s
+    s.close()
+
+
+# --- who may connect ------------------------------------------------------------------------------
+
+
+def test_a_client_without_a_fleet_certificate_cannot_connect(secured, foreign_pki):
+    no_cert = session_config("client", connect=[secured.endpoint])
+    no_cert.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(secured.pki / "ca.crt")))
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(no_cert)
+    plain_tcp = session_config("client", connect=[secured.endpoint.replace("tls/", "tcp/")])
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(plain_tcp)
+    with pytest.raises(zenoh.ZError):  # a certificate named drive-a, from the attacker's own CA
+        secured.client(A, pki=foreign_pki)
+    secured.client(A)  # the real drive-a connects
+
+
+def test_the_acl_is_generated_from_the_registry(pki):
+    acl = access_control(registry(pki))
+    assert acl["default_permission"] == "deny"
+    subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert subjects["drive-a"] == ["drive-a"] and "drive-t" in subjects and subjects["service"] == ["service"]
+    exprs = {k for r in acl["rules"] if r["id"].startswith("drive-a/") for k in r["key_exprs"]}
+    assert exprs == {f"encoders/drive-a/{s}" for s in ("stats", "factory", "ack", "alive", "coefficients", "received")}
+    puts = [r for r in acl["rules"] if r["id"].startswith("drive-a/") and "put" in r["messages"]]
+    assert {f for r in puts if "ingress" in r["flows"] for f in r["key_exprs"]} == {
+        "encoders/drive-a/stats",
+        "encoders/drive-a/factory",
+        "encoders/drive-a/ack",
+    }
+
+
+# --- a device speaks only for itself ----------------------------------------------------------------
+
+
+def test_device_a_cannot_put_b_stats(secured):
+    a = secured.client(A)
+    time.sleep(0.2)
+    for seq in range(1, 6):  # the pre-load attack: B's seqs taken before B speaks
+        a.put(keys.key(B, keys.STATS), wire.encode("window", ws.window(B, seq)))
+    a.put(keys.key(A, keys.STATS), wire.encode("window", ws.window(A, 1)))
+    assert wait_for(lambda: (secured.store.device(A) or {}).get("windows") == 1)
+    time.sleep(0.3)
+    assert secured.store.device(B) is None
+    assert secured.store.rejection_counts() == {}  # stopped at the router, not even a dead letter
+
+
+def test_device_a_cannot_hold_b_liveliness_token(secured):
+    a = secured.client(A)
+    held = [a.liveliness().declare_token(keys.key(d, keys.ALIVE)) for d in (B, A)]  # undeclared when dropped
+    assert wait_for(lambda: (secured.store.device(A) or {}).get("online"))
+    assert secured.store.device(B) is None
+    del held
+
+
+def test_device_a_cannot_put_any_coefficients(secured):
+    a, b, a_again = secured.client(A), secured.client(B), secured.client(A)
+    got_b, got_a = [], []
+    b.declare_subscriber(keys.key(B, keys.COEFFICIENTS), lambda s: got_b.append(json.loads(s.payload.to_bytes())))
+    a_again.declare_subscriber(keys.key(A, keys.COEFFICIENTS), lambda s: got_a.append(s.payload.to_bytes()))
+    time.sleep(0.3)
+    evil = ws.coefficients(B, version=2**53 - 1)
+    evil["bands"][0]["zero_offset_rad"] = 3.0
+    a.put(keys.key(B, keys.COEFFICIENTS), wire.encode("coefficients", evil))
+    a.put(keys.key(A, keys.COEFFICIENTS), wire.encode("coefficients", ws.coefficients(A, version=2**53 - 1)))
+    time.sleep(0.3)
+    secured.publish(ws.coefficients(B, version=1))
+    assert wait_for(lambda: got_b)
+    time.sleep(0.2)
+    assert [m["version"] for m in got_b] == [1] and got_a == []  # only the service's set arrived
+
+
+def test_device_a_cannot_subscribe_to_b_coefficients(secured):
+    a, b = secured.client(A), secured.client(B)
+    seen_by_a, seen_by_b = [], []
+    a.declare_subscriber(keys.key(B, keys.COEFFICIENTS), lambda s: seen_by_a.append(1))
+    a.declare_subscriber("encoders/**", lambda s: seen_by_a.append(2))
+    b.declare_subscriber(keys.key(B, keys.COEFFICIENTS), lambda s: seen_by_b.append(1))
+    time.sleep(0.3)
+    secured.publish(ws.coefficients(B, version=1))
+    assert wait_for(lambda: seen_by_b)
+    time.sleep(0.2)
+    assert seen_by_a == []
+
+
+def test_device_a_cannot_answer_the_watermark_or_the_coefficients_query(secured):
+    a, b, a_agent = secured.client(A), secured.client(B), secured.client(A)  # a_agent: drive-a's real agent
+    lie = lambda q: q.reply(q.key_expr, wire.watermark_reply(str(q.key_expr).split("/")[1], 10**9))  # noqa: E731
+    for expr in (keys.key(B, keys.RECEIVED), keys.key(A, keys.RECEIVED), keys.every(keys.RECEIVED)):
+        a.declare_queryable(expr, lie)
+    a.declare_queryable(keys.every(keys.COEFFICIENTS), lambda q: q.reply(q.key_expr, b"{}"))
+    time.sleep(0.3)
+    for session, device in ((b, B), (a_agent, A)):
+        replies = [r.ok.payload.to_bytes() for r in session.get(keys.key(device, keys.RECEIVED), timeout=1.0) if r.ok]
+        assert [wire.parse_watermark(p, device) for p in replies] == [0]  # the service's answer only
+        assert [r for r in session.get(keys.key(device, keys.COEFFICIENTS), timeout=0.5) if r.ok] == []
+
+
+def test_a_device_cannot_query_another_devices_keys(secured):
+    secured.publish(ws.coefficients(B, version=1))
+    a = secured.client(A)
+    assert [r for r in a.get(keys.key(B, keys.COEFFICIENTS), timeout=0.5) if r.ok] == []
+    assert [r for r in a.get(keys.key(B, keys.RECEIVED), timeout=0.5) if r.ok] == []
+
+
+# --- signed coefficient sets ----------------------------------------------------------------------
+
+
+def make_agent(secured, session, tmp_path, device=A):
+    seed = 3
+    return EdgeAgent(
+        device,
+        SimulatedDrive(seed, hours=1),
+        session,
+        Outbox(tmp_path / f"{device}.outbox"),
+        factory_calibration(drive_model(seed), seed),
+        verifier=SetVerifier.load(secured.pki),
+    )
+
+
+def plausible_set(agent, version):
+    from edge_agent.agent import factory_message
+
+    return {**factory_message(agent.device, agent.factory), "version": version, "basis": "fit", "created_at": 60.0}
+
+
+def test_agent_refuses_sets_not_signed_by_the_service(secured, foreign_pki, tmp_path):
+    """Defence in depth: what the router's own session (a router or path that is not trusted) delivers."""
+    agent = make_agent(secured, secured.client(A), tmp_path)
+    agent.start()
+    assert wait_for(lambda: secured.store.current_coefficients(A) is not None)  # its factory set, announced
+    forged = SetSigner.load(foreign_pki).sign(plausible_set(agent, 5))
+    unsigned = plausible_set(agent, 6)
+    tampered = secured.service.signer.sign(plausible_set(agent, 7))
+    tampered["bands"][0]["zero_offset_rad"] = 3.0
+    for msg in (forged, unsigned, tampered):
+        secured.router.put(keys.key(A, keys.COEFFICIENTS), wire.encode("coefficients", msg))
+    secured.publish(plausible_set(agent, 8))
+    assert wait_for(lambda: agent.inbox.qsize() >= 4)
+    agent.apply_inbox()
+    assert agent.version == 8 and agent.counters.applied == [8]
+    assert agent.counters.bad_signatures == 3
+    reasons = dict(agent.counters.refused)
+    assert "does not verify" in reasons[5] and "not signed" in reasons[6] and "does not verify" in reasons[7]
+    agent.step()  # acknowledges 8 with the quality it sees
+    assert wait_for(lambda: any(a["version"] == 8 for a in secured.store.acks(A)))
+    # the rejections were acknowledged, and the service refused those acks: it never published 5, 6, 7
+    assert wait_for(lambda: secured.store.rejection_counts().get("forged_ack") == 3)
+    agent.close()
+
+
+def test_agent_does_not_resume_with_an_unsigned_saved_set(secured, tmp_path):
+    agent = make_agent(secured, secured.client(A), tmp_path)
+    agent.outbox.save_coefficients(wire.encode("coefficients", plausible_set(agent, 2**53 - 1)))  # the old attack
+    agent.outbox.close()
+    again = make_agent(secured, secured.client(A), tmp_path)
+    assert again.version == 0 and again.counters.bad_signatures == 1
+
+
+def test_signature_is_over_the_canonical_set():
+    signer_key = __import__("cryptography.hazmat.primitives.asymmetric.ed25519", fromlist=["x"]).Ed25519PrivateKey
+    key = signer_key.generate()
+    signer, verifier = SetSigner(key), SetVerifier(key.public_key())
+    msg = signer.sign(ws.coefficients(A, version=3))
+    round_trip = wire.decode("coefficients", wire.encode("coefficients", msg), key_device=A)
+    verifier.verify(round_trip)
+    assert canonical(round_trip) == canonical({k: v for k, v in msg.items() if k != "signature"})
+    for change in ({"version": 4}, {"device": B}, {"created_at": 1.0}):
+        with pytest.raises(wire.WireError):
+            verifier.verify({**round_trip, **change})
+
+
+# --- the service checks too ------------------------------------------------------------------------
+
+
+def test_service_refuses_forged_replayed_and_unregistered_messages(secured):
+    """Through the router's own session, i.e. as if an external router's ACL let them pass."""
+    put = lambda key, msg, kind: secured.router.put(key, wire.encode(kind, msg))  # noqa: E731
+    put(keys.key(A, keys.ACK), ws.ack(A, version=9), "ack")  # never published
+    secured.publish(ws.coefficients(A, version=1))
+    put(keys.key(A, keys.ACK), ws.ack(A, version=1), "ack")
+    put(keys.key(A, keys.ACK), ws.ack(A, version=1), "ack")  # the same ack again
+    put(keys.key("drive-zz", keys.STATS), ws.window("drive-zz", 1), "window")  # no certificate in the registry
+    put(keys.key("drive-zz", keys.FACTORY), {**ws.coefficients("drive-zz", 0), "basis": "factory"}, "coefficients")
+    expected = {"forged_ack": 1, "replayed_ack": 1, "unknown_device": 2}
+    assert wait_for(lambda: secured.store.rejection_counts() == expected), secured.store.rejection_counts()
+    assert [a["version"] for a in secured.store.acks(A)] == [1]
+    assert secured.store.device("drive-zz") is None
+    assert {k: secured.service.counters.ingested.get(k) for k in expected} == expected
+
+
+# --- REST tokens ------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def rest(tmp_path):
+    store = Store.open(tmp_path / "rest.sqlite")
+    auth = TokenAuth(store)
+    _, read = auth.create("read", "reader")
+    _, admin = auth.create("admin", "admin")
+    yield TestClient(create_app(store, auth=auth)), read, admin, auth
+    store.close()
+
+
+def test_rest_needs_a_token_everywhere_but_healthz(rest):
+    client, read, admin, _ = rest
+    paths = [p.replace("{device_id}", "drive-a").replace("{token_id}", "1") for p in client.app.openapi()["paths"]]
+    assert "/healthz" in paths and "/metrics" in paths and "/tokens" in paths
+    for path in paths:
+        if path == "/healthz":
+            assert client.get(path).status_code == 200
+            continue
+        for headers in ({}, {"Authorization": "Bearer nope"}, {"Authorization": f"Basic {read}"}):
+            response = client.request("DELETE" if "/tokens/" in path else "GET", path, headers=headers)
+            assert response.status_code == 401, (path, headers, response.text)
+            assert response.headers["www-authenticate"] == "Bearer"
+    good = {"Authorization": f"Bearer {read}"}
+    assert client.get("/devices", headers=good).status_code == 200
+    assert client.get("/metrics", headers=good).status_code == 200
+    assert client.get("/readyz", headers=good).status_code == 200
+
+
+def test_read_token_on_an_admin_endpoint_is_403(rest):
+    client, read, admin, auth = rest
+    as_reader, as_admin = {"Authorization": f"Bearer {read}"}, {"Authorization": f"Bearer {admin}"}
+    assert client.get("/tokens", headers=as_reader).status_code == 403
+    assert client.post("/tokens", json={"scope": "admin"}, headers=as_reader).status_code == 403
+    assert client.delete("/tokens/1", headers=as_reader).status_code == 403
+    listed = client.get("/tokens", headers=as_admin).json()
+    assert {t["name"] for t in listed} == {"reader", "admin"} and read not in json.dumps(listed)
+    created = client.post("/tokens", json={"scope": "read", "name": "grafana"}, headers=as_admin)
+    assert created.status_code == 201 and created.json()["token"].startswith("efr_")
+    assert client.get("/devices", headers={"Authorization": f"Bearer {created.json()['token']}"}).status_code == 200
+    assert client.delete(f"/tokens/{created.json()['id']}", headers=as_admin).status_code == 204
+    assert client.get("/devices", headers={"Authorization": f"Bearer {created.json()['token']}"}).status_code == 401
+
+
+def test_tokens_are_stored_hashed_and_never_logged(tmp_path, pki):
+    db, token_file, http_port = tmp_path / "fleet.sqlite", tmp_path / "secrets" / "admin-token", free_port()
+    command = [sys.executable, "-m", "encoder_fleet.cli", "service", "--db", str(db), "--pki", str(pki)]
+    command += ["--listen", f"tls/127.0.0.1:{free_port()}", "--http-port", str(http_port)]
+    command += ["--admin-token-file", str(token_file), "--log-level", "debug"]
+    service = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    tokens = []
+    try:
+        first, second = service.stdout.readline(), service.stdout.readline()
+        assert first.startswith("service: zenoh router on tls/") and str(token_file) in second, (first, second)
+        assert stat.S_IMODE(os.stat(token_file).st_mode) == 0o600
+        admin = token_file.read_text().strip()
+        made = subprocess.run(
+            [sys.executable, "-m", "encoder_fleet.cli", "token", "create", "--scope", "read", "--db", str(db)],
+            capture_output=True,
+            text=True,
+        )
+        read = made.stdout.splitlines()[0]
+        tokens = [admin, read]
+        base = f"http://127.0.0.1:{http_port}"
+        with httpx.Client(base_url=base, timeout=10) as http:
+            assert http.get("/devices", headers={"Authorization": f"Bearer {read}"}).status_code == 200
+            assert http.get("/tokens", headers={"Authorization": f"Bearer {read}"}).status_code == 403
+            assert http.get("/devices", headers={"Authorization": f"Bearer {read}x"}).status_code == 401
+            new = http.post("/tokens", json={"scope": "read"}, headers={"Authorization": f"Bearer {admin}"})
+            tokens.append(new.json()["token"])
+            assert http.get("/metrics", headers={"Authorization": f"Bearer {tokens[-1]}"}).status_code == 200
+    finally:
+        service.terminate()
+        out, err = service.communicate(timeout=30)
+    assert service.returncode == 0, err
+    assert '"GET /devices HTTP/1.1" 200' in err or "/devices" in err  # the requests were logged ...
+    for token in tokens:  # ... the tokens were not, and the database keeps only their hashes
+        assert token not in out and token not in err
+        assert token.encode() not in db.read_bytes()
