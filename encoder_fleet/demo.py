@@ -86,7 +86,7 @@ def applied_set(store: Store, device: str) -> dict | None:
     return store.coefficient_set(device, version)
 
 
-def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) -> int:
+def run_demo(*, devices: int, sim_hours: float, out_dir: Path, json_path: Path | None = None) -> int:
     out_dir = Path(out_dir)
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -130,7 +130,7 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
     ]
     expected = devices * int(round(sim_hours * 3600 / WINDOW_S))
     try:
-        with tqdm(total=expected, desc="windows stored", unit="win", file=log, disable=as_json) as bar:
+        with tqdm(total=expected, desc="windows stored", unit="win", file=log) as bar:
             while any(a.poll() is None for a in agents):
                 stored = sum(d["windows"] for d in store.devices())
                 bar.n = stored
@@ -172,10 +172,9 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool) ->
         service.stop()
         session.close()
         store.close()
-    if as_json:
-        print(json.dumps(summary, indent=1))
-    else:
-        print(format_summary(summary))
+    print(format_summary(summary))
+    if json_path is not None:
+        json_path.write_text(json.dumps(summary, indent=1) + "\n")
     return 0
 
 
