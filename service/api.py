@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -60,7 +61,11 @@ def time_range(
     ] = None,
 ) -> TimeRange:
     if t_from is not None and t_to is not None and t_from > t_to:
-        raise HTTPException(status_code=422, detail=f"'from' ({t_from}) is after 'to' ({t_to})")
+        # the same shape as every other 422, so the OpenAPI spec's HTTPValidationError describes it
+        message = f"'from' ({t_from}) is after 'to' ({t_to})"
+        raise RequestValidationError(
+            [{"type": "value_error", "loc": ("query", "from"), "msg": message, "input": t_from}]
+        )
     return TimeRange(t_from, t_to)
 
 
@@ -68,6 +73,10 @@ RangeDep = Annotated[TimeRange, Depends(time_range)]
 
 
 # --- response models (for the OpenAPI docs; wire messages stay plain JSON objects) -------------
+
+
+class ErrorMessage(BaseModel):
+    detail: str
 
 
 class Device(BaseModel):
@@ -140,6 +149,7 @@ class DeadLetter(BaseModel):
     reason: str
     detail: str
     payload_bytes: int
+    payload_sha256: str = Field(description="SHA-256 of the whole payload (empty for letters kept before it was).")
     payload_preview: str = Field(description="First 200 bytes, undecodable bytes replaced.")
 
 
@@ -156,10 +166,11 @@ class Rejections(BaseModel):
 
 # --- routers ------------------------------------------------------------------------------------
 
+_UNKNOWN_DEVICE = {404: {"model": ErrorMessage, "description": "No device with this id."}}
 devices = APIRouter(prefix="/devices", tags=["devices"])
-coefficients = APIRouter(prefix="/devices", tags=["coefficients"])
-windows = APIRouter(prefix="/devices", tags=["windows"])
-export = APIRouter(prefix="/devices", tags=["export"])
+coefficients = APIRouter(prefix="/devices", tags=["coefficients"], responses=_UNKNOWN_DEVICE)
+windows = APIRouter(prefix="/devices", tags=["windows"], responses=_UNKNOWN_DEVICE)
+export = APIRouter(prefix="/devices", tags=["export"], responses=_UNKNOWN_DEVICE)
 ingest = APIRouter(prefix="/ingest", tags=["ingest"])
 operations = APIRouter(tags=["operations"])
 
@@ -169,12 +180,12 @@ def list_devices(store: StoreDep):
     return store.devices()
 
 
-@devices.get("/{device_id}", response_model=Device, summary="One device")
+@devices.get("/{device_id}", response_model=Device, responses=_UNKNOWN_DEVICE, summary="One device")
 def get_device(device: DeviceDep):
     return device
 
 
-@devices.get("/{device_id}/health", response_model=Health, summary="Health of one device")
+@devices.get("/{device_id}/health", response_model=Health, responses=_UNKNOWN_DEVICE, summary="Health of one device")
 def device_health(device: DeviceDep, store: StoreDep):
     dev_id = device["id"]
     summary = store.window_summary(dev_id, recent=10)
@@ -256,7 +267,8 @@ def rejections(store: StoreDep, limit: Annotated[int, Query(ge=0, le=1000, descr
     counts = store.rejection_counts()
     latest = [
         DeadLetter(
-            payload_bytes=len(d["payload"]),
+            payload_bytes=d["payload_bytes"],
+            payload_sha256=d["payload_sha256"] or "",
             payload_preview=bytes(d["payload"][:200]).decode("utf-8", errors="replace"),
             **{k: d[k] for k in ("id", "received_at", "key_expr", "reason", "detail")},
         )

@@ -225,3 +225,16 @@ def test_docs_and_redoc_load_every_asset_from_the_service_itself(client):
         for url in assets:
             assert url.startswith("/"), f"{page} loads {url} from elsewhere"
             assert client.get(url).status_code == 200, url
+
+
+def test_openapi_documents_every_status_the_device_routes_answer(client, history):
+    spec = client.get("/openapi.json").json()
+    for path, item in spec["paths"].items():
+        if "{device_id}" in path:
+            assert "404" in item["get"]["responses"], path
+    missing = client.get("/devices/nope/health")
+    assert missing.status_code == 404 and set(missing.json()) == {"detail"}
+    reversed_range = client.get(f"/devices/{DEVICE}/windows", params={"from": 5, "to": 1})
+    assert reversed_range.status_code == 422
+    (error,) = reversed_range.json()["detail"]  # the documented HTTPValidationError shape
+    assert error["loc"] == ["query", "from"] and "after" in error["msg"]
