@@ -159,10 +159,11 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, json_path: Path |
         plot_path = out_dir / "angle-error-vs-temperature.png"
         plot_errors(curves, plot_path)
         summary["plot"] = str(plot_path)
-        mcap_path = out_dir / f"{names[0]}.mcap"
-        with open(mcap_path, "wb") as out:
-            export_mcap(store, names[0], out)
-        summary["mcap"] = str(mcap_path)
+        summary["mcap"] = []
+        for name in names:  # one audit file per drive, DIR/<device>.mcap
+            with open(out_dir / f"{name}.mcap", "wb") as out:
+                export_mcap(store, name, out)
+            summary["mcap"].append(str(out_dir / f"{name}.mcap"))
         summary["rejections"] = store.rejection_counts()
     finally:
         for a in agents:
@@ -199,7 +200,7 @@ def format_summary(summary: dict) -> str:
     lines += [
         "",
         f"database: {summary['database']}",
-        f"MCAP export (open in Foxglove): {summary['mcap']}",
+        f"MCAP exports (open in Foxglove): {', '.join(summary['mcap'])}",
         f"plot: {summary['plot']}",
         f"rejected messages: {summary['rejections'] or 'none'}",
         "inspect: .venv/bin/encoder-fleet service --db "

@@ -477,8 +477,9 @@ class Store:
             for r in self._rows("SELECT * FROM coefficient_sets WHERE device = ? ORDER BY version DESC", (device,))
         ]
 
-    def acks(self, device: str) -> list[dict]:
-        """Every ack (wire message), in the order the agent sent them."""
+    def acks(self, device: str, *, with_received_at: bool = False) -> list[dict]:
+        """Every ack (wire message), in the order the agent sent them; with_received_at adds the service's
+        receipt time (unix s) as "received_at"."""
         out = []
         for r in self._rows("SELECT * FROM acks WHERE device = ? ORDER BY at, id", (device,)):
             msg = {
@@ -491,6 +492,8 @@ class Store:
             }
             if r["reason"] is not None:
                 msg["reason"] = r["reason"]
+            if with_received_at:
+                msg["received_at"] = r["received_at"]
             out.append(msg)
         return out
 
@@ -584,22 +587,32 @@ class Store:
         return [self._window(r, stats) for r in rows]
 
     def iter_windows(
-        self, device: str, t_from: float | None = None, t_to: float | None = None, *, page: int = 200
+        self,
+        device: str,
+        t_from: float | None = None,
+        t_to: float | None = None,
+        *,
+        page: int = 200,
+        with_received_at: bool = False,
     ) -> Iterator[dict]:
         """Full window messages with t_from <= window_start <= t_to, by window_end, a page at a time
-        (the lock is not held between pages, so a long export does not stall ingest)."""
+        (the lock is not held between pages, so a long export does not stall ingest); with_received_at
+        adds the service's receipt time (unix s) as "received_at"."""
         after = (-float("inf"), 0)
         lo = -float("inf") if t_from is None else t_from
         hi = float("inf") if t_to is None else t_to
         while True:
             rows = self._rows(
-                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json FROM windows WHERE device = ? "
+                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json, received_at FROM windows WHERE device = ? "
                 "AND window_start >= ? AND window_start <= ? AND (window_end, seq) > (?, ?) "
                 "ORDER BY window_end, seq LIMIT ?",
                 (device, lo, hi, *after, page),
             )
             for r in rows:
-                yield self._window(r, True)
+                msg = self._window(r, True)
+                if with_received_at:
+                    msg["received_at"] = r["received_at"]
+                yield msg
             if len(rows) < page:
                 return
             after = (rows[-1]["window_end"], rows[-1]["seq"])
