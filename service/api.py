@@ -8,11 +8,13 @@ their own app around their own Store.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from importlib import resources
 from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
@@ -121,6 +123,20 @@ class Health(BaseModel):
     rejected_share: float | None = Field(description="rejected / (samples + rejected) over all windows.")
 
 
+class BandAngleError(BaseModel):
+    band: int
+    basis: str = Field(description="'factory' (windows run on version 0) or 'fleet' (on any later set).")
+    temp_c: float = Field(description="Mean temperature of those windows.")
+    angle_error_deg: float
+    windows: int
+
+
+class AngleErrorByBand(BaseModel):
+    device: str
+    metric: str = Field(description="Which per-window estimate is averaged.")
+    bands: list[BandAngleError]
+
+
 class CoefficientSet(BaseModel):
     version: int
     created_at: float
@@ -173,6 +189,7 @@ windows = APIRouter(prefix="/devices", tags=["windows"], responses=_UNKNOWN_DEVI
 export = APIRouter(prefix="/devices", tags=["export"], responses=_UNKNOWN_DEVICE)
 ingest = APIRouter(prefix="/ingest", tags=["ingest"])
 operations = APIRouter(tags=["operations"])
+page = APIRouter(tags=["page"])
 
 
 @devices.get("", response_model=list[Device], summary="All devices")
@@ -217,6 +234,18 @@ def device_health(device: DeviceDep, store: StoreDep):
         samples=summary["samples"],
         rejected=summary["rejected"],
         rejected_share=summary["rejected"] / seen if seen else None,
+    )
+
+
+@devices.get(
+    "/{device_id}/angle-error",
+    response_model=AngleErrorByBand,
+    responses=_UNKNOWN_DEVICE,
+    summary="Angle error against temperature: factory set against fleet sets",
+)
+def angle_error(device: DeviceDep, store: StoreDep):
+    return AngleErrorByBand(
+        device=device["id"], metric="angle_quality_deg", bands=store.angle_error_by_band(device["id"])
     )
 
 
@@ -309,6 +338,20 @@ def metrics(request: Request):
     return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
 
 
+STATIC = resources.files("service") / "static"
+
+
+@page.get("/", response_class=FileResponse, summary="The fleet page (HTML)")
+def fleet_page():
+    return FileResponse(STATIC / "fleet.html", media_type="text/html")
+
+
+@page.get("/static/plotly.min.js", include_in_schema=False)
+def plotly_js():
+    # the charting library ships inside the plotly package: served from here, the page needs no internet
+    return FileResponse(resources.files("plotly") / "package_data" / "plotly.min.js", media_type="text/javascript")
+
+
 def create_app(store: Store, service: FleetService | None = None) -> FastAPI:
     """The REST app around one Store (and, in the service, the running FleetService for its health and
     counters); the caller owns both. Swagger UI and ReDoc assets are served by the app itself
@@ -322,6 +365,7 @@ def create_app(store: Store, service: FleetService | None = None) -> FastAPI:
     app.state.store = store
     app.state.service = service
     app.state.metrics = metrics_registry(store, service)
-    for router in (devices, coefficients, windows, export, ingest, operations):
+    for router in (devices, coefficients, windows, export, ingest, operations, page):
         app.include_router(router)
+    app.mount("/static", StaticFiles(directory=str(STATIC)), name="static")
     return app

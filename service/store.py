@@ -617,6 +617,17 @@ class Store:
                 return
             after = (rows[-1]["window_end"], rows[-1]["seq"])
 
+    def angle_error_by_band(self, device: str) -> list[dict]:
+        """Per temperature band, the agent's angle-error estimate averaged over the windows it ran on the
+        factory set (version 0) and on fleet sets: [{band, basis, temp_c, angle_error_deg, windows}]."""
+        rows = self._rows(
+            "SELECT band, CASE WHEN coefficients_version = 0 THEN 'factory' ELSE 'fleet' END AS basis, "
+            "avg(temp_mean_c) AS temp_c, avg(angle_quality_deg) AS angle_error_deg, count(*) AS windows "
+            "FROM windows WHERE device = ? GROUP BY band, basis ORDER BY basis, band",
+            (device,),
+        )
+        return [dict(r) for r in rows]
+
     def window_summary(self, device: str, recent: int = 10) -> dict:
         """Totals over all windows and the newest `recent` windows (by seq), newest first."""
         total = self._rows(
