@@ -9,6 +9,7 @@ import sys
 import numpy as np
 
 from encoder_core.samples import InputError
+from encoder_fleet.argtypes import finite_float, positive_float
 
 
 def cmd_simulate(args) -> int:
@@ -58,8 +59,15 @@ def package_version() -> str:
         return "unknown (not installed)"
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """A bad argument is one line on stderr and exit 2 (the usage is one --help away)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="encoder-fleet", description=__doc__)
+    parser = OneLineParser(prog="encoder-fleet", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -70,24 +78,30 @@ def build_parser() -> argparse.ArgumentParser:
         default="bench",
         help="bench: seed 000's rig, 3600 positions per plateau with ramps; field: a drive for days",
     )
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="the recording CSV to write")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulation")
     p.add_argument("--typical", action="store_true", help="start from a randomly drawn production encoder")
     p.add_argument(
         "--set", action="append", metavar="KEY=JSON", help="set a model parameter, e.g. thermal_lag_tau_s=300"
     )
-    p.add_argument("--plateaus", type=float, nargs="+", default=[20.0, -40.0, 60.0, 20.0])
-    p.add_argument("--days", type=float, default=3.0)
-    p.add_argument("--sample-s", type=float, default=10.0)
-    p.add_argument("--no-reference", action="store_true")
-    p.add_argument("--no-temperature", action="store_true")
+    p.add_argument(
+        "--plateaus",
+        type=finite_float,
+        nargs="+",
+        default=[20.0, -40.0, 60.0, 20.0],
+        help="bench: temperature plateaus in °C, in order",
+    )
+    p.add_argument("--days", type=positive_float, default=3.0, help="field: days of operation")
+    p.add_argument("--sample-s", type=positive_float, default=10.0, help="field: seconds between samples")
+    p.add_argument("--no-reference", action="store_true", help="leave out the theta_ref_deg column")
+    p.add_argument("--no-temperature", action="store_true", help="leave out the temp_c column")
     p.add_argument("--halls", action="store_true", help="write the four hall columns instead of d, q")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("bench-methods", help="every compensation method on every scenario, one table")
-    p.add_argument("--json", help="also write the table as JSON")
-    p.add_argument("--png", help="also write error-against-angle plots")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", metavar="FILE", help="also write the table as JSON")
+    p.add_argument("--png", metavar="FILE", help="also write error-against-angle plots")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulated bench runs")
     p.set_defaults(func=cmd_bench_methods)
 
     for register in _extensions():

@@ -100,7 +100,9 @@ def demo_pki(pki_dir: Path, names: list[str]) -> Path:
     return pki_dir
 
 
-def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool, insecure: bool = False) -> int:
+def run_demo(
+    *, devices: int, sim_hours: float, out_dir: Path, json_path: Path | None = None, insecure: bool = False
+) -> int:
     out_dir = Path(out_dir)
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -158,7 +160,7 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool, in
     ]
     expected = devices * int(round(sim_hours * 3600 / WINDOW_S))
     try:
-        with tqdm(total=expected, desc="windows stored", unit="win", file=log, disable=as_json) as bar:
+        with tqdm(total=expected, desc="windows stored", unit="win", file=log) as bar:
             while any(a.poll() is None for a in agents):
                 stored = sum(d["windows"] for d in store.devices())
                 bar.n = stored
@@ -187,10 +189,11 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool, in
         plot_path = out_dir / "angle-error-vs-temperature.png"
         plot_errors(curves, plot_path)
         summary["plot"] = str(plot_path)
-        mcap_path = out_dir / f"{names[0]}.mcap"
-        with open(mcap_path, "wb") as out:
-            export_mcap(store, names[0], out)
-        summary["mcap"] = str(mcap_path)
+        summary["mcap"] = []
+        for name in names:  # one audit file per drive, DIR/<device>.mcap
+            with open(out_dir / f"{name}.mcap", "wb") as out:
+                export_mcap(store, name, out)
+            summary["mcap"].append(str(out_dir / f"{name}.mcap"))
         summary["rejections"] = store.rejection_counts()
         summary["security"] = "insecure" if insecure else f"mTLS + ACL + signed sets, PKI {pki}"
     finally:
@@ -201,10 +204,9 @@ def run_demo(*, devices: int, sim_hours: float, out_dir: Path, as_json: bool, in
         service.stop()
         session.close()
         store.close()
-    if as_json:
-        print(json.dumps(summary, indent=1))
-    else:
-        print(format_summary(summary))
+    print(format_summary(summary))
+    if json_path is not None:
+        json_path.write_text(json.dumps(summary, indent=1) + "\n")
     return 0
 
 
@@ -229,7 +231,7 @@ def format_summary(summary: dict) -> str:
     lines += [
         "",
         f"database: {summary['database']}",
-        f"MCAP export (open in Foxglove): {summary['mcap']}",
+        f"MCAP exports (open in Foxglove): {', '.join(summary['mcap'])}",
         f"plot: {summary['plot']}",
         f"rejected messages: {summary['rejections'] or 'none'}",
         f"security: {summary.get('security', '?')}",

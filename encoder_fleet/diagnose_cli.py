@@ -9,20 +9,24 @@ from pathlib import Path
 
 import numpy as np
 
+from encoder_fleet.argtypes import positive_int
+
 PROGRESS_MIN_ROWS = 20000  # a progress bar only on long recordings
 
 
 def register(sub) -> None:
     p = sub.add_parser("diagnose", help="name what the seed-000 baseline misses in a recording, with held-out gains")
     p.add_argument("recording", help="recording CSV (t, d, q or the four halls; optional temp_c, theta_ref_deg, run)")
-    p.add_argument("--json", help="write the findings (Diagnose JSON of docs/architecture.md) here")
-    p.add_argument("--report", help="write an HTML report with plots here")
+    p.add_argument("--json", metavar="FILE", help="write the findings (Diagnose JSON of docs/architecture.md) here")
+    p.add_argument("--report", metavar="FILE", help="write an HTML report with plots here")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("bench-diagnose", help="time diagnose on simulated recordings of growing length")
-    p.add_argument("--rows", type=int, nargs="+", default=[10000, 30000, 100000])
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--rows", type=positive_int, nargs="+", default=[10000, 30000, 100000], help="recording lengths to time"
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulated recordings")
     p.set_defaults(func=cmd_bench_diagnose)
 
 

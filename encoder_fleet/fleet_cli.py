@@ -8,6 +8,15 @@ import threading
 from pathlib import Path
 
 from encoder_core.samples import InputError
+from encoder_fleet.argtypes import (
+    device_name,
+    finite_float,
+    non_negative_float,
+    non_negative_int,
+    port,
+    positive_float,
+    positive_int,
+)
 from encoder_fleet.logs import add_level_option
 
 
@@ -136,6 +145,8 @@ def cmd_export(args) -> int:
 
     if not Path(args.db).exists():
         raise InputError(f"--db {args.db}: no such database")
+    if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
+        raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
     store = Store.open(args.db)
     try:
         if store.device(args.device) is None:
@@ -151,11 +162,12 @@ def cmd_export(args) -> int:
 def cmd_demo(args) -> int:
     from encoder_fleet.demo import run_demo
 
+    json_path = None if args.json is None else Path(args.json)
     return run_demo(
         devices=args.devices,
         sim_hours=args.sim_hours,
         out_dir=Path(args.out),
-        as_json=args.json,
+        json_path=json_path,
         insecure=args.insecure,
     )
 
@@ -168,16 +180,16 @@ def cmd_bench_fleet(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("agent", help="run an edge agent next to a drive")
-    p.add_argument("--device", required=True)
+    p.add_argument("--device", required=True, type=device_name, help="the drive's id (its Zenoh key segment)")
     p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     p.add_argument("--source", default="sim", help="sim, or replay:REC.csv")
     p.add_argument("--seed", type=int, help="simulated drive's seed (default: from the device name)")
-    p.add_argument("--sim-hours", type=float, default=24.0)
-    p.add_argument("--sample-hz", type=float, default=20.0)
-    p.add_argument("--window-s", type=float, default=60.0)
+    p.add_argument("--sim-hours", type=positive_float, default=24.0, help="sim: hours of drive time to run")
+    p.add_argument("--sample-hz", type=positive_float, default=20.0, help="sim: samples per second")
+    p.add_argument("--window-s", type=positive_float, default=60.0, help="seconds of drive time per window")
     p.add_argument(
         "--real-time-factor",
-        type=float,
+        type=non_negative_float,
         default=0.0,
         help="pace the simulated clock at this many times real time (0: as fast as possible)",
     )
@@ -188,7 +200,7 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_agent)
 
     p = sub.add_parser("service", help="run the central service (embeds a Zenoh router by default)")
-    p.add_argument("--db", default="out/fleet.sqlite")
+    p.add_argument("--db", default="out/fleet.sqlite", help="the SQLite history (created if missing)")
     p.add_argument(
         "--listen",
         action="append",
@@ -197,11 +209,11 @@ def register(sub) -> None:
     )
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="join external routers instead")
     p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
-    p.add_argument("--http-port", type=int, default=8000, help="REST port (0: no REST)")
-    p.add_argument("--refit-interval", type=float, default=2.0, help="seconds between refit passes")
+    p.add_argument("--http-port", type=port, default=8000, help="REST port (0: no REST)")
+    p.add_argument("--refit-interval", type=positive_float, default=2.0, help="seconds between refit passes")
     p.add_argument(
         "--band-horizon",
-        type=int,
+        type=non_negative_int,
         help="newest windows per temperature band that refits use, so they follow aging "
         "(0: all; default: the service's)",
     )
@@ -215,25 +227,25 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_service)
 
     p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")
-    p.add_argument("--db", default="out/fleet.sqlite")
-    p.add_argument("--device", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--from", dest="t_from", type=float)
-    p.add_argument("--to", dest="t_to", type=float)
+    p.add_argument("--db", default="out/fleet.sqlite", help="the service's SQLite history")
+    p.add_argument("--device", required=True, type=device_name, help="the device to export")
+    p.add_argument("--out", required=True, help="the MCAP file to write")
+    p.add_argument("--from", dest="t_from", type=finite_float, help="start, s on the drive's clock")
+    p.add_argument("--to", dest="t_to", type=finite_float, help="end, s on the drive's clock")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="a simulated fleet, the service and the rollout, with a summary")
-    p.add_argument("--devices", type=int, default=4)
-    p.add_argument("--sim-hours", type=float, default=24.0)
-    p.add_argument("--out", default="out/demo")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--devices", type=positive_int, default=4, help="simulated drives, one agent process each")
+    p.add_argument("--sim-hours", type=positive_float, default=24.0, help="hours of drive time")
+    p.add_argument("--out", default="out/demo", help="folder for the database, plots and MCAP exports")
+    p.add_argument("--json", metavar="FILE", help="also write the summary as JSON")
     p.add_argument("--insecure", action="store_true", help="no PKI: plain TCP, no ACL, unsigned sets, open REST")
     add_level_option(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench-fleet", help="windows ingested and refits per second for fleets of several sizes")
-    p.add_argument("--devices", type=int, nargs="+", default=[10, 100, 1000])
-    p.add_argument("--windows", type=int, default=20, help="windows per device")
+    p.add_argument("--devices", type=positive_int, nargs="+", default=[10, 100, 1000], help="fleet sizes to run")
+    p.add_argument("--windows", type=positive_int, default=20, help="windows per device")
     p.set_defaults(func=cmd_bench_fleet)
 
 

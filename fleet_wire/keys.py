@@ -17,7 +17,8 @@ import re
 PREFIX = "encoders"
 STATS, ACK, FACTORY, COEFFICIENTS, RECEIVED, ALIVE = "stats", "ack", "factory", "coefficients", "received", "alive"
 SUFFIXES = (STATS, ACK, FACTORY, COEFFICIENTS, RECEIVED, ALIVE)
-DEVICE_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+# a Zenoh key segment that is no wildcard and no path trick: '.', '..' and '-' are not devices
+DEVICE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 def key(device: str, suffix: str) -> str:

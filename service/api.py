@@ -8,10 +8,13 @@ their own app around their own Store.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from importlib import resources
 from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
@@ -61,7 +64,11 @@ def time_range(
     ] = None,
 ) -> TimeRange:
     if t_from is not None and t_to is not None and t_from > t_to:
-        raise HTTPException(status_code=422, detail=f"'from' ({t_from}) is after 'to' ({t_to})")
+        # the same shape as every other 422, so the OpenAPI spec's HTTPValidationError describes it
+        message = f"'from' ({t_from}) is after 'to' ({t_to})"
+        raise RequestValidationError(
+            [{"type": "value_error", "loc": ("query", "from"), "msg": message, "input": t_from}]
+        )
     return TimeRange(t_from, t_to)
 
 
@@ -69,6 +76,10 @@ RangeDep = Annotated[TimeRange, Depends(time_range)]
 
 
 # --- response models (for the OpenAPI docs; wire messages stay plain JSON objects) -------------
+
+
+class ErrorMessage(BaseModel):
+    detail: str
 
 
 class Device(BaseModel):
@@ -113,6 +124,20 @@ class Health(BaseModel):
     rejected_share: float | None = Field(description="rejected / (samples + rejected) over all windows.")
 
 
+class BandAngleError(BaseModel):
+    band: int
+    basis: str = Field(description="'factory' (windows run on version 0) or 'fleet' (on any later set).")
+    temp_c: float = Field(description="Mean temperature of those windows.")
+    angle_error_deg: float
+    windows: int
+
+
+class AngleErrorByBand(BaseModel):
+    device: str
+    metric: str = Field(description="Which per-window estimate is averaged.")
+    bands: list[BandAngleError]
+
+
 class CoefficientSet(BaseModel):
     version: int
     created_at: float
@@ -141,6 +166,7 @@ class DeadLetter(BaseModel):
     reason: str
     detail: str
     payload_bytes: int
+    payload_sha256: str = Field(description="SHA-256 of the whole payload (empty for letters kept before it was).")
     payload_preview: str = Field(description="First 200 bytes, undecodable bytes replaced.")
 
 
@@ -157,12 +183,14 @@ class Rejections(BaseModel):
 
 # --- routers ------------------------------------------------------------------------------------
 
+_UNKNOWN_DEVICE = {404: {"model": ErrorMessage, "description": "No device with this id."}}
 devices = APIRouter(prefix="/devices", tags=["devices"])
-coefficients = APIRouter(prefix="/devices", tags=["coefficients"])
-windows = APIRouter(prefix="/devices", tags=["windows"])
-export = APIRouter(prefix="/devices", tags=["export"])
+coefficients = APIRouter(prefix="/devices", tags=["coefficients"], responses=_UNKNOWN_DEVICE)
+windows = APIRouter(prefix="/devices", tags=["windows"], responses=_UNKNOWN_DEVICE)
+export = APIRouter(prefix="/devices", tags=["export"], responses=_UNKNOWN_DEVICE)
 ingest = APIRouter(prefix="/ingest", tags=["ingest"])
 operations = APIRouter(tags=["operations"])
+page = APIRouter(tags=["page"])
 
 
 @devices.get("", response_model=list[Device], summary="All devices")
@@ -170,12 +198,12 @@ def list_devices(store: StoreDep):
     return store.devices()
 
 
-@devices.get("/{device_id}", response_model=Device, summary="One device")
+@devices.get("/{device_id}", response_model=Device, responses=_UNKNOWN_DEVICE, summary="One device")
 def get_device(device: DeviceDep):
     return device
 
 
-@devices.get("/{device_id}/health", response_model=Health, summary="Health of one device")
+@devices.get("/{device_id}/health", response_model=Health, responses=_UNKNOWN_DEVICE, summary="Health of one device")
 def device_health(device: DeviceDep, store: StoreDep):
     dev_id = device["id"]
     summary = store.window_summary(dev_id, recent=10)
@@ -207,6 +235,18 @@ def device_health(device: DeviceDep, store: StoreDep):
         samples=summary["samples"],
         rejected=summary["rejected"],
         rejected_share=summary["rejected"] / seen if seen else None,
+    )
+
+
+@devices.get(
+    "/{device_id}/angle-error",
+    response_model=AngleErrorByBand,
+    responses=_UNKNOWN_DEVICE,
+    summary="Angle error against temperature: factory set against fleet sets",
+)
+def angle_error(device: DeviceDep, store: StoreDep):
+    return AngleErrorByBand(
+        device=device["id"], metric="angle_quality_deg", bands=store.angle_error_by_band(device["id"])
     )
 
 
@@ -257,7 +297,8 @@ def rejections(store: StoreDep, limit: Annotated[int, Query(ge=0, le=1000, descr
     counts = store.rejection_counts()
     latest = [
         DeadLetter(
-            payload_bytes=len(d["payload"]),
+            payload_bytes=d["payload_bytes"],
+            payload_sha256=d["payload_sha256"] or "",
             payload_preview=bytes(d["payload"][:200]).decode("utf-8", errors="replace"),
             **{k: d[k] for k in ("id", "received_at", "key_expr", "reason", "detail")},
         )
@@ -298,6 +339,20 @@ def metrics(request: Request):
     return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
 
 
+STATIC = resources.files("service") / "static"
+
+
+@page.get("/", response_class=FileResponse, summary="The fleet page (HTML)")
+def fleet_page():
+    return FileResponse(STATIC / "fleet.html", media_type="text/html")
+
+
+@page.get("/static/plotly.min.js", include_in_schema=False)
+def plotly_js():
+    # the charting library ships inside the plotly package: served from here, the page needs no internet
+    return FileResponse(resources.files("plotly") / "package_data" / "plotly.min.js", media_type="text/javascript")
+
+
 def create_app(store: Store, service: FleetService | None = None, auth: TokenAuth | None = None) -> FastAPI:
     """The REST app around one Store (and, in the service, the running FleetService for its health and
     counters); the caller owns both. Swagger UI and ReDoc assets are served by the app itself
@@ -314,8 +369,9 @@ def create_app(store: Store, service: FleetService | None = None, auth: TokenAut
     app.state.service = service
     app.state.auth = auth
     app.state.metrics = metrics_registry(store, service)
-    for router in (devices, coefficients, windows, export, ingest, operations):
+    for router in (devices, coefficients, windows, export, ingest, operations, page):
         app.include_router(router)
+    app.mount("/static", StaticFiles(directory=str(STATIC)), name="static")
     if auth is not None:
         app.include_router(tokens)
     return app

@@ -25,7 +25,7 @@ from pydantic import BaseModel, Field
 from .store import Store
 
 SCOPES = ("read", "admin")
-PUBLIC_PATHS = frozenset({"/healthz"})
+PUBLIC_PATHS = frozenset({"/healthz", "/"})  # "/" is the fleet page's HTML shell: its data needs a token
 _PREFIX = {"read": "efr_", "admin": "efa_"}
 
 

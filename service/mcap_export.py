@@ -1,25 +1,223 @@
 """MCAP export of one device's history, for audits in Foxglove.
 
-Three channels, /encoders/<device>/stats, /coefficients and /ack, JSON messages exactly as on the
-wire, each channel's schema the schemas/ file (encoding "jsonschema"), so Foxglove can plot any
-field. Times are the drive's clock in ns: a window at its window_end, a set at created_at, an ack
-at `at`. The file is produced as a stream of byte chunks, so the REST endpoint never holds it.
+Channels (JSON messages, each with a JSON Schema that Foxglove's schema parser accepts: one plain type
+per field, no nulls (a missing value is a missing field), no arrays of arrays):
+
+| topic                          | schema                        | one message per                          |
+|--------------------------------|-------------------------------|------------------------------------------|
+| /encoders/<device>/stats       | encoder_fleet.Window          | window: the wire fields, `bins` flattened |
+| /encoders/<device>/metrics     | encoder_fleet.DriveMetrics    | window: flat numbers for the Plot panel  |
+| /encoders/<device>/coefficients| encoder_fleet.CoefficientSet  | coefficient set, harmonics flattened     |
+| /encoders/<device>/ack         | encoder_fleet.Ack             | ack                                      |
+| /encoders/<device>/log         | foxglove.Log                  | rollout decision (set published, applied, refused) |
+
+log_time is Unix time in ns: when the service received the window or ack, or published the set. The
+drive's clock stays a field (window_end, created_at, at). The time range (from, to) selects by the drive's
+clock, as the REST API does. The file is produced as a stream of byte chunks, so the REST endpoint never
+holds it; messages are written in drive order and MCAP's index lets readers replay them by log_time.
 """
 
 from __future__ import annotations
 
-import heapq
 import json
 from collections.abc import Iterator
 from typing import BinaryIO
 
 from mcap.writer import Writer
 
-from fleet_wire import messages as wire
+from encoder_core.stats import BIN_COLUMNS, N_BINS
+from fleet_wire import keys
 
 from .store import Store
 
-ORDER = ("coefficients", "window", "ack")  # at equal times: a set, then windows, then the ack to it
+NUMBER, INTEGER, STRING = {"type": "number"}, {"type": "integer"}, {"type": "string"}
+
+
+def _object(title: str, properties: dict, description: str = "") -> dict:
+    return {"title": title, "description": description, "type": "object", "properties": properties}
+
+
+def _numbers(description: str) -> dict:
+    return {"type": "array", "items": NUMBER, "description": description}
+
+
+WINDOW_NUMBERS = ("window_start", "window_end", "temp_mean_c", "temp_min_c", "temp_max_c", "temp_rate_c_per_s")
+WINDOW_NUMBERS += ("angle_quality_deg", "band")  # band is signed: Foxglove reads "integer" as uint32
+WINDOW_INTEGERS = ("seq", "samples", "rejected", "coefficients_version")
+STATS_NUMBERS = ("scale", "center_d", "center_q", "temp_sum", "temp_sq_sum", "temp_min", "temp_max")
+
+SCHEMAS = {
+    "encoder_fleet.Window": _object(
+        "encoder_fleet.Window",
+        {
+            **{f: NUMBER for f in WINDOW_NUMBERS},
+            **{f: INTEGER for f in WINDOW_INTEGERS},
+            "received_at": {**NUMBER, "description": "Service clock, unix s."},
+            "stats": _object(
+                "encoder_fleet.WindowStats",
+                {
+                    **{f: NUMBER for f in STATS_NUMBERS},
+                    "temp_n": INTEGER,
+                    "rejected": INTEGER,
+                    "moments": _numbers("Sums of x^i·y^j, i + j <= 4 (encoder_core/stats.py MONOMIALS order)."),
+                    "bins": _numbers(
+                        f"{N_BINS} angle bins × ({', '.join(BIN_COLUMNS)}), row-major: bin k's {BIN_COLUMNS[0]} "
+                        f"is bins[{len(BIN_COLUMNS)}·k]."
+                    ),
+                },
+                "The window's additive statistics (temp_min/temp_max absent when it held no temperature).",
+            ),
+        },
+        "One window of additive statistics (docs/wire.md), as received.",
+    ),
+    "encoder_fleet.DriveMetrics": _object(
+        "encoder_fleet.DriveMetrics",
+        {
+            "drive_time_s": {**NUMBER, "description": "window_end on the drive's clock."},
+            "angle_quality_deg": NUMBER,
+            "temp_mean_c": NUMBER,
+            "rejected_share": {**NUMBER, "description": "rejected / (samples + rejected) in the window."},
+            "coefficients_version": NUMBER,
+        },
+        "Flat numbers per window, for Foxglove's Plot panel.",
+    ),
+    "encoder_fleet.CoefficientSet": _object(
+        "encoder_fleet.CoefficientSet",
+        {
+            "version": INTEGER,
+            "created_at": {**NUMBER, "description": "Drive clock, s."},
+            "basis": STRING,
+            "published_at": {**NUMBER, "description": "Service clock, unix s (absent: never published)."},
+            "bands": {
+                "type": "array",
+                "items": _object(
+                    "encoder_fleet.Band",
+                    {
+                        "band": NUMBER,
+                        "temp_c": NUMBER,
+                        "w": _numbers("w1, w2, w3, w4 (docs/wire.md)."),
+                        "w5": NUMBER,
+                        "zero_offset_rad": NUMBER,
+                        "harmonic_orders": _numbers("m of each angle harmonic."),
+                        "harmonic_a": _numbers("a_m (rad), same order."),
+                        "harmonic_b": _numbers("b_m (rad), same order."),
+                        "samples": NUMBER,
+                        "residual_rms_rad": NUMBER,
+                        "radius_ripple_rad": NUMBER,
+                        "estimated_error_deg": NUMBER,
+                    },
+                ),
+            },
+        },
+        "A coefficient set (docs/wire.md) with its band entries flattened.",
+    ),
+    "encoder_fleet.Ack": _object(
+        "encoder_fleet.Ack",
+        {
+            "version": INTEGER,
+            "status": STRING,
+            "reason": STRING,
+            "angle_quality_deg": NUMBER,
+            "at": {**NUMBER, "description": "Drive clock, s."},
+            "received_at": {**NUMBER, "description": "Service clock, unix s."},
+        },
+        "An agent's answer to a coefficient set.",
+    ),
+    # the well-known Foxglove schema, so the Log panel lists rollout decisions
+    "foxglove.Log": _object(
+        "foxglove.Log",
+        {
+            "timestamp": _object("Time", {"sec": INTEGER, "nsec": INTEGER}, "Time of the event"),
+            "level": {
+                "title": "LogLevel: Log level",
+                "oneOf": [
+                    {"title": name, "const": value}
+                    for value, name in enumerate(("UNKNOWN", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"))
+                ],
+            },
+            "message": STRING,
+            "name": STRING,
+            "file": STRING,
+            "line": INTEGER,
+        },
+        "A log message",
+    ),
+}
+INFO, WARNING = 2, 3
+TOPICS = {  # topic suffix -> schema
+    "stats": "encoder_fleet.Window",
+    "metrics": "encoder_fleet.DriveMetrics",
+    "coefficients": "encoder_fleet.CoefficientSet",
+    "ack": "encoder_fleet.Ack",
+    "log": "foxglove.Log",
+}
+
+
+def _present(record: dict) -> dict:
+    """Leave out what is unknown instead of sending null (Foxglove's parser has no null type)."""
+    return {k: v for k, v in record.items() if v is not None}
+
+
+def window_record(msg: dict) -> dict:
+    stats = msg["stats"]
+    flat_stats = {k: stats.get(k) for k in (*STATS_NUMBERS, "temp_n", "rejected", "moments")}
+    flat_stats["bins"] = [value for row in stats["bins"] for value in row]
+    fields = (*WINDOW_NUMBERS, *WINDOW_INTEGERS, "received_at")
+    return _present({**{f: msg.get(f) for f in fields}, "stats": _present(flat_stats)})
+
+
+def metrics_record(msg: dict) -> dict:
+    seen = msg["samples"] + msg["rejected"]
+    return {
+        "drive_time_s": msg["window_end"],
+        "angle_quality_deg": msg["angle_quality_deg"],
+        "temp_mean_c": msg["temp_mean_c"],
+        "rejected_share": msg["rejected"] / seen if seen else 0.0,
+        "coefficients_version": msg["coefficients_version"],
+    }
+
+
+def coefficient_set_record(entry: dict) -> dict:
+    msg = entry["message"]
+    bands = []
+    for band in msg["bands"]:
+        harmonics = band.get("harmonics", [])
+        bands.append(
+            _present(
+                {
+                    **{k: band.get(k) for k in ("band", "temp_c", "w", "w5", "zero_offset_rad")},
+                    "harmonic_orders": [h[0] for h in harmonics],
+                    "harmonic_a": [h[1] for h in harmonics],
+                    "harmonic_b": [h[2] for h in harmonics],
+                    **band.get("quality", {}),
+                }
+            )
+        )
+    return _present(
+        {
+            "version": msg["version"],
+            "created_at": msg["created_at"],
+            "basis": msg["basis"],
+            "published_at": entry["published_at"],
+            "bands": bands,
+        }
+    )
+
+
+def ack_record(ack: dict) -> dict:
+    return _present({k: ack.get(k) for k in ("version", "status", "reason", "angle_quality_deg", "at", "received_at")})
+
+
+def log_record(unix_s: float, level: int, message: str, device: str) -> dict:
+    ns = _ns(unix_s)
+    return {
+        "timestamp": {"sec": ns // 10**9, "nsec": ns % 10**9},
+        "level": level,
+        "message": message,
+        "name": f"encoder-fleet/{device}",
+        "file": "",
+        "line": 0,
+    }
 
 
 class _Sink:
@@ -46,31 +244,36 @@ class _Sink:
         return data
 
 
-def _ns(seconds: float) -> int:
-    return int(round(seconds * 1e9))
+def _ns(unix_s: float) -> int:
+    return max(int(round(unix_s * 1e9)), 0)
 
 
 def _in_range(t: float, t_from: float | None, t_to: float | None) -> bool:
     return (t_from is None or t >= t_from) and (t_to is None or t <= t_to)
 
 
-def _timeline(store: Store, device: str, t_from, t_to) -> Iterator[tuple[int, int, str, dict]]:
-    """(log_time ns, tie order, kind, message), in time order. Windows are selected by window_start
-    (as the REST listing), sets by created_at, acks by `at`."""
-    windows = (
-        (_ns(m["window_end"]), ORDER.index("window"), "window", m) for m in store.iter_windows(device, t_from, t_to)
-    )
-    sets = [
-        (_ns(h["created_at"]), ORDER.index("coefficients"), "coefficients", h["message"])
-        for h in store.coefficient_history(device)
-        if _in_range(h["created_at"], t_from, t_to)
-    ]
-    sets.sort(key=lambda item: item[:2])
-    acks = [
-        (_ns(a["at"]), ORDER.index("ack"), "ack", a) for a in store.acks(device) if _in_range(a["at"], t_from, t_to)
-    ]
-    # store.acks is already in time order (at, then arrival)
-    return heapq.merge(windows, sets, acks, key=lambda item: item[:2])
+def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, str, dict]]:
+    """(log time unix s, topic suffix, record): sets and acks with their log lines, then windows."""
+    for entry in reversed(store.coefficient_history(device)):  # oldest first
+        if entry["published_at"] is None or not _in_range(entry["created_at"], t_from, t_to):
+            continue
+        msg = entry["message"]
+        yield entry["published_at"], "coefficients", coefficient_set_record(entry)
+        bands = ", ".join(str(b["band"]) for b in msg["bands"])
+        text = f"coefficient set v{msg['version']} published (basis {msg['basis']}; bands {bands})"
+        yield entry["published_at"], "log", log_record(entry["published_at"], INFO, text, device)
+    for ack in store.acks(device, with_received_at=True):
+        if not _in_range(ack["at"], t_from, t_to):
+            continue
+        yield ack["received_at"], "ack", ack_record(ack)
+        if ack["status"] == "applied":
+            text, level = f"coefficient set v{ack['version']} applied by the agent", INFO
+        else:
+            text, level = f"coefficient set v{ack['version']} refused by the agent: {ack.get('reason', '')}", WARNING
+        yield ack["received_at"], "log", log_record(ack["received_at"], level, text, device)
+    for msg in store.iter_windows(device, t_from, t_to, with_received_at=True):
+        yield msg["received_at"], "stats", window_record(msg)
+        yield msg["received_at"], "metrics", metrics_record(msg)
 
 
 def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: float | None = None) -> Iterator[bytes]:
@@ -80,28 +283,31 @@ def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: floa
     sink = _Sink()
     writer = Writer(sink)
     writer.start(profile="", library="encoder-fleet")
-    channels = {}
-    for kind in wire.KINDS:
-        schema_id = writer.register_schema(
-            name=wire.SCHEMA_NAME[kind],
-            encoding="jsonschema",
-            data=wire.schema_bytes(kind),
-        )
-        channels[kind] = writer.register_channel(
-            topic=f"/{wire.key_for(kind, device)}",
+    schema_ids = {
+        name: writer.register_schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode())
+        for name, schema in SCHEMAS.items()
+    }
+    channels = {
+        suffix: writer.register_channel(
+            topic=f"/{keys.key(device, suffix)}",
             message_encoding="json",
-            schema_id=schema_id,
+            schema_id=schema_ids[schema],
             metadata={"device": device},
         )
+        for suffix, schema in TOPICS.items()
+    }
     writer.add_metadata(
         "encoder-fleet export",
         {"device": device, "from": "" if t_from is None else repr(t_from), "to": "" if t_to is None else repr(t_to)},
     )
-    for log_time, _, kind, msg in _timeline(store, device, t_from, t_to):
-        # stored messages were checked on the way in; re-validating each one would dominate the export
-        data = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
-        sequence = msg.get("seq", msg.get("version", 0)) % 2**32
-        writer.add_message(channels[kind], log_time=log_time, data=data, publish_time=log_time, sequence=sequence)
+    sequence = dict.fromkeys(TOPICS, 0)
+    for unix_s, suffix, record in _events(store, device, t_from, t_to):
+        data = json.dumps(record, separators=(",", ":"), allow_nan=False).encode("utf-8")
+        sequence[suffix] += 1
+        log_time = _ns(unix_s)
+        writer.add_message(
+            channels[suffix], log_time=log_time, data=data, publish_time=log_time, sequence=sequence[suffix]
+        )
         chunk = sink.take()
         if chunk:
             yield chunk
@@ -112,6 +318,6 @@ def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: floa
 def export_mcap(
     store: Store, device: str, out: BinaryIO, t_from: float | None = None, t_to: float | None = None
 ) -> None:
-    """Write the device's windows, coefficient sets and acks in [t_from, t_to] to `out` as MCAP."""
+    """Write the device's windows, coefficient sets, acks and rollout log in [t_from, t_to] to `out` as MCAP."""
     for chunk in iter_mcap(store, device, t_from, t_to):
         out.write(chunk)

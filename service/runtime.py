@@ -359,7 +359,7 @@ def run_service(
             Path(db).parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
-        store = Store.open(db, band_horizon=band_horizon or None)
+        store = Store.open(db, band_horizon=band_horizon or None, check_integrity=True)
         running.callback(store.close)
         session = open_session(listen=listen, connect=connect, pki=pki)
         running.callback(session.close)

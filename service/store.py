@@ -12,6 +12,7 @@ on the wire (see migrations/001_initial.sql).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import sqlite3
@@ -30,6 +31,9 @@ from fleet_wire import messages as wire
 # numbered SQL files: migrations/ in the repository, shipped as package data (service.migrations)
 MIGRATIONS_DIR = resources.files("service.migrations")
 MIGRATION_NAME = re.compile(r"^(\d+)_[\w.-]*\.sql$")
+
+DEAD_LETTER_KEEP = 64 * 1024  # bytes of a refused payload kept for audit (a whole window message fits)
+DEAD_LETTER_DETAIL = 1000  # characters of its reason text
 
 # wire fields of a window stored as columns of the same name, in wire order
 WINDOW_FIELDS = (
@@ -99,9 +103,12 @@ class Store:
         self.band_horizon = band_horizon
 
     @classmethod
-    def open(cls, path, *, migrations_dir=MIGRATIONS_DIR, band_horizon: int | None = None) -> Store:
+    def open(
+        cls, path, *, migrations_dir=MIGRATIONS_DIR, band_horizon: int | None = None, check_integrity: bool = False
+    ) -> Store:
         """Open (or create) the database and apply the migrations it lacks. A database that cannot be
-        opened raises StoreError('unavailable') with one line that says which file and why."""
+        opened raises StoreError('unavailable') with one line that says which file and why; with
+        check_integrity (the service at start-up) a corrupt file is refused before anything runs on it."""
         migrations = migration_files(migrations_dir)
         try:
             # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
@@ -109,8 +116,14 @@ class Store:
             conn.row_factory = sqlite3.Row
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute("PRAGMA foreign_keys=ON")
+            problems = [r[0] for r in conn.execute("PRAGMA quick_check(3)")] if check_integrity else ["ok"]
         except sqlite3.Error as exc:
             raise StoreError("unavailable", f"database {path} cannot be opened: {exc}") from None
+        if problems != ["ok"]:
+            conn.close()
+            raise StoreError(
+                "unavailable", f"database {path} is corrupt ({' '.join(' '.join(problems).split())}); restore a backup"
+            )
         store = cls(conn, str(path), band_horizon)
         try:
             store._migrate(migrations)
@@ -289,10 +302,22 @@ class Store:
     def dead_letter(
         self, key_expr: str, reason: str, detail: str, payload: bytes, *, received_at: float | None = None
     ) -> int:
+        """Keep a refused message for audit: its first DEAD_LETTER_KEEP bytes, its size and SHA-256, so a
+        flood of huge payloads cannot fill the disk while each is still identified."""
+        payload = bytes(payload)
         with self._tx() as c:
             cur = c.execute(
-                "INSERT INTO dead_letters (received_at, key_expr, reason, detail, payload) VALUES (?, ?, ?, ?, ?)",
-                (time.time() if received_at is None else received_at, str(key_expr), reason, detail, bytes(payload)),
+                "INSERT INTO dead_letters (received_at, key_expr, reason, detail, payload, payload_bytes, "
+                "payload_sha256) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    time.time() if received_at is None else received_at,
+                    str(key_expr)[:DEAD_LETTER_KEEP],
+                    reason,
+                    detail[:DEAD_LETTER_DETAIL],
+                    payload[:DEAD_LETTER_KEEP],
+                    len(payload),
+                    hashlib.sha256(payload).hexdigest(),
+                ),
             )
             return cur.lastrowid
 
@@ -452,8 +477,9 @@ class Store:
             for r in self._rows("SELECT * FROM coefficient_sets WHERE device = ? ORDER BY version DESC", (device,))
         ]
 
-    def acks(self, device: str) -> list[dict]:
-        """Every ack (wire message), in the order the agent sent them."""
+    def acks(self, device: str, *, with_received_at: bool = False) -> list[dict]:
+        """Every ack (wire message), in the order the agent sent them; with_received_at adds the service's
+        receipt time (unix s) as "received_at"."""
         out = []
         for r in self._rows("SELECT * FROM acks WHERE device = ? ORDER BY at, id", (device,)):
             msg = {
@@ -466,6 +492,8 @@ class Store:
             }
             if r["reason"] is not None:
                 msg["reason"] = r["reason"]
+            if with_received_at:
+                msg["received_at"] = r["received_at"]
             out.append(msg)
         return out
 
@@ -559,25 +587,46 @@ class Store:
         return [self._window(r, stats) for r in rows]
 
     def iter_windows(
-        self, device: str, t_from: float | None = None, t_to: float | None = None, *, page: int = 200
+        self,
+        device: str,
+        t_from: float | None = None,
+        t_to: float | None = None,
+        *,
+        page: int = 200,
+        with_received_at: bool = False,
     ) -> Iterator[dict]:
         """Full window messages with t_from <= window_start <= t_to, by window_end, a page at a time
-        (the lock is not held between pages, so a long export does not stall ingest)."""
+        (the lock is not held between pages, so a long export does not stall ingest); with_received_at
+        adds the service's receipt time (unix s) as "received_at"."""
         after = (-float("inf"), 0)
         lo = -float("inf") if t_from is None else t_from
         hi = float("inf") if t_to is None else t_to
         while True:
             rows = self._rows(
-                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json FROM windows WHERE device = ? "
+                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json, received_at FROM windows WHERE device = ? "
                 "AND window_start >= ? AND window_start <= ? AND (window_end, seq) > (?, ?) "
                 "ORDER BY window_end, seq LIMIT ?",
                 (device, lo, hi, *after, page),
             )
             for r in rows:
-                yield self._window(r, True)
+                msg = self._window(r, True)
+                if with_received_at:
+                    msg["received_at"] = r["received_at"]
+                yield msg
             if len(rows) < page:
                 return
             after = (rows[-1]["window_end"], rows[-1]["seq"])
+
+    def angle_error_by_band(self, device: str) -> list[dict]:
+        """Per temperature band, the agent's angle-error estimate averaged over the windows it ran on the
+        factory set (version 0) and on fleet sets: [{band, basis, temp_c, angle_error_deg, windows}]."""
+        rows = self._rows(
+            "SELECT band, CASE WHEN coefficients_version = 0 THEN 'factory' ELSE 'fleet' END AS basis, "
+            "avg(temp_mean_c) AS temp_c, avg(angle_quality_deg) AS angle_error_deg, count(*) AS windows "
+            "FROM windows WHERE device = ? GROUP BY band, basis ORDER BY basis, band",
+            (device,),
+        )
+        return [dict(r) for r in rows]
 
     def window_summary(self, device: str, recent: int = 10) -> dict:
         """Totals over all windows and the newest `recent` windows (by seq), newest first."""

@@ -10,6 +10,7 @@ from wire_samples import ack, coefficients, window
 
 from fleet_wire import messages as wire
 from service.api import create_app
+from service.mcap_export import window_record
 from service.store import Store
 
 DEVICE = "drive-001"
@@ -144,7 +145,8 @@ def test_export_mcap(client, history, store):
     assert r.headers["content-disposition"] == f'attachment; filename="{DEVICE}.mcap"'
     reader = make_reader(io.BytesIO(r.content))
     got = [(c.topic, json.loads(m.data)) for _, c, m in reader.iter_messages()]
-    assert [b for t, b in got if t.endswith("/stats")] == list(store.iter_windows(DEVICE, 0, 150))
+    expected = [window_record(m) for m in store.iter_windows(DEVICE, 0, 150, with_received_at=True)]
+    assert [b for t, b in got if t.endswith("/stats")] == expected
     assert all(t.startswith(f"/encoders/{DEVICE}/") for t, _ in got)
     assert client.get(f"/devices/{DEVICE}/export.mcap", params={"from": "x"}).status_code == 422
 
@@ -225,3 +227,16 @@ def test_docs_and_redoc_load_every_asset_from_the_service_itself(client):
         for url in assets:
             assert url.startswith("/"), f"{page} loads {url} from elsewhere"
             assert client.get(url).status_code == 200, url
+
+
+def test_openapi_documents_every_status_the_device_routes_answer(client, history):
+    spec = client.get("/openapi.json").json()
+    for path, item in spec["paths"].items():
+        if "{device_id}" in path:
+            assert "404" in item["get"]["responses"], path
+    missing = client.get("/devices/nope/health")
+    assert missing.status_code == 404 and set(missing.json()) == {"detail"}
+    reversed_range = client.get(f"/devices/{DEVICE}/windows", params={"from": 5, "to": 1})
+    assert reversed_range.status_code == 422
+    (error,) = reversed_range.json()["detail"]  # the documented HTTPValidationError shape
+    assert error["loc"] == ["query", "from"] and "after" in error["msg"]

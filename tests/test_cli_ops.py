@@ -47,3 +47,57 @@ def test_service_logs_one_json_event_per_line_at_the_level_asked(tmp_path):
         quiet.terminate()
         _, err = quiet.communicate(timeout=30)
     assert "service started" not in err
+
+
+def _options(parser):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                for option, help_text in _options(sub):
+                    yield f"{name} {option}", help_text
+        elif action.option_strings or action.dest not in ("help",):
+            yield "/".join(action.option_strings) or action.dest, action.help
+
+
+def test_every_option_of_every_command_has_help_text():
+    from encoder_fleet.cli import build_parser
+
+    missing = [name for name, help_text in _options(build_parser()) if not help_text and "command" not in name]
+    assert not missing, missing
+
+
+def run_main(capsys, *argv) -> tuple[int, str]:
+
+    from encoder_fleet.cli import main
+
+    try:
+        code = main(list(argv))
+    except SystemExit as exc:  # argparse refuses before main runs
+        code = exc.code
+    err = capsys.readouterr().err
+    return code, err
+
+
+def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
+    from service.store import Store
+
+    Store.open(tmp_path / "f.sqlite").close()
+    cases = [
+        (("simulate", "--out", str(tmp_path / "x.csv"), "--days", "-1"), "--days"),
+        (("simulate", "--out", str(tmp_path / "x.csv"), "--sample-s", "nan"), "--sample-s"),
+        (("demo", "--devices", "0"), "--devices"),
+        (("agent", "--device", "a/b", "--connect", "tcp/127.0.0.1:1"), "--device"),
+        (("agent", "--device", "..", "--connect", "tcp/127.0.0.1:1"), "--device"),
+        (("service", "--http-port", "70000"), "--http-port"),
+        (("bench-fleet", "--devices", "10", "-5"), "--devices"),
+        (("export", "--db", str(tmp_path / "f.sqlite"), "--device", "d", "--out", "o.mcap", "--from", "5", "--to", "1"),
+         "--from"),
+        (("no-such-command",), "invalid choice"),
+    ]  # fmt: skip
+    for argv, word in cases:
+        code, err = run_main(capsys, *argv)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and word in lines[0] and "Traceback" not in err, (argv, err)
+    assert not (tmp_path / "x.csv").exists() and not (tmp_path / "o.mcap").exists()

@@ -166,3 +166,21 @@ def test_a_database_that_cannot_be_opened_is_one_line_not_a_traceback(tmp_path):
     assert_one_line_error(cli("export", "--db", str(garbage), "--device", "d", "--out", "x.mcap", cwd=tmp_path),
                           str(garbage))  # fmt: skip
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_service_refuses_a_database_corrupt_mid_file_in_one_line(tmp_path):
+    from wire_samples import window
+
+    from service.store import Store
+
+    path = tmp_path / "mid.sqlite"
+    with Store.open(path) as s:
+        for seq in range(1, 200):
+            s.insert_window(window(seq=seq))
+        s._rows("PRAGMA wal_checkpoint(TRUNCATE)")
+    data = bytearray(path.read_bytes())
+    data[5 * 4096 : 5 * 4096 + 64] = b"\xff" * 64
+    path.write_bytes(bytes(data))
+    done = cli("service", "--db", str(path), "--http-port", "0", "--insecure",
+               "--listen", f"tcp/127.0.0.1:{free_port()}", cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(done, str(path), "corrupt")

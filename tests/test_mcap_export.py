@@ -1,4 +1,5 @@
-"""MCAP export read back with mcap's own reader and compared with the database."""
+"""MCAP export read back with mcap's own reader, compared with the database, and every schema checked
+against the rules of Foxglove's JSON-Schema parser (so each channel loads in Foxglove)."""
 
 import io
 import json
@@ -8,27 +9,73 @@ from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 from wire_samples import ack, coefficients, window
 
-from fleet_wire import messages as wire
-from service.mcap_export import export_mcap, iter_mcap
+from service.mcap_export import SCHEMAS, TOPICS, export_mcap, iter_mcap, window_record
 from service.store import Store
+
+T0 = 1.7e9  # service clock, unix s: log times are real dates, not 1970
 
 
 @pytest.fixture
 def store(tmp_path):
     with Store.open(tmp_path / "fleet.db") as s:
         for seq in range(1, 7):
-            s.insert_window(window(seq=seq, version=0 if seq < 4 else 1, temp_c=20.0 + 3 * seq))
+            msg = window(seq=seq, version=0 if seq < 4 else 1, temp_c=20.0 + 3 * seq)
+            s.insert_window(msg, received_at=T0 + 60 * seq)
         s.insert_window(window("drive-002", 1))
         s.insert_coefficient_set(coefficients(version=1, created_at=150.0))
+        s.mark_published("drive-001", 1, at=T0 + 150)
         s.insert_coefficient_set(coefficients(version=2, created_at=330.0, bands=(2, 3)))
-        s.insert_ack(ack(version=1, at=170.0))
-        s.insert_ack(ack(version=2, at=340.0, status="rejected"))
+        s.mark_published("drive-001", 2, at=T0 + 330)
+        s.insert_ack(ack(version=1, at=170.0), received_at=T0 + 171)
+        s.insert_ack(ack(version=2, at=340.0, status="rejected"), received_at=T0 + 341)
         yield s
 
 
 def read(data: bytes):
     reader = make_reader(io.BytesIO(data))
     return reader, list(reader.iter_messages())
+
+
+def foxglove_problems(schema: dict, path: str = "$") -> list[str]:
+    """What Foxglove's JSON-Schema parser (mcap-support parseJsonSchema) would refuse: objects need
+    "type": "object" with properties; a field is boolean, string (plain or base64), number, integer, a
+    nested object, an array of one of those (no arrays of arrays), or a oneOf of numeric consts. No
+    null, no list of types."""
+    if schema.get("type") != "object" or not isinstance(schema.get("properties"), dict):
+        return [f"{path}: not an object with properties"]
+    problems = []
+    for name, field in schema["properties"].items():
+        where = f"{path}.{name}"
+        if "oneOf" in field:
+            if not all(isinstance(alt.get("const"), int) for alt in field["oneOf"]):
+                problems.append(f"{where}: oneOf alternatives must be numeric consts")
+            continue
+        kind = field.get("type")
+        if kind in ("boolean", "number", "integer"):
+            continue
+        if kind == "string":
+            if field.get("contentEncoding") not in (None, "base64"):
+                problems.append(f"{where}: contentEncoding {field['contentEncoding']}")
+        elif kind == "object":
+            problems += foxglove_problems(field, where)
+        elif kind == "array":
+            item = field.get("items", {})
+            if item.get("type") == "object":
+                problems += foxglove_problems(item, f"{where}[]")
+            elif item.get("type") not in ("boolean", "number", "integer", "string") or "contentEncoding" in item:
+                problems.append(f"{where}: array of {item.get('type')!r}")
+        else:
+            problems.append(f"{where}: type {kind!r}")
+    return problems
+
+
+def test_every_exported_schema_is_one_foxglove_can_parse():
+    for name, schema in SCHEMAS.items():
+        assert foxglove_problems(schema) == [], name
+    assert foxglove_problems({"type": "object", "properties": {"x": {"type": ["number", "null"]}}})
+    assert foxglove_problems(
+        {"type": "object", "properties": {"b": {"type": "array", "items": {"type": "array", "items": {}}}}}
+    )
 
 
 def test_export_matches_the_database(store, tmp_path):
@@ -39,42 +86,44 @@ def test_export_matches_the_database(store, tmp_path):
 
     summary = reader.get_summary()
     topics = {c.topic: c for c in summary.channels.values()}
-    assert set(topics) == {"/encoders/drive-001/stats", "/encoders/drive-001/coefficients", "/encoders/drive-001/ack"}
-    for channel in topics.values():
-        schema = summary.schemas[channel.schema_id]
-        assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
-        kind = {"stats": "window"}.get(channel.topic.rsplit("/", 1)[1], channel.topic.rsplit("/", 1)[1])
-        assert json.loads(schema.data) == wire.load_schema(kind) and schema.name == wire.SCHEMA_NAME[kind]
-
+    assert set(topics) == {f"/encoders/drive-001/{suffix}" for suffix in TOPICS}
     by_topic = {}
     for schema, channel, message in messages:
+        assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
+        assert foxglove_problems(json.loads(schema.data)) == []
         body = json.loads(message.data)
         Draft202012Validator(json.loads(schema.data)).validate(body)  # each message matches its channel's schema
+        assert None not in body.values()
         assert message.publish_time == message.log_time
         by_topic.setdefault(channel.topic.rsplit("/", 1)[1], []).append((message.log_time, body))
 
-    assert [b for _, b in by_topic["stats"]] == list(store.iter_windows("drive-001"))
-    assert [t for t, _ in by_topic["stats"]] == [int(round(w["window_end"] * 1e9)) for w in store.windows("drive-001")]
-    assert [b for _, b in by_topic["coefficients"]] == [
-        h["message"] for h in reversed(store.coefficient_history("drive-001"))
+    windows = list(store.iter_windows("drive-001", with_received_at=True))
+    assert [b for _, b in by_topic["stats"]] == [window_record(w) for w in windows]
+    assert [t for t, _ in by_topic["stats"]] == [round((T0 + 60 * s) * 1e9) for s in range(1, 7)]
+    assert all(len(b["stats"]["bins"]) == 64 * 6 for _, b in by_topic["stats"])
+    assert [b["angle_quality_deg"] for _, b in by_topic["metrics"]] == [w["angle_quality_deg"] for w in windows]
+    assert [b["version"] for _, b in by_topic["coefficients"]] == [1, 2]
+    assert [t for t, _ in by_topic["coefficients"]] == [round((T0 + 150) * 1e9), round((T0 + 330) * 1e9)]
+    assert [(b["version"], b["status"], b["at"]) for _, b in by_topic["ack"]] == [
+        (1, "applied", 170.0),
+        (2, "rejected", 340.0),
     ]
-    assert [b for _, b in by_topic["ack"]] == store.acks("drive-001")
-    assert [t for t, _ in by_topic["ack"]] == [170_000_000_000, 340_000_000_000]
+    log = [b for _, b in by_topic["log"]]
+    assert [entry["level"] for entry in log] == [2, 2, 2, 3]  # published, published, applied, refused
+    assert "v2 refused" in log[-1]["message"] and log[-1]["timestamp"]["sec"] == int(T0 + 341)
 
     times = [m.log_time for _, _, m in messages]
-    assert times == sorted(times) and len(messages) == 6 + 2 + 2
-    assert summary.statistics.message_count == 10
+    assert times == sorted(times)  # the reader replays by log time
+    assert summary.statistics.message_count == 2 * 6 + 2 * 2 + 2 * 2
 
 
-def test_time_range_selects_each_kind_by_its_time(store):
+def test_time_range_selects_each_kind_by_its_drive_time(store):
     data = b"".join(iter_mcap(store, "drive-001", 120.0, 300.0))
     _, messages = read(data)
     got = [(c.topic.rsplit("/", 1)[1], json.loads(m.data)) for _, c, m in messages]
     assert [b["seq"] for t, b in got if t == "stats"] == [3, 4, 5, 6]  # window_start 120..300
     assert [b["version"] for t, b in got if t == "coefficients"] == [1]
     assert [b["version"] for t, b in got if t == "ack"] == [1]
-    order = [(t, b.get("seq", b.get("version"))) for t, b in got]
-    assert order == [("coefficients", 1), ("ack", 1), ("stats", 3), ("stats", 4), ("stats", 5), ("stats", 6)]
 
 
 def test_large_export_streams_in_several_chunks(tmp_path):
@@ -85,7 +134,8 @@ def test_large_export_streams_in_several_chunks(tmp_path):
         chunks = list(iter_mcap(s, "drive-001"))
         assert len(chunks) > 2
         _, messages = read(b"".join(chunks))
-        assert [json.loads(m.data)["seq"] for _, _, m in messages] == list(range(1, 401))
+        stats = [json.loads(m.data)["seq"] for _, c, m in messages if c.topic.endswith("/stats")]
+        assert stats == list(range(1, 401))
 
 
 def test_unknown_device(store):
@@ -95,4 +145,4 @@ def test_unknown_device(store):
 
 def test_empty_range_is_a_valid_file(store):
     reader, messages = read(b"".join(iter_mcap(store, "drive-001", 1e6, 2e6)))
-    assert messages == [] and len(reader.get_summary().channels) == 3
+    assert messages == [] and len(reader.get_summary().channels) == len(TOPICS)

@@ -232,3 +232,38 @@ def test_threads_share_one_store(store):
     assert errors == []
     assert [(d["id"], d["windows"]) for d in store.devices()] == [(f"drive-{i:03d}", 8) for i in range(6)]
     assert all(store.band_stats(f"drive-{i:03d}")[2][1] == 8 for i in range(6))
+
+
+def test_huge_refused_payloads_keep_a_bounded_head_with_size_and_hash(store, tmp_path):
+    import hashlib
+
+    from service.store import DEAD_LETTER_KEEP
+
+    huge = b"{" + b"x" * (10 * 1024 * 1024)
+    for _ in range(5):
+        assert store.ingest("encoders/drive-001/stats", huge) == "too_large"
+    letters = store.dead_letters(10)
+    assert len(letters) == 5
+    for letter in letters:
+        assert len(letter["payload"]) == DEAD_LETTER_KEEP and letter["payload"] == huge[:DEAD_LETTER_KEEP]
+        assert letter["payload_bytes"] == len(huge)
+        assert letter["payload_sha256"] == hashlib.sha256(huge).hexdigest()
+    store.close()
+    assert (tmp_path / "fleet.db").stat().st_size < 2 * 1024 * 1024  # not 50 MB
+
+
+def test_a_corrupt_database_is_refused_at_start(tmp_path):
+    from service.store import StoreError
+
+    path = tmp_path / "c.db"
+    with Store.open(path) as s:
+        for seq in range(1, 200):
+            s.insert_window(window(seq=seq))
+        s._rows("PRAGMA wal_checkpoint(TRUNCATE)")
+    data = bytearray(path.read_bytes())
+    page = 4096
+    data[5 * page : 5 * page + 64] = b"\xff" * 64  # a b-tree page header in the middle of the file
+    path.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match="corrupt") as err:
+        Store.open(path, check_integrity=True)
+    assert err.value.reason == "unavailable" and str(path) in str(err.value)

@@ -224,3 +224,14 @@ def test_unknown_kind():
     with pytest.raises(wire.WireError) as exc:
         wire.decode("telemetry", b"{}", key_device=None)
     assert exc.value.reason == "unknown_kind"
+
+
+def test_device_id_rule_is_one_rule_in_code_and_schema_files():
+    from fleet_wire import keys
+
+    for kind in wire.KINDS:
+        assert wire.load_schema(kind)["properties"]["device"]["pattern"] == keys.DEVICE_RE.pattern
+    for bad in (".", "..", "-", "-x", "*", "a/b", "a" * 65, ""):
+        assert keys.split(f"encoders/{bad}/stats") is None, bad
+    for good in ("d", "drive-001", "d.7_x", "A" * 64):
+        assert keys.split(f"encoders/{good}/stats") == (good, "stats")

@@ -1,0 +1,100 @@
+// The fleet page: everything it shows comes from the service's own REST API, plots by Plotly.js
+// (served by the service from the plotly package, so the page works without internet).
+"use strict";
+
+// REST needs a bearer token (service/auth.py): asked once, kept in this browser's sessionStorage
+const TOKEN_KEY = "encoder-fleet-token";
+
+async function getJson(path, retried = false) {
+  const headers = { Accept: "application/json" };
+  const token = sessionStorage.getItem(TOKEN_KEY);
+  if (token) headers.Authorization = `Bearer ${token}`;
+  const response = await fetch(path, { headers });
+  if (response.status === 401 && !retried) {
+    const given = window.prompt("REST token (encoder-fleet token create --scope read)");
+    if (given) {
+      sessionStorage.setItem(TOKEN_KEY, given.trim());
+      return getJson(path, true);
+    }
+  }
+  if (!response.ok) throw new Error(`${path}: ${response.status}`);
+  return response.json();
+}
+
+function cell(row, text, className) {
+  const td = row.insertCell();
+  td.textContent = text;
+  if (className) td.className = className;
+  return td;
+}
+
+function deviceState(device) {
+  return device.state || (device.online ? "online" : "offline");
+}
+
+async function showFleet() {
+  const devices = await getJson("/devices");
+  const counts = {};
+  for (const d of devices) counts[deviceState(d)] = (counts[deviceState(d)] || 0) + 1;
+  const chips = document.getElementById("states");
+  chips.replaceChildren(
+    ...Object.entries(counts).map(([state, n]) => {
+      const span = document.createElement("span");
+      span.className = `state-${state}`;
+      span.textContent = `${state}: ${n}`;
+      return span;
+    }),
+  );
+  const body = document.querySelector("#devices tbody");
+  body.replaceChildren();
+  for (const d of devices) {
+    const row = body.insertRow();
+    row.dataset.device = d.id;
+    cell(row, d.id);
+    cell(row, deviceState(d), `state-${deviceState(d)}`);
+    cell(row, d.windows);
+    cell(row, d.current_version === null ? "–" : `v${d.current_version}`);
+    cell(row, new Date(d.last_seen * 1000).toLocaleString());
+    row.addEventListener("click", () => showDevice(d.id));
+  }
+  if (devices.length) await showDevice(devices[0].id);
+}
+
+async function showDevice(id) {
+  const name = encodeURIComponent(id);
+  const [errors, history] = await Promise.all([
+    getJson(`/devices/${name}/angle-error`),
+    getJson(`/devices/${name}/coefficients`),
+  ]);
+  document.getElementById("device").hidden = false;
+  document.getElementById("device-name").textContent = id;
+  const traces = ["factory", "fleet"].map((basis) => {
+    const points = errors.bands.filter((b) => b.basis === basis);
+    return {
+      name: basis === "factory" ? "factory set" : "fleet sets",
+      x: points.map((b) => b.temp_c),
+      y: points.map((b) => b.angle_error_deg),
+      text: points.map((b) => `${b.windows} windows`),
+      mode: "lines+markers",
+      type: "scatter",
+    };
+  });
+  Plotly.react("angle-error", traces, {
+    title: { text: `Angle error against temperature (${errors.metric})` },
+    xaxis: { title: { text: "temperature (°C)" } },
+    yaxis: { title: { text: "angle error (°)" }, rangemode: "tozero" },
+    margin: { t: 40, r: 10 },
+  }, { displaylogo: false, responsive: true });
+  const body = document.querySelector("#coefficients tbody");
+  body.replaceChildren();
+  for (const set of history.sets) {
+    const row = body.insertRow();
+    cell(row, `v${set.version}`);
+    cell(row, set.basis);
+    cell(row, set.created_at.toFixed(0));
+    cell(row, set.published_at === null ? "no" : new Date(set.published_at * 1000).toLocaleString());
+    cell(row, set.acks.map((a) => a.status).join(", ") || "–");
+  }
+}
+
+showFleet().catch((error) => console.error(error));

@@ -1,0 +1,62 @@
+"""The fleet page in a real headless browser (Debian's chromium driven by playwright) against the real
+service: it loads with no console error and no failed request, and shows the drives and their plots."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from wire_samples import ack, coefficients, window
+
+from fleet_wire.session import free_port
+from service.runtime import HttpServer
+from service.store import Store
+
+CHROMIUM = shutil.which("chromium")
+playwright = pytest.importorskip("playwright.sync_api", reason="playwright is installed by make (dev extra)")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `make test` installs Debian's as root")
+# as the machine's own probe runs it: no sandbox as root, nothing that phones out
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run"]
+CHROMIUM_ARGS += ["--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture
+def served(tmp_path):
+    store = Store.open(tmp_path / "fleet.sqlite")
+    for device in ("drive-001", "drive-002"):
+        for seq in range(1, 9):
+            version = 0 if seq <= 4 else 1
+            store.insert_window(window(device, seq=seq, version=version, temp_c=-10.0 + 10 * seq))
+        store.insert_coefficient_set(coefficients(device, version=1, created_at=200.0))
+        store.mark_published(device, 1)
+        store.insert_ack(ack(device, version=1, at=210.0))
+    port = free_port()
+    http = HttpServer(store, port).start()
+    yield f"http://127.0.0.1:{port}"
+    http.stop()
+    store.close()
+
+
+def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
+    problems = []
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page()
+        page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+        page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+        page.on("requestfailed", lambda r: problems.append(f"request failed: {r.url}"))
+        page.on("response", lambda r: problems.append(f"{r.status} {r.url}") if r.status >= 400 else None)
+        page.goto(served + "/")
+        page.wait_for_selector("#devices tbody tr[data-device='drive-002']")
+        rows = page.locator("#devices tbody tr").all_inner_texts()
+        assert [r.split("\t")[0] for r in rows] == ["drive-001", "drive-002"]
+        page.wait_for_selector("#angle-error .main-svg")  # Plotly drew the first drive
+        assert page.locator("#device-name").inner_text() == "drive-001"
+        page.click("#devices tbody tr[data-device='drive-002']")
+        page.wait_for_function("document.getElementById('device-name').textContent === 'drive-002'")
+        traces = page.evaluate("document.getElementById('angle-error').data.map(t => [t.name, t.x.length])")
+        assert traces == [["factory set", 4], ["fleet sets", 4]]
+        history = page.locator("#coefficients tbody tr").all_inner_texts()
+        assert history[0].startswith("v1\t") and "applied" in history[0]
+        browser.close()
+    assert problems == []
