@@ -43,6 +43,7 @@ class AgentCounters:
     refused: list[tuple[int, str]] = field(default_factory=list)
     offline_syncs: int = 0  # watermark queries nobody answered: the service was away
     bad_signatures: int = 0  # sets refused as unsigned or not signed by the service's key
+    bad_messages: int = 0  # every payload on the coefficients key refused, whatever the reason
 
 
 class EdgeAgent:
@@ -245,6 +246,7 @@ class EdgeAgent:
             candidate = BandedCorrection.from_dict({"bands": msg["bands"]})
             check_plausible(candidate, self.factory)
         except (wire.WireError, InputError) as exc:
+            self.counters.bad_messages += 1
             version = _version_of(payload)
             log.warning("%s: refused coefficient set %s: %s", self.device, version, exc)
             if acknowledge and version is not None and version > self.version:
@@ -307,9 +309,14 @@ def temp_rate(block: Samples) -> float:
     return float(np.polyfit(block.t - block.t[0], block.temp_c, 1)[0])
 
 
+MAX_VERSION = 2**53 - 1  # the schemas' bound: an ack can carry no larger version
+
+
 def _version_of(payload: bytes) -> int | None:
+    """The version a refused set claims, if an ack could name it (a whole number within the schema's range)."""
     try:
         v = json.loads(payload).get("version")
-        return int(v) if isinstance(v, (int, float)) and np.isfinite(v) else None
-    except (ValueError, AttributeError, TypeError):
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v == int(v)
+        return int(v) if ok and 0 <= v <= MAX_VERSION else None
+    except (ValueError, AttributeError, TypeError, RecursionError):
         return None
