@@ -37,14 +37,19 @@ def template_windows(count: int, samples_per_window: int = 3000) -> list[tuple[W
     return out
 
 
-def publish(endpoint: str, devices: int, windows: int) -> None:
+def publish(endpoint: str, devices: int, windows: int, pki: str | None = None) -> None:
     """The publisher process: factory sets, then every device's windows, round-robin."""
 
     import zenoh
 
     block = zenoh.CongestionControl.BLOCK  # like the agents: wait for room rather than drop
     templates = template_windows(windows)
-    session = zenoh.open(session_config("client", connect=[endpoint]))
+    identity = None
+    if pki:
+        from fleet_wire.security import ROLE_DEVICE, Identity
+
+        identity = Identity.load(pki, PUBLISHER, ROLE_DEVICE)
+    session = zenoh.open(session_config("client", connect=[endpoint], identity=identity))
     try:
         names = [f"bench-{i:05d}" for i in range(devices)]
         factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
@@ -78,18 +83,60 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
         session.close()
 
 
-def run_size(devices: int, windows: int, workdir: Path) -> dict:
+PUBLISHER = "bench-publisher"  # the condensed fleet's one certificate when the bench runs secured
+
+
+def secured_router(workdir: Path, endpoint: str, names: list[str], store):
+    """The service's router as `encoder-fleet service --pki` runs it (TLS, mTLS, the ACL of `names`, signed
+    sets, the guard), plus one policy that lets the bench's single publisher speak for every device."""
+    import zenoh
+
+    from encoder_fleet.pki import init_ca, issue
+    from fleet_wire.security import ROLE_SERVICE, SERVICE_NAME, Identity, SetSigner, access_control
+    from service.guard import IngestGuard
+
+    pki = workdir / "pki"
+    if not (pki / "ca.crt").exists():
+        init_ca(pki)
+        issue(pki, SERVICE_NAME, ROLE_SERVICE)
+        issue(pki, PUBLISHER)
+    acl = access_control(names)
+    acl["rules"].append(
+        {
+            "id": "bench/all-devices",
+            "messages": ["put", "query", "reply"],
+            "flows": ["ingress", "egress"],
+            "permission": "allow",
+            "key_exprs": [keys.every(keys.STATS), keys.every(keys.FACTORY), keys.every(keys.RECEIVED)],
+        }
+    )
+    acl["subjects"].append({"id": PUBLISHER, "cert_common_names": [PUBLISHER]})
+    acl["policies"].append({"id": "bench/policy", "rules": ["bench/all-devices"], "subjects": [PUBLISHER]})
+    identity = Identity.load(pki, SERVICE_NAME, ROLE_SERVICE)
+    session = zenoh.open(session_config("router", listen=[endpoint], identity=identity, access_control=acl))
+    return pki, session, {"signer": SetSigner.load(pki), "guard": IngestGuard(store, names)}
+
+
+def run_size(devices: int, windows: int, workdir: Path, secure: bool = False) -> dict:
     from service.runtime import FleetService, open_session
     from service.store import Store
 
     endpoint = loopback_endpoint()
-    store = Store.open(workdir / f"bench-{devices}.sqlite")
-    session = open_session(listen=[endpoint])
-    service = FleetService(store, session, refit_interval_s=0, min_band_samples=2000).start()
+    store = Store.open(workdir / f"bench-{devices}-{'tls' if secure else 'tcp'}.sqlite")
+    names = [f"bench-{i:05d}" for i in range(devices)]
+    pki_args, security = [], {}
+    if secure:
+        endpoint = endpoint.replace("tcp/", "tls/", 1)
+        pki, session, security = secured_router(workdir, endpoint, names, store)
+        pki_args = ["--pki", str(pki)]
+    else:
+        session = open_session(listen=[endpoint])
+    service = FleetService(store, session, refit_interval_s=0, min_band_samples=2000, **security).start()
     try:
         total = devices * windows
         proc = subprocess.Popen(
             [sys.executable, "-m", "encoder_fleet.bench_fleet", "--publish", endpoint, str(devices), str(windows)]
+            + pki_args
         )
         deadline = time.monotonic() + 600
         stored, first, first_at = 0, 0, None  # timed from the first stored window: publisher start-up aside
@@ -106,6 +153,7 @@ def run_size(devices: int, windows: int, workdir: Path) -> dict:
         published = service.refit_all()
         refit_s = time.perf_counter() - start
         return {
+            "security": "mTLS+ACL+signed" if secure else "none",
             "devices": devices,
             "windows": stored,
             "expected": total,
@@ -123,30 +171,59 @@ def run_size(devices: int, windows: int, workdir: Path) -> dict:
         store.close()
 
 
-def run_bench(sizes: list[int], windows_per_device: int) -> int:
+def run_bench(sizes: list[int], windows_per_device: int, security: str = "both") -> int:
     rows = []
+    modes = {"both": (False, True), "off": (False,), "on": (True,)}[security]
     with tempfile.TemporaryDirectory() as tmp:
         for n in sizes:
-            print(f"… {n} devices × {windows_per_device} windows", file=sys.stderr, flush=True)
-            rows.append(run_size(n, windows_per_device, Path(tmp)))
+            for secure in modes:
+                what = "TLS, ACL, signed sets" if secure else "plain TCP"
+                print(f"… {n} devices × {windows_per_device} windows, {what}", file=sys.stderr, flush=True)
+                rows.append(run_size(n, windows_per_device, Path(tmp), secure=secure))
     print(
-        f"\n{'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10} {'refit s':>8} {'refits/s':>9}"
+        f"\n{'security':>16} {'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10} {'refit s':>8}"
+        f" {'refits/s':>9}"
         f" {'rollouts':>9} {'rejected':>9}"
     )
     for r in rows:
         print(
-            f"{r['devices']:>8} {r['windows']:>9} {r['ingest_s']:>9.2f} {r['windows_per_s']:>10.0f} "
+            f"{r['security']:>16} {r['devices']:>8} {r['windows']:>9} {r['ingest_s']:>9.2f} "
+            f"{r['windows_per_s']:>10.0f} "
             f"{r['refit_s']:>8.2f} {r['refits_per_s']:>9.1f} {r['rollouts']:>9} {r['rejected']:>9}"
         )
     print(
         "\nwindows/s: validated, deduplicated and stored (with the band sums) through a real router and SQLite;"
         "\nrefits/s: one refit pass over every device (ellipse, pooled harmonics, zero anchor, rollout decision)."
+        "\nmTLS+ACL+signed: TLS with client certificates, the router's ACL of the whole fleet, the service's guard,"
+        "\nand every rolled-out set signed (Ed25519)."
     )
+    print(signature_cost())
     return 0
+
+
+def signature_cost(n: int = 2000) -> str:
+    """Ed25519 over a real coefficient set: the service signs each rollout, the agent verifies each set."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from fleet_wire.security import SetSigner, SetVerifier
+
+    key = Ed25519PrivateKey.generate()
+    signer, verifier = SetSigner(key), SetVerifier(key.public_key())
+    factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
+    msg = {**factory_message("bench-00000", factory), "version": 1, "basis": "fit"}
+    start = time.perf_counter()
+    signed = [signer.sign(msg) for _ in range(n)]
+    sign_us = (time.perf_counter() - start) / n * 1e6
+    start = time.perf_counter()
+    for m in signed:
+        verifier.verify(m)
+    verify_us = (time.perf_counter() - start) / n * 1e6
+    return f"signature per coefficient set: sign {sign_us:.0f} µs (service), verify {verify_us:.0f} µs (agent)"
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--publish", nargs=3, metavar=("ENDPOINT", "DEVICES", "WINDOWS"), required=True)
+    parser.add_argument("--pki")
     a = parser.parse_args()
-    publish(a.publish[0], int(a.publish[1]), int(a.publish[2]))
+    publish(a.publish[0], int(a.publish[1]), int(a.publish[2]), a.pki)

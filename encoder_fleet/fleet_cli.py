@@ -175,7 +175,7 @@ def cmd_demo(args) -> int:
 def cmd_bench_fleet(args) -> int:
     from encoder_fleet.bench_fleet import run_bench
 
-    return run_bench(sizes=args.devices, windows_per_device=args.windows)
+    return run_bench(sizes=args.devices, windows_per_device=args.windows, security=args.security)
 
 
 def register(sub) -> None:
@@ -246,6 +246,12 @@ def register(sub) -> None:
     p = sub.add_parser("bench-fleet", help="windows ingested and refits per second for fleets of several sizes")
     p.add_argument("--devices", type=positive_int, nargs="+", default=[10, 100, 1000], help="fleet sizes to run")
     p.add_argument("--windows", type=positive_int, default=20, help="windows per device")
+    p.add_argument(
+        "--security",
+        choices=["both", "off", "on"],
+        default="both",
+        help="plain TCP, TLS + ACL + signed sets, or both side by side (the cost of the security model)",
+    )
     p.set_defaults(func=cmd_bench_fleet)
 
 
