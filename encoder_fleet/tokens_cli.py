@@ -11,15 +11,21 @@ def cmd_token(args) -> int:
     from service.auth import TokenAuth
     from service.store import Store
 
-    if not Path(args.db).exists():
+    if getattr(args, "create_db", False):
+        Path(args.db).parent.mkdir(parents=True, exist_ok=True)
+    elif not Path(args.db).exists():
         raise InputError(f"--db {args.db}: no such database (start the service once, or give its --db)")
     store = Store.open(args.db)
     try:
         auth = TokenAuth(store)
         if args.token_command == "create":
             token_id, token = auth.create(args.scope, args.name or "")
-            print(token)  # stdout only, once: the database keeps its hash
-            print(f"token {token_id} ({args.scope}) created; it is shown once, keep it safe", flush=True)
+            if args.out:
+                write_secret(Path(args.out), token)
+                print(f"token {token_id} ({args.scope}) written to {args.out} (0600)", flush=True)
+            else:
+                print(token)  # stdout only, once: the database keeps its hash
+                print(f"token {token_id} ({args.scope}) created; it is shown once, keep it safe", flush=True)
         elif args.token_command == "list":
             for t in auth.tokens():
                 state = "revoked" if t["revoked_at"] else "live"
@@ -33,6 +39,16 @@ def cmd_token(args) -> int:
     return 0
 
 
+def write_secret(path: Path, text: str) -> None:
+    import os
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as out:
+        out.write(text + "\n")
+    os.chmod(path, 0o600)
+
+
 def register(sub) -> None:
     p = sub.add_parser("token", help="REST bearer tokens (read, admin) in the service's database")
     tsub = p.add_subparsers(dest="token_command", required=True)
@@ -40,6 +56,8 @@ def register(sub) -> None:
     q.add_argument("--scope", choices=["read", "admin"], required=True, help="read: every GET; admin: also /tokens")
     q.add_argument("--name", help="what the token is for")
     q.add_argument("--db", default="out/fleet.sqlite", help="the service's database")
+    q.add_argument("--out", metavar="FILE", help="write the token to FILE (0600) instead of stdout")
+    q.add_argument("--create-db", action="store_true", help="create the database if it does not exist yet")
     q = tsub.add_parser("list", help="tokens: id, scope, state, name (never the token)")
     q.add_argument("--db", default="out/fleet.sqlite", help="the service's database")
     q = tsub.add_parser("revoke", help="revoke a token by id")

@@ -17,14 +17,24 @@ def test_compose_services_use_commands_that_exist():
     assert {"service", "agent-1", "agent-2", "agent-3"} <= set(ours)
     parser = build_parser()
     for name, svc in ours.items():
+        if name == "pki":  # the one-shot job that makes the PKI, zenohd's config and Prometheus' token
+            script = svc["command"][0]
+            assert "pki init /pki" in script and "pki router-config /pki --name zenohd" in script
+            for line in script.splitlines():
+                if line.strip().startswith("encoder-fleet "):
+                    words = line.strip().rstrip("\\").split()[1:]
+                    parser.parse_args([w.replace('"$$d"', "drive-001") for w in words])
+            continue
         args = parser.parse_args(svc["command"])  # exits (SystemExit) on an unknown command or flag
         assert args.command in ("service", "agent"), name
+        assert args.pki == "/pki" and not args.insecure  # TLS with client certificates, signed sets
         if args.command == "agent":
-            assert args.connect == ["tcp/zenohd:7447"] and args.source == "sim"
+            assert args.connect == ["tls/zenohd:7447"] and args.source == "sim"
         else:
-            assert args.connect == ["tcp/zenohd:7447"] and args.http_port == 8000
+            assert args.connect == ["tls/zenohd:7447"] and args.http_port == 8000
     devices = [parser.parse_args(s["command"]).device for s in ours.values() if s["command"][0] == "agent"]
     assert len(set(devices)) == 3
+    assert services["zenohd"]["command"][:2] == ["-c", "/pki/zenohd.json5"]
 
 
 def test_image_builds_from_the_project_files():
@@ -44,12 +54,16 @@ def test_compose_waits_for_health_restarts_on_failure_and_binds_loopback():
         for port in svc.get("ports", []):
             assert port.startswith("127.0.0.1:"), (name, port)  # nothing published beyond the host
         for needed in svc.get("depends_on", {}):
+            if needed == "pki":  # a one-shot job: done, not healthy
+                assert svc["depends_on"][needed] == {"condition": "service_completed_successfully"}, name
+                continue
             assert svc["depends_on"][needed] == {"condition": "service_healthy"}, name
             assert "healthcheck" in services[needed], needed
     assert services["service"]["depends_on"] == {"zenohd": {"condition": "service_healthy"}}
     assert "/healthz" in " ".join(services["service"]["healthcheck"]["test"])
     for mount in services["prometheus"]["volumes"] + services["grafana"]["volumes"]:
-        assert (ROOT / mount.split(":")[0]).exists(), mount
+        if mount.startswith("./"):  # bind mounts; named volumes (secrets) are compose's
+            assert (ROOT / mount.split(":")[0]).exists(), mount
 
 
 def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_exports(tmp_path):
@@ -66,6 +80,7 @@ def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_expor
 
     scrape = yaml.safe_load((ROOT / "ops" / "prometheus.yml").read_text())["scrape_configs"][0]
     assert scrape["metrics_path"] == "/metrics" and scrape["static_configs"][0]["targets"] == ["service:8000"]
+    assert scrape["authorization"] == {"type": "Bearer", "credentials_file": "/secrets/prometheus-token"}
 
     store = Store.open(tmp_path / "f.sqlite")
     session = open_session(listen=[loopback_endpoint()])
