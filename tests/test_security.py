@@ -352,3 +352,33 @@ def test_tokens_are_stored_hashed_and_never_logged(tmp_path, pki):
     for token in tokens:  # ... the tokens were not, and the database keeps only their hashes
         assert token not in out and token not in err
         assert token.encode() not in db.read_bytes()
+
+
+def test_zenohd_config_from_pki_router_config_admits_the_service_and_confines_devices(tmp_path, pki):
+    """compose's setup, with the Python package's router standing in for zenohd (same zenoh 1.10.2): the config
+    of `encoder-fleet pki router-config`, the service as its client, a device confined to its own keys."""
+    from encoder_fleet.pki import issue, router_config
+    from fleet_wire.security import ROLE_ROUTER
+
+    issue(pki, "zenohd-test", ROLE_ROUTER, force=True)
+    endpoint = loopback_endpoint().replace("tcp/", "tls/")
+    conf = router_config(pki, "zenohd-test", listen=[endpoint])
+    router = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+    store = Store.open(tmp_path / "fleet.sqlite")
+    service_session = open_session(connect=[endpoint], pki=pki)
+    service = FleetService(store, service_session, refit_interval_s=0, **service_security(store, pki)).start()
+    a = zenoh.open(session_config("client", connect=[endpoint], identity=Identity.load(pki, A, ROLE_DEVICE)))
+    try:
+        time.sleep(0.3)
+        a.put(keys.key(B, keys.STATS), wire.encode("window", ws.window(B, 1)))
+        a.put(keys.key(A, keys.STATS), wire.encode("window", ws.window(A, 1)))
+        assert wait_for(lambda: (store.device(A) or {}).get("windows") == 1)
+        replies = [r.ok.payload.to_bytes() for r in a.get(keys.key(A, keys.RECEIVED), timeout=2.0) if r.ok]
+        assert [wire.parse_watermark(p, A) for p in replies] == [1]  # the service answers through zenohd
+        assert store.device(B) is None
+    finally:
+        a.close()
+        service.stop()
+        service_session.close()
+        router.close()
+        store.close()
