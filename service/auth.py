@@ -26,6 +26,7 @@ from .store import Store
 
 SCOPES = ("read", "admin")
 PUBLIC_PATHS = frozenset({"/healthz", "/"})  # "/" is the fleet page's HTML shell: its data needs a token
+PUBLIC_PREFIX = "/static/"  # the page's script, style and Plotly.js: code, no data
 _PREFIX = {"read": "efr_", "admin": "efa_"}
 
 
@@ -103,7 +104,7 @@ def authorize(request: Request, credentials: Credentials) -> str | None:
     auth: TokenAuth | None = getattr(request.app.state, "auth", None)
     route = request.scope.get("route")
     path = getattr(route, "path", request.url.path)
-    if auth is None or path in PUBLIC_PATHS:
+    if auth is None or path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIX):
         return None
     if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
         raise _unauthorized("a bearer token is required (encoder-fleet token create)")

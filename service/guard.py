@@ -6,7 +6,7 @@ for a router whose ACL is stale, misconfigured or absent):
   generated ACL a certificate may put only on its own keys, so key device == certificate common name.
   (The Python API does not hand a subscriber the sender's certificate, so the key is where the
   authenticated identity shows.)
-- an ack must be for a version the service published to that device (else: forged), and each
+- an ack must be for a version the service made for that device (else: forged), and each
   (device, version, status) is taken once (else: replayed).
 """
 
@@ -45,10 +45,10 @@ class IngestGuard:
         try:
             msg = json.loads(payload)
             version, status = int(msg["version"]), str(msg["status"])
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError, OverflowError):
             return None  # not an ack at all: the decoder says why
-        published = {h["version"] for h in self.store.coefficient_history(device) if h["published_at"] is not None}
-        if version not in published:
+        # a set the service made (stored before it is put: an agent's ack may beat mark_published)
+        if version < 1 or self.store.coefficient_set(device, version) is None:
             return "forged_ack", f"ack from {device} for version {version}, which the service never published to it"
         mark = (device, version, status)
         with self._lock:

@@ -296,6 +296,7 @@ def test_rest_needs_a_token_everywhere_but_healthz_and_the_page_shell(rest):
             response = client.request("DELETE" if "/tokens/" in path else "GET", path, headers=headers)
             assert response.status_code == 401, (path, headers, response.text)
             assert response.headers["www-authenticate"] == "Bearer"
+    assert client.get("/static/plotly.min.js").status_code == 200  # the page's code loads without a token
     good = {"Authorization": f"Bearer {read}"}
     assert client.get("/devices", headers=good).status_code == 200
     assert client.get("/metrics", headers=good).status_code == 200
