@@ -24,7 +24,6 @@ from pathlib import Path
 from encoder_core.samples import InputError
 
 from . import keys
-from .messages import WireError
 
 ROLE_DEVICE, ROLE_SERVICE, ROLE_ROUTER = "device", "service", "router"
 SERVICE_NAME = "service"
@@ -242,6 +241,8 @@ class SetVerifier:
     def verify(self, msg: dict) -> None:
         """WireError('unsigned' | 'bad_signature') unless the set carries the service's valid signature."""
         from cryptography.exceptions import InvalidSignature
+
+        from .messages import WireError  # here, not at the top: `encoder-fleet diagnose` loads no wire code
 
         signature = msg.get("signature")
         if not signature:
