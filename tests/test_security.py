@@ -383,3 +383,23 @@ def test_zenohd_config_from_pki_router_config_admits_the_service_and_confines_de
         service_session.close()
         router.close()
         store.close()
+
+
+def test_pki_commands_write_the_contract_files_with_private_keys_0600(tmp_path):
+    from encoder_fleet.cli import main
+    from fleet_wire.security import certificate_identity
+
+    d = tmp_path / "pki"
+    assert main(["pki", "init", str(d)]) == 0
+    assert main(["pki", "issue", str(d), "drive-x"]) == 0
+    assert main(["pki", "issue", str(d), "--service", "--host", "fleet.example"]) == 0
+    for name in ("ca.crt", "ca.key", "drive-x.crt", "drive-x.key", "service.crt", "service.key", "signing.pub"):
+        assert (d / name).is_file(), name
+    for key in ("ca.key", "drive-x.key", "service.key", "signing.key"):
+        assert stat.S_IMODE(os.stat(d / key).st_mode) == 0o600, key
+    assert certificate_identity(d / "drive-x.crt") == ("drive-x", "device")
+    assert certificate_identity(d / "service.crt") == ("service", "service")
+    assert registry(d) == ["drive-x"]
+    assert main(["pki", "issue", str(d), "drive-x"]) == 2  # no silent overwrite
+    assert main(["pki", "issue", str(d), "signing"]) == 2  # reserved: would clash with the signing key
+    assert main(["pki", "init", str(d)]) == 2
