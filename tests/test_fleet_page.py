@@ -60,3 +60,38 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         assert history[0].startswith("v1\t") and "applied" in history[0]
         browser.close()
     assert problems == []
+
+
+def test_fleet_page_asks_once_for_a_token_when_rest_needs_one(tmp_path):
+    """With REST tokens on (service/auth.py): the page's shell and code load without one, its first data call
+    gets 401, the page asks for a token once and keeps it for the session."""
+    from service.auth import TokenAuth
+
+    store = Store.open(tmp_path / "fleet.sqlite")
+    for seq in range(1, 5):
+        store.insert_window(window("drive-001", seq=seq))
+    auth = TokenAuth(store)
+    _, token = auth.create("read", "page")
+    port = free_port()
+    http = HttpServer(store, port, auth=auth).start()
+    asked, unauthorized, problems = [], [], []
+    try:
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_page()
+            page.on("dialog", lambda d: (asked.append(d.message), d.accept(token)))
+            page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+            page.on("requestfailed", lambda r: problems.append(f"request failed: {r.url}"))
+            page.on(
+                "response",
+                lambda r: (unauthorized if r.status == 401 else problems).append(r.url) if r.status >= 400 else None,
+            )
+            page.goto(f"http://127.0.0.1:{port}/")
+            page.wait_for_selector("#devices tbody tr[data-device='drive-001']")
+            page.wait_for_selector("#angle-error .main-svg")
+            browser.close()
+    finally:
+        http.stop()
+        store.close()
+    assert len(asked) == 1 and "token" in asked[0]
+    assert [u.rsplit("/", 1)[-1] for u in unauthorized] == ["devices"] and problems == []
