@@ -358,6 +358,7 @@ class DeviceMonitor:
     harm_cusum: Cusum = None
     frac: dict = field(default_factory=dict)  # "outlier" | "clipped" -> Cusum
     frac_mean: dict = field(default_factory=dict)  # "outlier" | "clipped" -> EW mean share
+    frac_sum: dict = field(default_factory=dict)  # "outlier" | "clipped" -> [count, seen] while the CUSUM climbs
     open: dict = field(default_factory=dict)  # cause -> {"raised_at", "parameters", "quiet_since"}
     last_t: float | None = None
     windows: int = 0
@@ -381,6 +382,7 @@ class DeviceMonitor:
         for name in ("outlier", "clipped"):
             self.frac.setdefault(name, Cusum(k=0.5, h=s.fraction_h))
             self.frac_mean.setdefault(name, 0.0)
+            self.frac_sum.setdefault(name, [0, 0])
 
     # --- persistence ---------------------------------------------------------------------------
 
@@ -399,6 +401,7 @@ class DeviceMonitor:
             "harm_cusum": self.harm_cusum.to_dict(),
             "frac": {k: v.to_dict() for k, v in self.frac.items()},
             "frac_mean": self.frac_mean,
+            "frac_sum": self.frac_sum,
             "open": self.open,
             "last_t": self.last_t,
             "windows": self.windows,
@@ -428,6 +431,7 @@ class DeviceMonitor:
             harm_cusum=Cusum.from_dict(d["harm_cusum"]),
             frac={k: Cusum.from_dict(v) for k, v in d["frac"].items()},
             frac_mean=d["frac_mean"],
+            frac_sum=d["frac_sum"],
             open=d["open"],
             last_t=d["last_t"],
             windows=d["windows"],
@@ -473,10 +477,25 @@ class DeviceMonitor:
         dt = 0.0 if self.last_t is None else f.t - self.last_t
         self.windows += 1
         self.last_t = f.t
+        if f.y is not None and self._is_absurd(f):
+            self.absurd += 1  # valid, but not this drive: it moves no baseline and no detector
+            self.last_absurd_t = f.t
+            return events
         self._fractions(f, dt, events)
         if f.y is not None:
             self._shape(f, fleet, events)
         return events
+
+    def _is_absurd(self, f: Features) -> bool:
+        s, y = self.settings, f.y
+        base = self.bands.get(f.band)
+        ready = base is not None and base.ready
+        level = np.array(self.level) if self.level is not None else np.zeros(N_FEATURES)
+        expected = base.expected(f.temp_c) + level if ready else None
+        ref_amp = expected[_AMP] if ready else self.amp_ref
+        if ref_amp is not None and abs(y[_AMP] - ref_amp) > s.absurd_log_amp:
+            return True
+        return ready and float(np.hypot(*(y[_OFF] - expected[_OFF]))) > s.absurd_center
 
     def _raise(self, events, cause: str, at: float, parameters: dict, evidence: str) -> None:
         if cause in self.open:
@@ -536,8 +555,11 @@ class DeviceMonitor:
             expected = f.seen * ref
             x = (count - expected) / math.sqrt(expected)
             det = self.frac[reason].update(min(x, 6.0))
+            acc = self.frac_sum[reason]
+            self.frac_sum[reason] = [acc[0] + count, acc[1] + f.seen] if det.s > 0 else [0, 0]
             if det.drift_detected and cause not in self.open:
-                frac = self.frac_mean[reason] if self.frac_mean[reason] > ref else share
+                acc = self.frac_sum[reason]
+                frac = acc[0] / acc[1] if acc[1] else share
                 what = (
                     "jump off the circle (beyond 12 % of the radius)"
                     if reason == "outlier"
@@ -563,22 +585,8 @@ class DeviceMonitor:
     def _shape(self, f: Features, fleet: FleetRates | None, events) -> None:
         s = self.settings
         y, sig = f.y, f.sigma
-        # absurd for this drive: never moves a baseline or a detector
-        base = self.bands.get(f.band)
-        ref_amp = (
-            base.expected(f.temp_c)[_AMP] + (self.level[_AMP] if self.level else 0.0)
-            if (base and base.ready)
-            else self.amp_ref
-        )
-        if ref_amp is not None and abs(y[_AMP] - ref_amp) > s.absurd_log_amp:
-            self._absurd(f)
-            return
-        if base and base.ready:
-            centre = base.expected(f.temp_c)[_OFF] + np.array(self.level[_OFF])
-            if np.hypot(*(y[_OFF] - centre)) > s.absurd_center:
-                self._absurd(f)
-                return
         self.amp_ref = float(y[_AMP])
+        base = self.bands.get(f.band)
         if base is None:
             base = self.bands[f.band] = BandBaseline(f.band)
         if not base.ready:
@@ -596,10 +604,6 @@ class DeviceMonitor:
         self._step(f, e, noise, events)
         self._rates(f, e, fleet, events)
         self._harmonics(f, e, noise, events)
-
-    def _absurd(self, f: Features) -> None:
-        self.absurd += 1
-        self.last_absurd_t = f.t
 
     def _step(self, f: Features, e: np.ndarray, noise: np.ndarray, events) -> None:
         s = self.settings

@@ -263,3 +263,33 @@ def score(specs: list[DriveSpec], alarms: dict[str, list[dict]]) -> dict:
         "missed": missed,
         "false": [{"device": d, "cause": a["cause"], "raised_at_h": a["raised_at"] / 3600.0} for d, a in false_alarms],
     }
+
+
+def record_drive(spec: DriveSpec, *, sample_hz: float = 2.0, block_s: float = 3600.0) -> Samples:
+    """The whole drive as one recording (t, d, q, temp_c), for a replaying agent."""
+    source = EventDrive(spec, sample_hz=sample_hz)
+    parts = []
+    while (block := source.read(block_s)) is not None:
+        parts.append(block)
+    return Samples(
+        t=np.concatenate([p.t for p in parts]),
+        d=np.concatenate([p.d for p in parts]),
+        q=np.concatenate([p.q for p in parts]),
+        temp_c=np.concatenate([p.temp_c for p in parts]),
+    )
+
+
+def write_drive(spec: DriveSpec, folder, *, sample_hz: float = 2.0) -> tuple[str, str]:
+    """REC.csv and FACTORY.json of a drive: what `encoder-fleet agent --source replay:REC.csv --factory F` reads."""
+    import json
+    from pathlib import Path
+
+    from edge_agent.agent import factory_message
+    from encoder_fleet.recording import write_recording
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rec, factory = folder / f"{spec.name}.csv", folder / f"{spec.name}-factory.json"
+    write_recording(record_drive(spec, sample_hz=sample_hz), rec)
+    factory.write_text(json.dumps(factory_message(spec.name, EventDrive(spec).factory())))
+    return str(rec), str(factory)

@@ -1,4 +1,4 @@
-"""Fleet subcommands: agent, service, export, demo, bench-fleet."""
+"""Fleet subcommands: agent, service, export, demo, bench-fleet, bench-monitor."""
 
 from __future__ import annotations
 
@@ -128,6 +128,19 @@ def cmd_bench_fleet(args) -> int:
     return run_bench(sizes=args.devices, windows_per_device=args.windows)
 
 
+def cmd_bench_monitor(args) -> int:
+    from encoder_fleet.bench_monitor import run_bench as run_monitor_bench
+
+    return run_monitor_bench(
+        drives=args.drives,
+        days=args.days,
+        seed=args.seed,
+        window_s=args.window_s,
+        sample_hz=args.sample_hz,
+        json_path=args.json,
+    )
+
+
 def register(sub) -> None:
     p = sub.add_parser("agent", help="run an edge agent next to a drive")
     p.add_argument("--device", required=True, type=device_name, help="the drive's id (its Zenoh key segment)")
@@ -184,3 +197,15 @@ def register(sub) -> None:
     p.add_argument("--devices", type=positive_int, nargs="+", default=[10, 100, 1000], help="fleet sizes to run")
     p.add_argument("--windows", type=positive_int, default=20, help="windows per device")
     p.set_defaults(func=cmd_bench_fleet)
+
+    p = sub.add_parser(
+        "bench-monitor",
+        help="the drift monitor on seeded hidden events: recall, cause precision, false alarms, delays, cost",
+    )
+    p.add_argument("--drives", type=positive_int, default=36, help="drives (a quarter clean, the others one event)")
+    p.add_argument("--days", type=positive_float, default=3.0, help="simulated days per drive")
+    p.add_argument("--seed", type=non_negative_int, default=1, help="seed of the hidden-event set")
+    p.add_argument("--window-s", type=positive_float, default=300.0, help="window length, s of drive time")
+    p.add_argument("--sample-hz", type=positive_float, default=2.0, help="samples per second in each window")
+    p.add_argument("--json", metavar="FILE", help="also write the figures, every planted event and every alarm")
+    p.set_defaults(func=cmd_bench_monitor)
