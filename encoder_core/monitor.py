@@ -29,11 +29,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .ellipse import fit_ellipse
 from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C
-from .samples import InputError
-from .stats import WindowStats
+from .stats import MONOMIALS, N_BINS, WindowStats
 
 DAY_S = 86400.0
 HOUR_S = 3600.0
@@ -87,6 +85,45 @@ class Features:
     sigma: np.ndarray | None = None  # their uncertainties
 
 
+_DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
+_SCATTER = np.array([[MONOMIALS.index((ia + ib, ja + jb)) for ib, jb in _DESIGN] for ia, ja in _DESIGN])
+_C1_INV = np.array([[0.0, 0.0, 0.5], [0.0, -1.0, 0.0], [0.5, 0.0, 0.0]])
+_CYCLES = np.array(HARMONIC_CYCLES)
+
+
+def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(center, qform, residual rms) of the direct ellipse fit (Fitzgibbon, Halir & Flusser) from the moment
+    sums: encoder_core.ellipse.fit_ellipse's algorithm with its checks, lean enough for every window."""
+    if int(np.count_nonzero(stats.bins[:, 0])) < N_BINS // 2:
+        return None
+    sm = stats.moments[_SCATTER]
+    s2, s3 = sm[:3, 3:], sm[3:, 3:]
+    try:
+        t = -np.linalg.solve(s3, s2.T)
+        eigval, eigvec = np.linalg.eig(_C1_INV @ (sm[:3, :3] + s2 @ t))
+    except np.linalg.LinAlgError:
+        return None
+    eigvec = np.real(eigvec)
+    cond = 4 * eigvec[0] * eigvec[2] - eigvec[1] ** 2
+    good = np.flatnonzero(cond > 0)
+    if good.size == 0:
+        return None
+    a1 = eigvec[:, good[np.argmin(np.abs(np.real(eigval[good])))]]
+    conic = np.concatenate([a1, t @ a1])
+    a, b, c, d, e, f = conic
+    det2 = 4 * a * c - b * b
+    if det2 == 0:
+        return None
+    cx, cy = (b * e - 2 * c * d) / det2, (b * d - 2 * a * e) / det2
+    f_center = f + 0.5 * (d * cx + e * cy)
+    if f_center == 0:
+        return None
+    qform = np.array([[a, b / 2], [b / 2, c]]) / -f_center
+    conic = conic / -f_center
+    mean_sq = float(conic @ sm @ conic) / stats.moments[0]
+    return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
+
+
 def window_features(
     stats: WindowStats, *, t: float, temp_c: float, band: int, rejected_by_reason: dict | None = None
 ) -> Features:
@@ -100,43 +137,47 @@ def window_features(
     )
     if n < MIN_FIT_SAMPLES:
         return f
-    try:
-        fit = fit_ellipse(stats)
-    except (InputError, np.linalg.LinAlgError):
+    fit = _ellipse(stats)
+    if fit is None:
         return f
-    qf = fit.qform
-    det = qf[0, 0] * qf[1, 1] - qf[0, 1] ** 2
-    if not (det > 0 and np.all(np.isfinite(qf))):
+    c, qf, residual = fit
+    q00, q01, q11 = qf[0, 0], qf[0, 1], qf[1, 1]
+    det = q00 * q11 - q01 * q01
+    if not (det > 0 and q00 > 0 and math.isfinite(det)):
         return f
-    c = fit.center
-    center = c + np.array([stats.center_d, stats.center_q]) / stats.scale
     log_amp = -0.25 * math.log(det)
-    imbalance = 0.5 * math.log(qf[1, 1] / qf[0, 0])
+    imbalance = 0.5 * math.log(q11 / q00)
     # radius ripple along the circle from the bins' first and second moments under the fitted ellipse
     bins = stats.bins
-    counts = bins[:, 0]
-    ok = counts > 0
-    cnt = counts[ok]
-    mean = bins[ok, 1:3] / cnt[:, None]
-    second = bins[ok, 3:6] / cnt[:, None]
-    qc = qf @ c
-    r2 = qf[0, 0] * second[:, 0] + 2 * qf[0, 1] * second[:, 1] + qf[1, 1] * second[:, 2] - 2 * mean @ qc + c @ qc
-    r = np.sqrt(np.maximum(r2, 0.0))
-    upper = np.linalg.cholesky(qf).T
-    u = (mean - c) @ upper.T
-    phi = np.arctan2(u[:, 1], u[:, 0])
+    ok = bins[:, 0] > 0
+    b = bins[ok]
+    cnt = b[:, 0]
+    mx, my = b[:, 1] / cnt - c[0], b[:, 2] / cnt - c[1]  # bin mean about the centre
+    sxx = b[:, 3] / cnt - 2 * c[0] * b[:, 1] / cnt + c[0] * c[0]
+    sxy = b[:, 4] / cnt - c[0] * b[:, 2] / cnt - c[1] * b[:, 1] / cnt + c[0] * c[1]
+    syy = b[:, 5] / cnt - 2 * c[1] * b[:, 2] / cnt + c[1] * c[1]
+    r = np.sqrt(np.maximum(q00 * sxx + 2 * q01 * sxy + q11 * syy, 0.0))
+    # corrected angle of each bin's mean point: the Cholesky factor of the qform, written out for 2×2
+    l00 = math.sqrt(q00)
+    u = (l00 * mx + q01 / l00 * my) + 1j * (math.sqrt(det / q00) * my)
+    z = u / np.maximum(np.abs(u), 1e-12)
     w = cnt / cnt.sum()
-    dev = r - np.dot(w, r)
-    harm = []
-    for k in HARMONIC_CYCLES:
-        harm += [2 * np.dot(w, dev * np.cos(k * phi)), 2 * np.dot(w, dev * np.sin(k * phi))]
-    resid = max(fit.residual_rms, 1e-5)
+    dev = w * (r - np.dot(w, r))
+    coef = 2 * (z[None, :] ** _CYCLES[:, None]) @ dev  # Σ w·dev·e^{ikφ}: cos part real, sin part imaginary
+    harm = np.column_stack([coef.real, coef.imag]).ravel()
+    resid = max(residual, 1e-5)
     s_center = resid * math.sqrt(2.0 / n)
     s_amp = resid * math.sqrt(1.0 / n)
-    f.y = np.array([center[0], center[1], log_amp, imbalance, *harm])
-    f.sigma = np.array([s_center, s_center, s_amp, s_amp] + [s_center] * (2 * len(HARMONIC_CYCLES)))
-    if not np.all(np.isfinite(f.y)):
-        f.y = f.sigma = None
+    y = np.empty(N_FEATURES)
+    y[0] = c[0] + stats.center_d / stats.scale
+    y[1] = c[1] + stats.center_q / stats.scale
+    y[2], y[3] = log_amp, imbalance
+    y[4:] = harm
+    if not np.all(np.isfinite(y)):
+        return f
+    f.y = y
+    f.sigma = np.full(N_FEATURES, s_center)
+    f.sigma[2:4] = s_amp
     return f
 
 
