@@ -45,6 +45,7 @@ class Settings:
     """Every threshold the monitor uses, in the units a user reads."""
 
     learn_windows: int = 8  # windows a band needs before it is judged
+    learn_gap_s: float = 6 * HOUR_S  # a band's learning idle this long starts over
     level_tau_s: float = 3 * HOUR_S  # the device's offset level follows slow drift with this time constant
     step_min: float = 0.008  # smallest offset jump worth an alarm, fraction of amplitude (CUSUM reference = half)
     step_h: float = 12.0  # CUSUM threshold, in standard deviations
@@ -302,10 +303,12 @@ class EwRegression:
 @dataclass
 class BandBaseline:
     """One temperature band's features, each a line in temperature inside the band, learned from its first
-    windows; `anchor` shifts the offsets and amplitude to the device's level at the time it was learned."""
+    windows less the device's level at each of them (so a band learned late starts at the level the drive
+    has reached, and a band whose learning straddles a detected step is not torn by it)."""
 
     band: int
     n: int = 0
+    last_t: float | None = None  # drive time of the last learning window
     sx: float = 0.0
     sxx: float = 0.0
     sy: list = field(default_factory=lambda: [0.0] * N_FEATURES)
@@ -322,9 +325,16 @@ class BandBaseline:
     def x(self, temp_c: float) -> float:
         return temp_c - (self.band + 0.5) * BAND_WIDTH_C
 
-    def learn(self, temp_c: float, y: np.ndarray, learn_windows: int, shift: np.ndarray) -> None:
-        """Add a window; once learn_windows are in, freeze the lines (shift: subtracted from the
-        intercepts so the band starts at the device's current level)."""
+    def restart(self) -> None:
+        self.n, self.sx, self.sxx = 0, 0.0, 0.0
+        self.sy, self.sxy, self.syy = [0.0] * N_FEATURES, [0.0] * N_FEATURES, [0.0] * N_FEATURES
+
+    def learn(self, t: float, temp_c: float, y: np.ndarray, learn_windows: int, max_gap_s: float) -> None:
+        """Add a window (features less the device's level); once learn_windows are in, freeze the lines.
+        Learning that sat idle longer than max_gap_s starts over: the drive may have changed meanwhile."""
+        if self.last_t is not None and t - self.last_t > max_gap_s:
+            self.restart()
+        self.last_t = t
         x = self.x(temp_c)
         self.n += 1
         self.sx += x
@@ -342,7 +352,7 @@ class BandBaseline:
             slope = (sxy / n - mx * sy / n) / (var_x + 1.0 / n)
             intercept = sy / n - slope * mx
             resid_var = np.maximum(syy / n - (sy / n) ** 2 - slope * (sxy / n - mx * sy / n), 0.0)
-            self.intercept = list(intercept - shift)
+            self.intercept = list(intercept)
             self.slope = list(slope)
             self.spread = list(np.sqrt(resid_var * n / max(n - 2, 1)))
 
@@ -631,8 +641,8 @@ class DeviceMonitor:
         if base is None:
             base = self.bands[f.band] = BandBaseline(f.band)
         if not base.ready:
-            shift = np.array(self.level) if self.level is not None else np.zeros(N_FEATURES)
-            base.learn(f.temp_c, y, s.learn_windows, shift)
+            level = np.array(self.level) if self.level is not None else np.zeros(N_FEATURES)
+            base.learn(f.t, f.temp_c, y - level, s.learn_windows, s.learn_gap_s)
             if base.ready and self.level is None:
                 self.level = [0.0] * N_FEATURES
                 self.level_t = f.t
@@ -678,6 +688,9 @@ class DeviceMonitor:
             self.rates.reset()
             for c in self.rate_cusum.values():
                 c.reset()
+            for band in self.bands.values():  # learning that saw the drive before the jump starts over
+                if not band.ready:
+                    band.restart()
             return
         if self.step.s == 0:  # follow slow drift (normal aging) only while no jump is building
             dt = f.t - (self.level_t or f.t)
