@@ -39,7 +39,8 @@ def cmd_agent(args) -> int:
     seed = args.seed if args.seed is not None else device_seed(args.device)
     if args.source == "sim":
         model = drive_model(seed)
-        source = SimulatedDrive(seed, hours=args.sim_hours, sample_hz=args.sample_hz)
+        knock = None if args.knock_at_hour is None else args.knock_at_hour * 3600.0
+        source = SimulatedDrive(seed, hours=args.sim_hours, sample_hz=args.sample_hz, knock_at_s=knock)
         factory = factory_calibration(model, seed)
     elif args.source.startswith("replay:"):
         from encoder_fleet.recording import read_recording
@@ -157,6 +158,11 @@ def register(sub) -> None:
         help="pace the simulated clock at this many times real time (0: as fast as possible)",
     )
     p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
+    p.add_argument(
+        "--knock-at-hour",
+        type=non_negative_float,
+        help="simulated drive only: knock its magnet at this drive hour (offsets jump by 1.5 %% of the amplitude)",
+    )
     p.add_argument("--factory", help="the factory coefficient set, JSON (required for replay)")
     add_level_option(p)
     p.set_defaults(func=cmd_agent)
