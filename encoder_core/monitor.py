@@ -46,6 +46,7 @@ class Settings:
 
     learn_windows: int = 8  # windows a band needs before it is judged
     learn_gap_s: float = 6 * HOUR_S  # a band's learning idle this long starts over
+    learn_span_c: float = 5.0  # ... and its windows must span this much of its 10 °C (temperature slope)
     level_tau_s: float = 3 * HOUR_S  # the device's offset level follows slow drift with this time constant
     step_min: float = 0.008  # smallest offset jump worth an alarm, fraction of amplitude (CUSUM reference = half)
     step_h: float = 12.0  # CUSUM threshold, in standard deviations
@@ -309,6 +310,8 @@ class BandBaseline:
     band: int
     n: int = 0
     last_t: float | None = None  # drive time of the last learning window
+    x_min: float = 1e9  # temperature span the learning windows covered (°C about the band's middle)
+    x_max: float = -1e9
     sx: float = 0.0
     sxx: float = 0.0
     sy: list = field(default_factory=lambda: [0.0] * N_FEATURES)
@@ -327,15 +330,20 @@ class BandBaseline:
 
     def restart(self) -> None:
         self.n, self.sx, self.sxx = 0, 0.0, 0.0
+        self.x_min, self.x_max = 1e9, -1e9
         self.sy, self.sxy, self.syy = [0.0] * N_FEATURES, [0.0] * N_FEATURES, [0.0] * N_FEATURES
 
-    def learn(self, t: float, temp_c: float, y: np.ndarray, learn_windows: int, max_gap_s: float) -> None:
-        """Add a window (features less the device's level); once learn_windows are in, freeze the lines.
-        Learning that sat idle longer than max_gap_s starts over: the drive may have changed meanwhile."""
+    def learn(
+        self, t: float, temp_c: float, y: np.ndarray, learn_windows: int, max_gap_s: float, min_span_c: float
+    ) -> None:
+        """Add a window (features less the device's level); once learn_windows are in and they span
+        min_span_c of temperature (or ten times as many windows are in), freeze the lines. Learning that sat
+        idle longer than max_gap_s starts over: the drive may have changed meanwhile."""
         if self.last_t is not None and t - self.last_t > max_gap_s:
             self.restart()
         self.last_t = t
         x = self.x(temp_c)
+        self.x_min, self.x_max = min(self.x_min, x), max(self.x_max, x)
         self.n += 1
         self.sx += x
         self.sxx += x * x
@@ -343,7 +351,7 @@ class BandBaseline:
             self.sy[i] += v
             self.sxy[i] += x * v
             self.syy[i] += v * v
-        if self.n >= learn_windows:
+        if self.n >= learn_windows and (self.x_max - self.x_min >= min_span_c or self.n >= 10 * learn_windows):
             n = self.n
             sy, sxy, syy = np.array(self.sy), np.array(self.sxy), np.array(self.syy)
             mx = self.sx / n
@@ -642,7 +650,7 @@ class DeviceMonitor:
             base = self.bands[f.band] = BandBaseline(f.band)
         if not base.ready:
             level = np.array(self.level) if self.level is not None else np.zeros(N_FEATURES)
-            base.learn(f.t, f.temp_c, y - level, s.learn_windows, s.learn_gap_s)
+            base.learn(f.t, f.temp_c, y - level, s.learn_windows, s.learn_gap_s, s.learn_span_c)
             if base.ready and self.level is None:
                 self.level = [0.0] * N_FEATURES
                 self.level_t = f.t
