@@ -21,7 +21,7 @@ import zenoh
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import REFERENCE_TEMP_C, band_of
 from encoder_core.samples import InputError, Samples
-from encoder_core.stats import normalisation_scale, usable_mask, window_stats
+from encoder_core.stats import normalisation_scale, rejected_by_reason, window_stats
 from fleet_wire import keys
 from fleet_wire import messages as wire
 
@@ -129,7 +129,7 @@ class EdgeAgent:
         if len(block) == 0:
             return True
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
-        usable = usable_mask(block)
+        usable, by_reason = rejected_by_reason(block)  # spikes and clipping counted per reason, for the monitor
         quality = self.angle_quality_deg(block, usable)
         if self.pending_ack is not None:
             self.send_ack(self.pending_ack, "applied", quality)
@@ -145,6 +145,7 @@ class EdgeAgent:
             coefficients_version=self.version,
             angle_quality_deg=quality,
             temp_rate_c_per_s=temp_rate(block),
+            rejected_by_reason=by_reason,
         )
         payload = wire.encode("window", msg)
         self.outbox.add(self.seq, payload)

@@ -36,9 +36,22 @@ class SimulatedDrive(SampleSource):
         t_max: float = 85.0,
         cycle_hours: float = 12.0,
         model: EncoderModel | None = None,
+        knock_at_s: float | None = None,
+        knock_fraction: float = 0.015,
     ):
         self.seed = seed
         self.model = model or drive_model(seed)
+        # a knocked magnet (demo, drift monitor): from knock_at_s on, both offsets jump by knock_fraction
+        # of the channel amplitude (1.5 % by default), along a direction drawn from the seed
+        self.knock_at_s = knock_at_s
+        direction = np.random.default_rng([seed, 5]).uniform(-np.pi, np.pi)
+        jump = knock_fraction * 2.0 * self.model.hall_amplitude
+        self.knocked = self.model.with_(
+            offset_counts=(
+                self.model.offset_counts[0] + jump * np.cos(direction),
+                self.model.offset_counts[1] + jump * np.sin(direction),
+            )
+        )
         self.rng = np.random.default_rng([seed, 1])
         self.end_s = hours * 3600.0
         self.sample_s = 1.0 / sample_hz
@@ -59,8 +72,9 @@ class SimulatedDrive(SampleSource):
             t0=self.now,
             rng=self.rng,
         )
+        knocked = self.knock_at_s is not None and self.now >= self.knock_at_s
         samples, die = simulate(
-            self.model,
+            self.knocked if knocked else self.model,
             profile.t,
             profile.theta,
             profile.temp_c,

@@ -180,13 +180,67 @@ def plausible_mask(d, q, *, center=(0.0, 0.0), tolerance: float = 0.12) -> np.nd
     return ok & (np.abs(r - med) <= tolerance * med)
 
 
-def usable_mask(samples: Samples) -> np.ndarray:
-    """Samples that say something about the circle: finite, near it, no hall pinned at an ADC rail."""
-    keep = plausible_mask(samples.d, samples.q)
+REJECT_REASONS = ("non_finite", "clipped", "outlier")  # each rejected sample counts once, under the first
+
+
+def pinned_mask(d, q, *, min_count: int = 4) -> np.ndarray:
+    """Samples of a channel pinned at its block's extreme value while the other channel moves: clipping
+    recognised from the data (diagnose's rule), so a rail of unknown value (a replay in counts of any
+    range, a converter whose reference sagged) is found as well as 0 and 4095."""
+    d = np.asarray(d, float)
+    q = np.asarray(q, float)
+    pinned = np.zeros(d.size, bool)
+    ok = np.isfinite(d) & np.isfinite(q)
+    if ok.sum() < 8:
+        return pinned
+    for chan, other in ((d, q), (q, d)):
+        span_other = np.ptp(other[ok])
+        values = chan[ok]
+        for value in (values.max(), values.min()):
+            at = ok & (chan == value)
+            count = int(at.sum())
+            if count < max(min_count, 0.0005 * d.size):
+                continue
+            # a rail piles samples up at one value; a quantised peak spreads them over its neighbours
+            rest = values[values != value]
+            if rest.size:
+                nearest = rest.max() if value == values.max() else rest.min()
+                if count < 3 * int((values == nearest).sum()):
+                    continue
+            moving = other[at]
+            if np.unique(moving).size >= min(5, count) and np.ptp(moving) > 0.01 * span_other:
+                pinned |= at
+    return pinned
+
+
+def rejection_masks(samples: Samples) -> dict[str, np.ndarray]:
+    """Why samples are kept out of the statistics, one mask per reason of REJECT_REASONS (disjoint)."""
+    finite = np.isfinite(samples.d) & np.isfinite(samples.q)
+    clipped = pinned_mask(samples.d, samples.q) & finite
     if samples.halls is not None:
         for hall in samples.halls.values():
-            keep &= (hall > 0) & (hall < ADC_MAX)
-    return keep
+            clipped |= finite & ~((hall > 0) & (hall < ADC_MAX))
+    outlier = ~plausible_mask(samples.d, samples.q) & finite & ~clipped
+    return {"non_finite": ~finite, "clipped": clipped, "outlier": outlier}
+
+
+def usable_mask(samples: Samples) -> np.ndarray:
+    """Samples that say something about the circle: finite, near it, no channel pinned at a rail."""
+    masks = rejection_masks(samples)
+    return ~(masks["non_finite"] | masks["clipped"] | masks["outlier"])
+
+
+def rejected_by_reason(samples: Samples) -> tuple[np.ndarray, dict[str, int]]:
+    """The usable mask and the count of rejected samples per reason (the window's rejected_by_reason)."""
+    masks = rejection_masks(samples)
+    counts = {reason: int(masks[reason].sum()) for reason in REJECT_REASONS}
+    return ~(masks["non_finite"] | masks["clipped"] | masks["outlier"]), counts
+
+
+def block_statistics(samples: Samples, scale: float) -> tuple[WindowStats, dict[str, int]]:
+    """What an agent makes of one block: the window's statistics and its rejected samples per reason."""
+    keep, counts = rejected_by_reason(samples)
+    return window_stats(samples, scale, keep), counts
 
 
 def window_stats(samples: Samples, scale: float, keep: np.ndarray | None = None) -> WindowStats:

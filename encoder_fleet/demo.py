@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from edge_agent.sources import drive_model, evaluation_set, factory_calibration
+from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import angle_error_deg, rms
 from fleet_wire.session import free_port, loopback_endpoint
@@ -27,13 +27,18 @@ from service.runtime import BAND_HORIZON, FleetService, HttpServer, open_session
 from service.store import Store
 
 WINDOW_S = 60.0
+KNOCK_AT_HOUR = 14.0  # the demo knocks drive-000's magnet here (offsets jump by 1.5 % of the amplitude)
 
 
-def errors(device_seed: int, bands: list[dict] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def errors(
+    device_seed: int, bands: list[dict] | None, *, knocked: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Temperature, and the factory's and the fleet's angle errors (degrees) over a -40…+85 °C cycle, on
     noise-free signals: they measure the coefficients, not the sensor's noise."""
     model = drive_model(device_seed)
-    factory = factory_calibration(model, device_seed)
+    factory = factory_calibration(model, device_seed)  # the factory calibrated the drive before any knock
+    if knocked:  # the drive as it is now: its magnet knocked (what the fleet's coefficients must correct)
+        model = SimulatedDrive(device_seed, hours=0.0, knock_at_s=0.0).knocked
     truth = evaluation_set(model.with_(noise_counts=0.0), device_seed)
     fleet = BandedCorrection.from_dict({"bands": bands}) if bands else factory
     return (
@@ -43,9 +48,9 @@ def errors(device_seed: int, bands: list[dict] | None) -> tuple[np.ndarray, np.n
     )
 
 
-def score(device_seed: int, bands: list[dict] | None) -> dict:
+def score(device_seed: int, bands: list[dict] | None, *, knocked: bool = False) -> dict:
     """RMS and max angle error of factory and fleet coefficients over the cycle."""
-    _, f, g = errors(device_seed, bands)
+    _, f, g = errors(device_seed, bands, knocked=knocked)
     return {
         "rms_error_deg_factory": rms(f),
         "max_error_deg_factory": float(np.abs(f).max()),
@@ -54,15 +59,43 @@ def score(device_seed: int, bands: list[dict] | None) -> dict:
     }
 
 
-def plot_errors(curves: dict[str, tuple], path: Path) -> None:
-    """RMS angle error against temperature, factory (dashed) and fleet (solid), one colour per drive."""
+def plot_errors(
+    curves: dict[str, tuple],
+    path: Path,
+    alarms: dict[str, list[dict]] | None = None,
+    knock: tuple[str, float] | None = None,
+    hours: float | None = None,
+) -> None:
+    """RMS angle error against temperature, factory (dashed) and fleet (solid), one colour per drive; below
+    it, when alarms are given, each drive's timeline with the planted event and the alarms the monitor raised."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     edges = np.arange(-40.0, 90.0, 5.0)
-    fig, ax = plt.subplots(figsize=(9, 4.5))
+    if alarms is None:
+        fig, ax = plt.subplots(figsize=(9, 4.5))
+    else:
+        fig, (ax, tl) = plt.subplots(2, 1, figsize=(9, 6.5), gridspec_kw={"height_ratios": [3, 1.3]})
+        names = list(curves)
+        for k, name in enumerate(names):
+            tl.hlines(k, 0, hours or 0, color=f"C{k}", lw=2, alpha=0.5)
+            for a in alarms.get(name, []):
+                if a["cause"] == "offline":
+                    continue
+                h = a["raised_at"] / 3600
+                tl.plot(h, k, "rv", ms=9)
+                tl.annotate(f"{a['cause']} ({h:.2f} h)", (h, k), xytext=(6, 6), textcoords="offset points", fontsize=8)
+        if knock is not None:
+            k = names.index(knock[0])
+            tl.plot(knock[1], k, "k|", ms=18, mew=2)
+            tl.annotate("magnet knocked", (knock[1], k), xytext=(-80, -14), textcoords="offset points", fontsize=8)
+        tl.set_yticks(range(len(names)), names, fontsize=8)
+        tl.set_ylim(-0.7, len(names) - 0.3)
+        tl.set_xlabel("drive time (h)")
+        tl.set_title("Drift monitor: planted event (|) and alarms raised (▼)", fontsize=9)
+        tl.grid(alpha=0.3)
     for k, (name, (temp, f, g)) in enumerate(curves.items()):
         idx = np.digitize(temp, edges) - 1
         centers = edges[:-1] + 2.5
@@ -151,7 +184,8 @@ def run_demo(
                 "--outbox",
                 str(out_dir / "outbox" / f"{name}.sqlite"),
                 *security_args,
-            ],
+            ]
+            + (["--knock-at-hour", str(KNOCK_AT_HOUR)] if i == 0 and sim_hours > KNOCK_AT_HOUR else []),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -180,14 +214,20 @@ def run_demo(
         for i, name in enumerate(names):
             applied = applied_set(store, name)
             versions = sorted({a["version"] for a in store.acks(name) if a["status"] == "applied"})
-            curves[name] = errors(i, applied["bands"] if applied else None)
+            knocked = i == 0 and sim_hours > KNOCK_AT_HOUR
+            curves[name] = errors(i, applied["bands"] if applied else None, knocked=knocked)
             summary["devices"][name] = {
-                **score(i, applied["bands"] if applied else None),
+                **score(i, applied["bands"] if applied else None, knocked=knocked),
                 "windows": store.device(name)["windows"],
                 "coefficient_versions": versions,
             }
         plot_path = out_dir / "angle-error-vs-temperature.png"
-        plot_errors(curves, plot_path)
+        knock = (names[0], KNOCK_AT_HOUR) if sim_hours > KNOCK_AT_HOUR else None
+        alarms = {name: list(reversed(store.alarms(name))) for name in names}
+        summary["planted"] = None if knock is None else {"device": knock[0], "cause": "offset_step", "hour": knock[1]}
+        summary["alarms"] = [a for name in names for a in alarms[name] if a["cause"] != "offline"]
+        summary["offline_alarms"] = sum(a["cause"] == "offline" for name in names for a in alarms[name])
+        plot_errors(curves, plot_path, alarms=alarms, knock=knock, hours=sim_hours)
         summary["plot"] = str(plot_path)
         summary["mcap"] = []
         for name in names:  # one audit file per drive, DIR/<device>.mcap
@@ -208,6 +248,24 @@ def run_demo(
     if json_path is not None:
         json_path.write_text(json.dumps(summary, indent=1) + "\n")
     return 0
+
+
+def format_alarms(summary: dict) -> list[str]:
+    planted = summary.get("planted")
+    lines = [
+        "Drift monitor" + (f": {planted['device']}'s magnet knocked at hour {planted['hour']:g}" if planted else "")
+    ]
+    for a in summary.get("alarms", []):
+        delay = ""
+        if planted and a["device"] == planted["device"] and a["cause"] == planted["cause"]:
+            delay = f", detected {(a['raised_at'] - planted['hour'] * 3600) / 60:.0f} min after the knock"
+        params = ", ".join(f"{k}={v:g}" for k, v in a["parameters"].items())
+        lines.append(f"  ALARM {a['device']} {a['cause']} ({params}) at {a['raised_at'] / 3600:.2f} h{delay}")
+        lines.append(f"        {a['evidence']}")
+    if not summary.get("alarms"):
+        lines.append("  no drift alarm")
+    lines.append(f"  ({summary.get('offline_alarms', 0)} offline alarms: the agents ended with the run)")
+    return lines
 
 
 def format_summary(summary: dict) -> str:
@@ -235,6 +293,8 @@ def format_summary(summary: dict) -> str:
         f"plot: {summary['plot']}",
         f"rejected messages: {summary['rejections'] or 'none'}",
         f"security: {summary.get('security', '?')}",
+        "",
+        *format_alarms(summary),
         "inspect: .venv/bin/encoder-fleet service --db "
         + summary["database"]
         + (

@@ -8,6 +8,7 @@
 | coefficients | a coefficient set; also a queryable    | service → agent              |
 | received     | the delivery watermark (a queryable)   | service answers the agent    |
 | alive        | the agent's liveliness token           | agent                        |
+| alarms       | a drift alarm raised or cleared        | service → anyone listening   |
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import re
 
 PREFIX = "encoders"
 STATS, ACK, FACTORY, COEFFICIENTS, RECEIVED, ALIVE = "stats", "ack", "factory", "coefficients", "received", "alive"
-SUFFIXES = (STATS, ACK, FACTORY, COEFFICIENTS, RECEIVED, ALIVE)
+ALARMS = "alarms"
+SUFFIXES = (STATS, ACK, FACTORY, COEFFICIENTS, RECEIVED, ALIVE, ALARMS)
 # a Zenoh key segment that is no wildcard and no path trick: '.', '..' and '-' are not devices
 DEVICE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 

@@ -213,6 +213,8 @@ def _check_consistency(kind: str, msg: dict) -> None:
             bad("$.window_end", f"{msg['window_end']} is before window_start {msg['window_start']}")
         if msg["rejected"] != msg["stats"]["rejected"]:
             bad("$.rejected", f"{msg['rejected']} differs from stats.rejected = {msg['stats']['rejected']}")
+        if "rejected_by_reason" in msg and sum(msg["rejected_by_reason"].values()) != msg["rejected"]:
+            bad("$.rejected_by_reason", f"{msg['rejected_by_reason']} does not sum to rejected = {msg['rejected']}")
         if msg["samples"] != round(msg["stats"]["moments"][0]):
             bad("$.samples", f"{msg['samples']} differs from stats.moments[0] = {msg['stats']['moments'][0]}")
         slack = 1e-9 * max(1.0, abs(msg["temp_min_c"]), abs(msg["temp_max_c"]))  # Σt/n rounds past min/max
@@ -273,11 +275,16 @@ def window_message(
     temp_rate_c_per_s: float,
     coefficients_version: int,
     angle_quality_deg: float,
+    rejected_by_reason: dict[str, int] | None = None,
 ) -> dict:
-    """A window message; samples, rejected, temperatures and band come from the statistics."""
+    """A window message; samples, rejected, temperatures and band come from the statistics.
+    rejected_by_reason (optional): the rejected samples per reason (non_finite, clipped, outlier)."""
     if stats.temp_n == 0:
         raise WireError("schema", "window message: the statistics hold no temperature; a window needs one for its band")
     temp_mean = float(stats.temp_mean)
+    extra = (
+        {} if rejected_by_reason is None else {"rejected_by_reason": {k: int(v) for k, v in rejected_by_reason.items()}}
+    )
     return check(
         "window",
         {
@@ -296,6 +303,7 @@ def window_message(
             "coefficients_version": int(coefficients_version),
             "angle_quality_deg": float(angle_quality_deg),
             "stats": stats.to_dict(),
+            **extra,
         },
     )
 

@@ -21,6 +21,7 @@ from pydantic import BaseModel, Field
 
 from .auth import TokenAuth, authorize, tokens
 from .mcap_export import iter_mcap
+from .monitor import device_state, fleet_health
 from .observability import health_checks, metrics_registry
 from .store import Store
 
@@ -111,6 +112,28 @@ class BandFit(BaseModel):
     quality: dict
 
 
+class Alarm(BaseModel):
+    id: int
+    device: str
+    cause: str = Field(
+        description="offset_step, accelerated_aging, magnet_weakening, harmonic_growth, outliers, "
+        "adc_clipping or offline (docs/architecture.md, Alarms)."
+    )
+    parameters: dict = Field(description="The cause's parameters.")
+    evidence: str = Field(description="One sentence: what the monitor saw.")
+    raised_at: float = Field(description="Drive clock, s: end of the window that made the alarm certain.")
+    cleared_at: float | None = Field(description="Drive clock, s; null while the alarm is open.")
+
+
+class AlarmList(BaseModel):
+    alarms: list[Alarm] = Field(description="Newest first.")
+
+
+class FleetHealth(BaseModel):
+    devices: dict[str, int] = Field(description="Devices per state: ok, watch, alarm, offline, unknown.")
+    open_alarms: dict[str, int] = Field(description="Open alarms per cause.")
+
+
 class Health(BaseModel):
     device: str
     online: bool
@@ -122,6 +145,12 @@ class Health(BaseModel):
     samples: int
     rejected: int
     rejected_share: float | None = Field(description="rejected / (samples + rejected) over all windows.")
+    state: str = Field(
+        "unknown",
+        description="Drift monitor: ok | watch (a detector half way to an alarm, or absurd windows lately) | "
+        "alarm | offline | unknown (no band judged yet).",
+    )
+    alarms: list[Alarm] = Field(default_factory=list, description="The device's open alarms, newest first.")
 
 
 class BandAngleError(BaseModel):
@@ -190,6 +219,7 @@ windows = APIRouter(prefix="/devices", tags=["windows"], responses=_UNKNOWN_DEVI
 export = APIRouter(prefix="/devices", tags=["export"], responses=_UNKNOWN_DEVICE)
 ingest = APIRouter(prefix="/ingest", tags=["ingest"])
 operations = APIRouter(tags=["operations"])
+alarms = APIRouter(tags=["alarms"])
 page = APIRouter(tags=["page"])
 
 
@@ -204,7 +234,7 @@ def get_device(device: DeviceDep):
 
 
 @devices.get("/{device_id}/health", response_model=Health, responses=_UNKNOWN_DEVICE, summary="Health of one device")
-def device_health(device: DeviceDep, store: StoreDep):
+def device_health(device: DeviceDep, store: StoreDep, request: Request):
     dev_id = device["id"]
     summary = store.window_summary(dev_id, recent=10)
     recent = summary["recent"]
@@ -235,7 +265,30 @@ def device_health(device: DeviceDep, store: StoreDep):
         samples=summary["samples"],
         rejected=summary["rejected"],
         rejected_share=summary["rejected"] / seen if seen else None,
+        state=device_state(store, dev_id, _monitor(request)),
+        alarms=store.alarms(dev_id, open_=True),
     )
+
+
+def _monitor(request: Request):
+    service = request.app.state.service
+    return getattr(service, "monitor", None)
+
+
+@alarms.get("/alarms", response_model=AlarmList, summary="Drift alarms (times on the drive's clock)")
+def list_alarms(
+    store: StoreDep,
+    device: Annotated[str | None, Query(description="Only this device's alarms.")] = None,
+    cause: Annotated[str | None, Query(description="Only alarms of this cause.")] = None,
+    open: Annotated[bool | None, Query(description="true: open alarms only; false: cleared ones only.")] = None,
+    limit: Annotated[int, Query(ge=1, le=10000, description="Most alarms listed.")] = 1000,
+):
+    return AlarmList(alarms=store.alarms(device, cause, open, limit=limit))
+
+
+@alarms.get("/fleet/health", response_model=FleetHealth, summary="Devices per state and open alarms per cause")
+def get_fleet_health(store: StoreDep, request: Request):
+    return fleet_health(store, _monitor(request))
 
 
 @devices.get(
@@ -369,7 +422,7 @@ def create_app(store: Store, service: FleetService | None = None, auth: TokenAut
     app.state.service = service
     app.state.auth = auth
     app.state.metrics = metrics_registry(store, service)
-    for router in (devices, coefficients, windows, export, ingest, operations, page):
+    for router in (devices, coefficients, windows, export, ingest, operations, alarms, page):
         app.include_router(router)
     app.mount("/static", StaticFiles(directory=str(STATIC)), name="static")
     if auth is not None:

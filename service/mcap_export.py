@@ -9,7 +9,8 @@ per field, no nulls (a missing value is a missing field), no arrays of arrays):
 | /encoders/<device>/metrics     | encoder_fleet.DriveMetrics    | window: flat numbers for the Plot panel  |
 | /encoders/<device>/coefficients| encoder_fleet.CoefficientSet  | coefficient set, harmonics flattened     |
 | /encoders/<device>/ack         | encoder_fleet.Ack             | ack                                      |
-| /encoders/<device>/log         | foxglove.Log                  | rollout decision (set published, applied, refused) |
+| /encoders/<device>/log         | foxglove.Log                  | rollout decision, alarm raised           |
+| /encoders/<device>/alarms      | encoder_fleet.Alarm           | drift alarm, parameters flattened        |
 
 log_time is Unix time in ns: when the service received the window or ack, or published the set. The
 drive's clock stays a field (window_end, created_at, at). The time range (from, to) selects by the drive's
@@ -143,6 +144,23 @@ SCHEMAS = {
         "A log message",
     ),
 }
+ALARM_PARAMETERS = ("delta_d", "delta_q", "rate_per_day", "fleet_median_rate_per_day", "loss_per_day")
+ALARM_PARAMETERS += ("order", "amplitude_deg", "fraction", "since")  # every cause's parameters are numbers
+SCHEMAS["encoder_fleet.Alarm"] = _object(
+    "encoder_fleet.Alarm",
+    {
+        "id": INTEGER,
+        "cause": STRING,
+        "evidence": STRING,
+        "raised_at": {**NUMBER, "description": "Drive clock, s: end of the window that made the alarm certain."},
+        "cleared_at": {**NUMBER, "description": "Drive clock, s; absent while the alarm is open."},
+        **{
+            p: {**NUMBER, "description": "A parameter of the cause (present for its causes only)."}
+            for p in ALARM_PARAMETERS
+        },
+    },
+    "A drift alarm (GET /alarms), logged when the service raised it.",
+)
 INFO, WARNING = 2, 3
 TOPICS = {  # topic suffix -> schema
     "stats": "encoder_fleet.Window",
@@ -150,6 +168,7 @@ TOPICS = {  # topic suffix -> schema
     "coefficients": "encoder_fleet.CoefficientSet",
     "ack": "encoder_fleet.Ack",
     "log": "foxglove.Log",
+    "alarms": "encoder_fleet.Alarm",
 }
 
 
@@ -202,6 +221,12 @@ def coefficient_set_record(entry: dict) -> dict:
             "bands": bands,
         }
     )
+
+
+def alarm_record(alarm: dict) -> dict:
+    params = {k: float(v) for k, v in alarm["parameters"].items() if k in ALARM_PARAMETERS}
+    fields = ("id", "cause", "evidence", "raised_at", "cleared_at")
+    return _present({**{k: alarm[k] for k in fields}, **params})
 
 
 def ack_record(ack: dict) -> dict:
@@ -271,6 +296,12 @@ def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, st
         else:
             text, level = f"coefficient set v{ack['version']} refused by the agent: {ack.get('reason', '')}", WARNING
         yield ack["received_at"], "log", log_record(ack["received_at"], level, text, device)
+    for alarm in reversed(store.alarms(device, with_created_at=True)):  # oldest first
+        if not _in_range(alarm["raised_at"], t_from, t_to):
+            continue
+        yield alarm["created_at"], "alarms", alarm_record(alarm)
+        text = f"alarm {alarm['cause']} raised at {alarm['raised_at'] / 3600:.2f} h drive time: {alarm['evidence']}"
+        yield alarm["created_at"], "log", log_record(alarm["created_at"], WARNING, text, device)
     for msg in store.iter_windows(device, t_from, t_to, with_received_at=True):
         yield msg["received_at"], "stats", window_record(msg)
         yield msg["received_at"], "metrics", metrics_record(msg)

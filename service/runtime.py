@@ -19,6 +19,7 @@ from encoder_core.correction import BandedCorrection
 from encoder_core.samples import InputError
 from fleet_wire import keys
 from fleet_wire import messages as wire
+from service.monitor import Monitor
 from service.refit import MIN_BAND_SAMPLES, refit_device
 from service.store import Store
 
@@ -50,6 +51,7 @@ class FleetService:
         min_band_samples: int = MIN_BAND_SAMPLES,
         signer=None,
         guard=None,
+        monitor_interval_s: float = 0.5,
     ):
         self.store = store
         self.signer = signer  # fleet_wire.security.SetSigner: every published set is signed
@@ -66,6 +68,11 @@ class FleetService:
         self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
         self._changed: set[str] = set()  # devices with windows stored since their last refit
         self._lock = threading.Lock()
+        # drift monitor (service/monitor.py): devices with windows it has not seen, fed on its own thread
+        self.monitor = Monitor(store, publish=self._publish_alarm)
+        self.monitor_interval_s = monitor_interval_s
+        self._monitor_changed: set[str] = set()
+        self._monitor_thread: threading.Thread | None = None
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
@@ -80,6 +87,10 @@ class FleetService:
             s.liveliness().declare_subscriber(keys.every(keys.ALIVE), self._on_alive, history=True),
         ]
         self._changed.update(d["id"] for d in self.store.devices())  # after a restart, look at everyone once
+        self._monitor_changed.update(self._changed)
+        if self.monitor_interval_s > 0:
+            self._monitor_thread = threading.Thread(target=self._monitor_loop, name="monitor", daemon=True)
+            self._monitor_thread.start()
         self._writer.start()
         if self.refit_interval_s > 0:
             self._thread = threading.Thread(target=self._refit_loop, name="refit", daemon=True)
@@ -95,6 +106,9 @@ class FleetService:
             self._thread.join()
         self._inbox.put(None)  # the writer stores what is queued, then ends
         self._writer.join()
+        if self._monitor_thread is not None:
+            self._monitor_thread.join()
+        self.monitor_pass()  # what the writer stored last is monitored too
 
     def checks(self) -> dict[str, str]:
         """Component -> 'ok' or what is wrong (for /healthz and /readyz)."""
@@ -143,6 +157,7 @@ class FleetService:
                     self.counters.count(status)
                     if status == "stored" and key.endswith("/stats"):
                         self._changed.add(wire.device_from_key(key))
+                        self._monitor_changed.add(wire.device_from_key(key))
 
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""
@@ -169,6 +184,32 @@ class FleetService:
         if self.guard is not None and not self.guard.admits(device):
             return
         self.store.set_online(device, sample.kind == zenoh.SampleKind.PUT)
+        try:
+            self.monitor.process(device)  # what it sent before it went (or came back) is judged first
+            self.monitor.set_online(device, sample.kind == zenoh.SampleKind.PUT)
+        except Exception:
+            log.exception("monitor: liveliness of %s", device)
+
+    # --- drift monitor -----------------------------------------------------------------------------
+
+    def _monitor_loop(self) -> None:
+        while not self._stop.wait(self.monitor_interval_s):
+            self.monitor_pass()
+
+    def monitor_pass(self) -> int:
+        """Feed every device with new windows to the monitor; returns the alarms raised or cleared."""
+        with self._lock:
+            changed, self._monitor_changed = sorted(self._monitor_changed), set()
+        n = 0
+        for device in changed:
+            try:
+                n += len(self.monitor.process(device))
+            except Exception:  # one device's failure must not stop the others
+                log.exception("%s: monitor failed", device)
+        return n
+
+    def _publish_alarm(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     # --- queries -----------------------------------------------------------------------------------
 

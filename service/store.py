@@ -251,9 +251,10 @@ class Store:
                 )
             self._touch(c, device, now)
             c.execute(
-                f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at) "
-                f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 2))})",
-                [msg[f] for f in WINDOW_FIELDS] + [stats_json, now],
+                f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at, rejected_by_reason_json) "
+                f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 3))})",
+                [msg[f] for f in WINDOW_FIELDS]
+                + [stats_json, now, _json(msg["rejected_by_reason"]) if "rejected_by_reason" in msg else None],
             )
             row = c.execute(
                 "SELECT stats_json, windows, samples, first_seq FROM band_stats WHERE device = ? AND band = ?",
@@ -641,3 +642,121 @@ class Store:
             (device, recent),
         )
         return {**dict(total), "recent": [dict(r) for r in latest]}
+
+    # --- drift monitor (service/monitor.py; migration 020) -------------------------------------
+
+    def monitor_windows(self, device: str, after_seq: int, through_seq: int, limit: int = 500) -> list[dict]:
+        """Windows after_seq < seq <= through_seq in seq order, with what the monitor reads of them."""
+        rows = self._rows(
+            "SELECT seq, window_end, temp_mean_c, band, stats_json, rejected_by_reason_json FROM windows "
+            "WHERE device = ? AND seq > ? AND seq <= ? ORDER BY seq LIMIT ?",
+            (device, after_seq, through_seq, limit),
+        )
+        return [
+            {
+                "seq": r["seq"],
+                "window_end": r["window_end"],
+                "temp_mean_c": r["temp_mean_c"],
+                "band": r["band"],
+                "stats": json.loads(r["stats_json"]),
+                "rejected_by_reason": json.loads(r["rejected_by_reason_json"])
+                if r["rejected_by_reason_json"]
+                else None,
+            }
+            for r in rows
+        ]
+
+    def monitor_states(self) -> dict[str, tuple[dict, int]]:
+        """device -> (monitor state, last seq seen) for every device the monitor has seen."""
+        return {
+            r["device"]: (json.loads(r["state_json"]), r["last_seq"])
+            for r in self._rows("SELECT device, state_json, last_seq FROM monitor_state")
+        }
+
+    def save_monitor(self, device: str, state: dict, last_seq: int, events: list[dict]) -> list[dict]:
+        """The monitor's state and the alarms it raised or cleared, in one transaction. events: {"kind":
+        "raise" | "clear", "cause", "at", "parameters", "evidence"}; returns the alarms written (as listed)."""
+        written = []
+        now = time.time()
+        with self._tx() as c:
+            self._touch(c, device, now, heard=False)
+            for e in events:
+                if e["kind"] == "raise":
+                    if c.execute(
+                        "SELECT 1 FROM alarms WHERE device = ? AND cause = ? AND cleared_at IS NULL",
+                        (device, e["cause"]),
+                    ).fetchone():
+                        continue  # already open (e.g. offline raised again after a restart)
+                    cur = c.execute(
+                        "INSERT INTO alarms (device, cause, parameters_json, evidence, raised_at, created_at)"
+                        " VALUES (?, ?, ?, ?, ?, ?)",
+                        (device, e["cause"], _json(e["parameters"]), e["evidence"], e["at"], now),
+                    )
+                    written.append(cur.lastrowid)
+                else:
+                    rows = c.execute(
+                        "SELECT id FROM alarms WHERE device = ? AND cause = ? AND cleared_at IS NULL",
+                        (device, e["cause"]),
+                    ).fetchall()
+                    c.execute(
+                        "UPDATE alarms SET cleared_at = ?, clear_evidence = ? WHERE device = ? AND cause = ?"
+                        " AND cleared_at IS NULL",
+                        (max(e["at"], 0.0), e["evidence"], device, e["cause"]),
+                    )
+                    written += [r["id"] for r in rows]
+            c.execute(
+                "INSERT INTO monitor_state (device, state_json, last_seq, updated_at) VALUES (?, ?, ?, ?) "
+                "ON CONFLICT(device) DO UPDATE SET state_json = excluded.state_json, last_seq = excluded.last_seq,"
+                " updated_at = excluded.updated_at",
+                (device, _json(state), last_seq, now),
+            )
+        return self.alarms(ids=written) if written else []
+
+    @staticmethod
+    def _alarm(r: sqlite3.Row, with_created_at: bool = False) -> dict:
+        extra = {"created_at": r["created_at"]} if with_created_at else {}
+        return {
+            **extra,
+            "id": r["id"],
+            "device": r["device"],
+            "cause": r["cause"],
+            "parameters": json.loads(r["parameters_json"]),
+            "evidence": r["evidence"],
+            "raised_at": r["raised_at"],
+            "cleared_at": r["cleared_at"],
+        }
+
+    def alarms(
+        self,
+        device: str | None = None,
+        cause: str | None = None,
+        open_: bool | None = None,
+        *,
+        ids: list[int] | None = None,
+        limit: int = 1000,
+        with_created_at: bool = False,
+    ) -> list[dict]:
+        """Alarms (the GET /alarms contract's objects), newest first."""
+        where, args = [], []
+        if device is not None:
+            where.append("device = ?")
+            args.append(device)
+        if cause is not None:
+            where.append("cause = ?")
+            args.append(cause)
+        if open_ is not None:
+            where.append("cleared_at IS NULL" if open_ else "cleared_at IS NOT NULL")
+        if ids is not None:
+            where.append(f"id IN ({', '.join('?' * len(ids))})")
+            args += list(ids)
+        sql = "SELECT * FROM alarms" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id DESC LIMIT ?"
+        return [self._alarm(r, with_created_at) for r in self._rows(sql, (*args, limit))]
+
+    def open_alarm_counts(self) -> dict[str, int]:
+        """Open alarms per cause, fleet-wide."""
+        return {
+            r["cause"]: r["n"]
+            for r in self._rows(
+                "SELECT cause, count(*) AS n FROM alarms WHERE cleared_at IS NULL GROUP BY cause ORDER BY cause"
+            )
+        }

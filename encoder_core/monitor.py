@@ -1,0 +1,834 @@
+"""Drift monitor: what changes in a drive, from its windows of statistics. Pure logic, no I/O.
+
+Per window (`window_features`): a direct ellipse fit of the window's sums gives the channel offsets
+(fraction of the device's fixed normalisation scale, i.e. of its amplitude near +20 °C), the log of the
+common amplitude, the gain imbalance, and, from the angle-binned sums, the radius ripple at 3…6 cycles
+per turn (a field harmonic of order n makes a ripple of (n - 1) cycles with the harmonic's amplitude;
+orders 2 and 3 look like an offset and an imbalance on the locus, as in diagnose, so they are not
+harmonics here). Each comes with its own uncertainty from the fit's residual and the sample count.
+
+Per (device, temperature band) a baseline: each feature linear in temperature inside the band, learned
+from the band's first windows and anchored to the device's current level, so the −40…+85 °C cycle is
+compared like with like and never alarms; nothing is judged until a band has its baseline.
+
+Detectors are small dataclasses in river's style (`update(x)`, then `drift_detected`), their state plain
+JSON: a one-sided CUSUM on a score already standardised by its own uncertainty, with the reference value in
+physical units (the smallest change worth an alarm). river's detectors learn their scale from the raw
+stream and keep their state as Python objects; ours must take each window's own uncertainty, use
+thresholds a user can read (0.4 % of amplitude, 0.1 %/day), and persist as a few numbers in SQLite.
+
+Rates (accelerated aging, magnet weakening) are exponentially weighted regressions on drive time of the
+band-relative residuals, judged against the fleet's own distribution of the same rates (median and MAD
+over the other devices; a prior when the fleet is small): a fleet that ages together is the norm.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .monitor_causes import check_parameters
+from .physics import BAND_WIDTH_C
+from .stats import MONOMIALS, N_BINS, WindowStats
+
+DAY_S = 86400.0
+HOUR_S = 3600.0
+HARMONIC_CYCLES = (3, 4, 5, 6)  # radius ripple cycles per turn; order n = cycles + 1
+N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbalance, harmonics (cos, sin)
+MIN_FIT_SAMPLES = 100
+
+
+@dataclass
+class Settings:
+    """Every threshold the monitor uses, in the units a user reads."""
+
+    learn_windows: int = 8  # windows a band needs before it is judged
+    learn_gap_s: float = 6 * HOUR_S  # a band's learning idle this long starts over
+    learn_span_c: float = 5.0  # ... and its windows must span this much of its 10 °C (temperature slope)
+    level_tau_s: float = 3 * HOUR_S  # the device's offset level follows slow drift with this time constant
+    step_min: float = 0.008  # smallest offset jump worth an alarm, fraction of amplitude (CUSUM reference = half)
+    step_h: float = 12.0  # CUSUM threshold, in standard deviations
+    rate_tau_s: float = 3 * HOUR_S  # memory of the rate regressions (drive time)
+    rates_after_s: float = 12 * HOUR_S  # rates are judged once the device has been judged this long
+    rate_min_span_s: float = 3 * HOUR_S  # a rate is judged once its regression spans this much drive time
+    offset_rate_floor: float = 0.0035  # per day, fraction of amplitude: never an alarm below this
+    amp_rate_floor: float = 0.010  # per day, fractional amplitude loss
+    fleet_mads: float = 8.0  # a device alarms beyond the fleet median + this many robust sigmas
+    prior_rate: tuple[float, float] = (0.001, 0.001)  # (offset, amplitude) normal rate per day, small fleets
+    prior_spread: tuple[float, float] = (0.0003, 0.0008)  # and its robust sigma
+    rate_model_floor: float = 0.001  # per day: systematic uncertainty added to a rate's own
+    rate_h: float = 12.0  # CUSUM threshold on the rate's standardised excess
+    harmonic_min_rad: float = 0.0015  # smallest harmonic growth worth an alarm (0.086°)
+    harmonic_h: float = 12.0
+    harmonic_tau_s: float = 1 * HOUR_S  # a harmonic is judged on its hourly mean
+    fraction_ref: tuple[float, float] = (0.004, 0.003)  # (outliers, clipped): the CUSUM's reference share
+    fraction_h: float = 10.0
+    fraction_clear: float = 0.001  # share under which an outliers/clipping alarm clears
+    clear_after_s: float = 2 * HOUR_S  # a condition must stay gone this long before its alarm clears
+    absurd_log_amp: float = math.log(3.0)  # a window this far (×3, ÷3) from the band's amplitude is absurd
+    absurd_center: float = 0.25  # ... or with its centre this far off, fraction of amplitude
+    min_fleet: int = 5  # other devices needed before the fleet's own distribution replaces the prior
+
+
+# --- features -------------------------------------------------------------------------------------
+
+
+@dataclass
+class Features:
+    t: float  # window end, drive clock (s)
+    temp_c: float
+    band: int
+    samples: int  # accepted samples
+    seen: int  # accepted + rejected
+    rejected: dict[str, int]
+    y: np.ndarray | None = None  # N_FEATURES values (None when the window cannot be fitted)
+    sigma: np.ndarray | None = None  # their uncertainties
+
+
+_DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
+_SCATTER = np.array([[MONOMIALS.index((ia + ib, ja + jb)) for ib, jb in _DESIGN] for ia, ja in _DESIGN])
+_C1_INV = np.array([[0.0, 0.0, 0.5], [0.0, -1.0, 0.0], [0.5, 0.0, 0.0]])
+_CYCLES = np.array(HARMONIC_CYCLES)
+
+
+def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(center, qform, residual rms) of the direct ellipse fit (Fitzgibbon, Halir & Flusser) from the moment
+    sums: encoder_core.ellipse.fit_ellipse's algorithm with its checks, lean enough for every window."""
+    if int(np.count_nonzero(stats.bins[:, 0])) < N_BINS // 2:
+        return None
+    sm = stats.moments[_SCATTER]
+    s2, s3 = sm[:3, 3:], sm[3:, 3:]
+    try:
+        t = -np.linalg.solve(s3, s2.T)
+        eigval, eigvec = np.linalg.eig(_C1_INV @ (sm[:3, :3] + s2 @ t))
+    except np.linalg.LinAlgError:
+        return None
+    eigvec = np.real(eigvec)
+    cond = 4 * eigvec[0] * eigvec[2] - eigvec[1] ** 2
+    good = np.flatnonzero(cond > 0)
+    if good.size == 0:
+        return None
+    a1 = eigvec[:, good[np.argmin(np.abs(np.real(eigval[good])))]]
+    conic = np.concatenate([a1, t @ a1])
+    a, b, c, d, e, f = conic
+    det2 = 4 * a * c - b * b
+    if det2 == 0:
+        return None
+    cx, cy = (b * e - 2 * c * d) / det2, (b * d - 2 * a * e) / det2
+    f_center = f + 0.5 * (d * cx + e * cy)
+    if f_center == 0:
+        return None
+    qform = np.array([[a, b / 2], [b / 2, c]]) / -f_center
+    conic = conic / -f_center
+    mean_sq = float(conic @ sm @ conic) / stats.moments[0]
+    return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
+
+
+def window_features(
+    stats: WindowStats, *, t: float, temp_c: float, band: int, rejected_by_reason: dict | None = None
+) -> Features:
+    """What the monitor reads from one window (cheap: one ellipse fit and 64 bins)."""
+    rejected = {"non_finite": 0, "clipped": 0, "outlier": 0}
+    if rejected_by_reason:
+        rejected.update({k: int(v) for k, v in rejected_by_reason.items() if k in rejected})
+    n = stats.n
+    f = Features(
+        t=float(t), temp_c=float(temp_c), band=int(band), samples=n, seen=n + int(stats.rejected), rejected=rejected
+    )
+    if n < MIN_FIT_SAMPLES:
+        return f
+    fit = _ellipse(stats)
+    if fit is None:
+        return f
+    c, qf, residual = fit
+    q00, q01, q11 = qf[0, 0], qf[0, 1], qf[1, 1]
+    det = q00 * q11 - q01 * q01
+    if not (det > 0 and q00 > 0 and math.isfinite(det)):
+        return f
+    log_amp = -0.25 * math.log(det)
+    imbalance = 0.5 * math.log(q11 / q00)
+    # radius ripple along the circle from the bins' first and second moments under the fitted ellipse
+    bins = stats.bins
+    ok = bins[:, 0] > 0
+    b = bins[ok]
+    cnt = b[:, 0]
+    mx, my = b[:, 1] / cnt - c[0], b[:, 2] / cnt - c[1]  # bin mean about the centre
+    sxx = b[:, 3] / cnt - 2 * c[0] * b[:, 1] / cnt + c[0] * c[0]
+    sxy = b[:, 4] / cnt - c[0] * b[:, 2] / cnt - c[1] * b[:, 1] / cnt + c[0] * c[1]
+    syy = b[:, 5] / cnt - 2 * c[1] * b[:, 2] / cnt + c[1] * c[1]
+    r = np.sqrt(np.maximum(q00 * sxx + 2 * q01 * sxy + q11 * syy, 0.0))
+    # corrected angle of each bin's mean point: the Cholesky factor of the qform, written out for 2×2
+    l00 = math.sqrt(q00)
+    u = (l00 * mx + q01 / l00 * my) + 1j * (math.sqrt(det / q00) * my)
+    z = u / np.maximum(np.abs(u), 1e-12)
+    w = cnt / cnt.sum()
+    dev = w * (r - np.dot(w, r))
+    coef = 2 * (z[None, :] ** _CYCLES[:, None]) @ dev  # Σ w·dev·e^{ikφ}: cos part real, sin part imaginary
+    harm = np.column_stack([coef.real, coef.imag]).ravel()
+    resid = max(residual, 1e-5)
+    s_center = resid * math.sqrt(2.0 / n)
+    s_amp = resid * math.sqrt(1.0 / n)
+    y = np.empty(N_FEATURES)
+    y[0] = c[0] + stats.center_d / stats.scale
+    y[1] = c[1] + stats.center_q / stats.scale
+    y[2], y[3] = log_amp, imbalance
+    y[4:] = harm
+    if not np.all(np.isfinite(y)):
+        return f
+    f.y = y
+    f.sigma = np.full(N_FEATURES, s_center)
+    f.sigma[2:4] = s_amp
+    return f
+
+
+# --- detectors ------------------------------------------------------------------------------------
+
+
+@dataclass
+class Cusum:
+    """One-sided CUSUM of a standardised score: S = max(0, S + x - k); drift when S > h (river's style)."""
+
+    k: float = 0.5
+    h: float = 10.0
+    s: float = 0.0
+    n: int = 0  # updates since S was last 0
+    drift_detected: bool = False
+
+    def update(self, x: float) -> Cusum:
+        self.s = max(0.0, self.s + float(x) - self.k)
+        self.n = self.n + 1 if self.s > 0 else 0
+        self.drift_detected = self.s > self.h
+        return self
+
+    def reset(self) -> None:
+        self.s, self.n, self.drift_detected = 0.0, 0, False
+
+    @property
+    def load(self) -> float:
+        """How far towards an alarm, 0…1+ (for the 'watch' state)."""
+        return self.s / self.h
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Cusum:
+        return cls(**d)
+
+
+@dataclass
+class EwRegression:
+    """Exponentially weighted (drive time) least-squares line y = a + b·t for several series at once."""
+
+    tau_s: float
+    dims: int
+    t0: float | None = None  # time origin (the first point), keeps the sums well conditioned
+    t_last: float | None = None
+    t_first: float | None = None  # first point still in memory (reset restarts it)
+    sw: float = 0.0
+    st: float = 0.0
+    stt: float = 0.0
+    sy: list = field(default_factory=list)
+    sty: list = field(default_factory=list)
+    syy: list = field(default_factory=list)
+    n: int = 0
+
+    def __post_init__(self):
+        for name in ("sy", "sty", "syy"):
+            if not getattr(self, name):
+                setattr(self, name, [0.0] * self.dims)
+
+    def update(self, t: float, y, weight: float = 1.0) -> None:
+        if self.t0 is None:
+            self.t0 = t
+            self.t_first = t
+        if self.t_last is not None and t > self.t_last:
+            decay = math.exp(-(t - self.t_last) / self.tau_s)
+            self.sw *= decay
+            self.st *= decay
+            self.stt *= decay
+            self.sy = [v * decay for v in self.sy]
+            self.sty = [v * decay for v in self.sty]
+            self.syy = [v * decay for v in self.syy]
+        self.t_last = t if self.t_last is None else max(self.t_last, t)
+        x = (t - self.t0) / DAY_S
+        self.sw += weight
+        self.st += weight * x
+        self.stt += weight * x * x
+        for i, v in enumerate(y):
+            self.sy[i] += weight * v
+            self.sty[i] += weight * x * v
+            self.syy[i] += weight * v * v
+        self.n += 1
+
+    def slopes(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Slopes per day and their standard errors, or None while the line is not determined."""
+        if self.n < 4 or self.sw <= 0:
+            return None
+        var_t = self.stt / self.sw - (self.st / self.sw) ** 2
+        if var_t <= 1e-12:
+            return None
+        sy, sty, syy = np.array(self.sy), np.array(self.sty), np.array(self.syy)
+        mean_y = sy / self.sw
+        cov = sty / self.sw - (self.st / self.sw) * mean_y
+        b = cov / var_t
+        var_y = np.maximum(syy / self.sw - mean_y**2 - b * cov, 0.0)
+        n_eff = self.sw**2 / max(self.sw, 1e-12)  # unit weights: Σw; a decayed point counts for less
+        se = np.sqrt(var_y / max(n_eff - 2, 1.0) / var_t)
+        return b, se
+
+    def span_s(self) -> float:
+        if self.t_first is None or self.t_last is None:
+            return 0.0
+        return min(self.t_last - self.t_first, 3 * self.tau_s)
+
+    def reset(self) -> None:
+        self.t0 = self.t_last = self.t_first = None
+        self.sw = self.st = self.stt = 0.0
+        self.sy, self.sty, self.syy = [0.0] * self.dims, [0.0] * self.dims, [0.0] * self.dims
+        self.n = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EwRegression:
+        return cls(**d)
+
+
+# --- baselines ------------------------------------------------------------------------------------
+
+
+@dataclass
+class BandBaseline:
+    """One temperature band's features, each a line in temperature inside the band, learned from its first
+    windows less the device's level at each of them (so a band learned late starts at the level the drive
+    has reached, and a band whose learning straddles a detected step is not torn by it)."""
+
+    band: int
+    n: int = 0
+    last_t: float | None = None  # drive time of the last learning window
+    x_min: float = 1e9  # temperature span the learning windows covered (°C about the band's middle)
+    x_max: float = -1e9
+    sx: float = 0.0
+    sxx: float = 0.0
+    sy: list = field(default_factory=lambda: [0.0] * N_FEATURES)
+    sxy: list = field(default_factory=lambda: [0.0] * N_FEATURES)
+    syy: list = field(default_factory=lambda: [0.0] * N_FEATURES)
+    intercept: list | None = None  # set when ready
+    slope: list | None = None
+    spread: list | None = None  # residual scatter during learning (model error)
+
+    @property
+    def ready(self) -> bool:
+        return self.intercept is not None
+
+    def x(self, temp_c: float) -> float:
+        return temp_c - (self.band + 0.5) * BAND_WIDTH_C
+
+    def restart(self) -> None:
+        self.n, self.sx, self.sxx = 0, 0.0, 0.0
+        self.x_min, self.x_max = 1e9, -1e9
+        self.sy, self.sxy, self.syy = [0.0] * N_FEATURES, [0.0] * N_FEATURES, [0.0] * N_FEATURES
+
+    def learn(
+        self, t: float, temp_c: float, y: np.ndarray, learn_windows: int, max_gap_s: float, min_span_c: float
+    ) -> None:
+        """Add a window (features less the device's level); once learn_windows are in and they span
+        min_span_c of temperature (or ten times as many windows are in), freeze the lines. Learning that sat
+        idle longer than max_gap_s starts over: the drive may have changed meanwhile."""
+        if self.last_t is not None and t - self.last_t > max_gap_s:
+            self.restart()
+        self.last_t = t
+        x = self.x(temp_c)
+        self.x_min, self.x_max = min(self.x_min, x), max(self.x_max, x)
+        self.n += 1
+        self.sx += x
+        self.sxx += x * x
+        for i, v in enumerate(y):
+            self.sy[i] += v
+            self.sxy[i] += x * v
+            self.syy[i] += v * v
+        if self.n >= learn_windows and (self.x_max - self.x_min >= min_span_c or self.n >= 10 * learn_windows):
+            n = self.n
+            sy, sxy, syy = np.array(self.sy), np.array(self.sxy), np.array(self.syy)
+            mx = self.sx / n
+            var_x = self.sxx / n - mx * mx
+            # ridge towards a flat line when the band saw little temperature spread (1 °C² of prior)
+            slope = (sxy / n - mx * sy / n) / (var_x + 1.0 / n)
+            intercept = sy / n - slope * mx
+            resid_var = np.maximum(syy / n - (sy / n) ** 2 - slope * (sxy / n - mx * sy / n), 0.0)
+            self.intercept = list(intercept)
+            self.slope = list(slope)
+            self.spread = list(np.sqrt(resid_var * n / max(n - 2, 1)))
+
+    def expected(self, temp_c: float) -> np.ndarray:
+        return np.array(self.intercept) + np.array(self.slope) * self.x(temp_c)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> BandBaseline:
+        return cls(**d)
+
+
+# --- alarms ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class AlarmEvent:
+    kind: str  # "raise" or "clear"
+    cause: str
+    at: float  # drive clock: the end of the window that made it certain
+    parameters: dict = field(default_factory=dict)
+    evidence: str = ""
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:+.2f} %"
+
+
+# --- the device ---------------------------------------------------------------------------------------
+
+_OFF = slice(0, 2)
+_AMP = 2
+_IMB = 3
+_HARM = slice(4, N_FEATURES)
+
+
+@dataclass
+class DeviceMonitor:
+    """Everything the monitor remembers about one device (to_dict/from_dict: plain JSON)."""
+
+    device: str
+    settings: Settings = field(default_factory=Settings)
+    bands: dict = field(default_factory=dict)  # band -> BandBaseline
+    level: list | None = None  # the device's current residual level of every feature
+    level_t: float | None = None
+    step: Cusum = None
+    step_sum: list = field(default_factory=lambda: [0.0, 0.0])  # Σ (e - level) while the step CUSUM climbs
+    rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
+    rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
+    harm_mean: list | None = None  # hourly mean of the harmonic residuals
+    harm_t: float | None = None
+    harm_cusum: Cusum = None
+    frac: dict = field(default_factory=dict)  # "outlier" | "clipped" -> Cusum
+    frac_mean: dict = field(default_factory=dict)  # "outlier" | "clipped" -> EW mean share
+    frac_sum: dict = field(default_factory=dict)  # "outlier" | "clipped" -> [count, seen] while the CUSUM climbs
+    open: dict = field(default_factory=dict)  # cause -> {"raised_at", "parameters", "quiet_since"}
+    last_t: float | None = None
+    windows: int = 0
+    judged: int = 0  # windows compared against a ready baseline
+    first_judged_t: float | None = None
+    absurd: int = 0
+    last_absurd_t: float | None = None
+    amp_ref: float | None = None  # log amplitude of the last accepted window (gate for unlearned bands)
+    online: bool = True
+
+    def __post_init__(self):
+        s = self.settings
+        if self.step is None:
+            self.step = Cusum(k=0.0, h=s.step_h)
+        if self.rates is None:
+            self.rates = EwRegression(tau_s=s.rate_tau_s, dims=4)
+        for name in ("offset", "amplitude"):
+            self.rate_cusum.setdefault(name, Cusum(k=0.0, h=s.rate_h))
+        if self.harm_cusum is None:
+            self.harm_cusum = Cusum(k=0.0, h=s.harmonic_h)
+        for name in ("outlier", "clipped"):
+            self.frac.setdefault(name, Cusum(k=0.5, h=s.fraction_h))
+            self.frac_mean.setdefault(name, 0.0)
+            self.frac_sum.setdefault(name, [0, 0])
+
+    # --- persistence ---------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        return {
+            "device": self.device,
+            "bands": {str(b): v.to_dict() for b, v in self.bands.items()},
+            "level": self.level,
+            "level_t": self.level_t,
+            "step": self.step.to_dict(),
+            "step_sum": self.step_sum,
+            "rates": self.rates.to_dict(),
+            "rate_cusum": {k: v.to_dict() for k, v in self.rate_cusum.items()},
+            "harm_mean": self.harm_mean,
+            "harm_t": self.harm_t,
+            "harm_cusum": self.harm_cusum.to_dict(),
+            "frac": {k: v.to_dict() for k, v in self.frac.items()},
+            "frac_mean": self.frac_mean,
+            "frac_sum": self.frac_sum,
+            "open": self.open,
+            "last_t": self.last_t,
+            "windows": self.windows,
+            "judged": self.judged,
+            "first_judged_t": self.first_judged_t,
+            "absurd": self.absurd,
+            "last_absurd_t": self.last_absurd_t,
+            "amp_ref": self.amp_ref,
+            "online": self.online,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, settings: Settings | None = None) -> DeviceMonitor:
+        d = dict(d)
+        return cls(
+            device=d["device"],
+            settings=settings or Settings(),
+            bands={int(b): BandBaseline.from_dict(v) for b, v in d["bands"].items()},
+            level=d["level"],
+            level_t=d["level_t"],
+            step=Cusum.from_dict(d["step"]),
+            step_sum=d["step_sum"],
+            rates=EwRegression.from_dict(d["rates"]),
+            rate_cusum={k: Cusum.from_dict(v) for k, v in d["rate_cusum"].items()},
+            harm_mean=d["harm_mean"],
+            harm_t=d["harm_t"],
+            harm_cusum=Cusum.from_dict(d["harm_cusum"]),
+            frac={k: Cusum.from_dict(v) for k, v in d["frac"].items()},
+            frac_mean=d["frac_mean"],
+            frac_sum=d["frac_sum"],
+            open=d["open"],
+            last_t=d["last_t"],
+            windows=d["windows"],
+            judged=d["judged"],
+            first_judged_t=d["first_judged_t"],
+            absurd=d["absurd"],
+            last_absurd_t=d["last_absurd_t"],
+            amp_ref=d["amp_ref"],
+            online=d.get("online", True),
+        )
+
+    # --- state for users ---------------------------------------------------------------------------
+
+    def state(self) -> str:
+        """ok | watch | alarm | offline | unknown."""
+        if not self.online:
+            return "offline"
+        if any(c != "offline" for c in self.open):
+            return "alarm"
+        if self.judged == 0:
+            return "unknown"
+        loads = [self.step.load, self.harm_cusum.load, *(c.load for c in self.rate_cusum.values())]
+        loads += [c.load for c in self.frac.values()]
+        recent_absurd = self.last_absurd_t is not None and self.last_t is not None
+        recent_absurd = recent_absurd and self.last_t - self.last_absurd_t < self.settings.clear_after_s
+        return "watch" if max(loads) >= 0.5 or recent_absurd else "ok"
+
+    def rate_estimates(self) -> dict[str, float] | None:
+        """This device's current |offset rate| and amplitude loss per day, for the fleet's distribution."""
+        got = self.rates.slopes()
+        if got is None or self.rates.span_s() < self.settings.rate_min_span_s:
+            return None
+        b, _ = got
+        return {"offset": float(math.hypot(b[0], b[1])), "amplitude": float(-b[2])}
+
+    # --- one window ---------------------------------------------------------------------------------
+
+    def update(self, f: Features, fleet: FleetRates | None = None) -> list[AlarmEvent]:
+        """Feed one window (in drive-time order); returns the alarms it raised or cleared."""
+        if self.last_t is not None and f.t < self.last_t:
+            return []  # out of order: the caller feeds windows by seq; an older clock changes nothing
+        events: list[AlarmEvent] = []
+        dt = 0.0 if self.last_t is None else f.t - self.last_t
+        self.windows += 1
+        self.last_t = f.t
+        if f.y is not None and self._is_absurd(f):
+            self.absurd += 1  # valid, but not this drive: it moves no baseline and no detector
+            self.last_absurd_t = f.t
+            return events
+        self._fractions(f, dt, events)
+        if f.y is not None:
+            self._shape(f, fleet, events)
+        return events
+
+    def _is_absurd(self, f: Features) -> bool:
+        s, y = self.settings, f.y
+        base = self.bands.get(f.band)
+        ready = base is not None and base.ready
+        level = np.array(self.level) if self.level is not None else np.zeros(N_FEATURES)
+        expected = base.expected(f.temp_c) + level if ready else None
+        ref_amp = expected[_AMP] if ready else self.amp_ref
+        if ref_amp is not None and abs(y[_AMP] - ref_amp) > s.absurd_log_amp:
+            return True
+        return ready and float(np.hypot(*(y[_OFF] - expected[_OFF]))) > s.absurd_center
+
+    def _raise(self, events, cause: str, at: float, parameters: dict, evidence: str) -> None:
+        if cause in self.open:
+            return
+        check_parameters(cause, parameters)
+        self.open[cause] = {"raised_at": at, "parameters": parameters, "quiet_since": None}
+        events.append(AlarmEvent("raise", cause, at, parameters, evidence))
+
+    def _quiet(self, events, cause: str, at: float, quiet: bool, why: str) -> None:
+        """Clear an open alarm once its condition has been gone for clear_after_s of drive time."""
+        alarm = self.open.get(cause)
+        if alarm is None:
+            return
+        if not quiet:
+            alarm["quiet_since"] = None
+            return
+        if alarm["quiet_since"] is None:
+            alarm["quiet_since"] = at
+        if at - alarm["quiet_since"] >= self.settings.clear_after_s:
+            del self.open[cause]
+            events.append(AlarmEvent("clear", cause, at, evidence=why))
+
+    def clear(self, cause: str, at: float, why: str) -> list[AlarmEvent]:
+        """Clear an open alarm from outside (e.g. a refit absorbed a step); [] when none is open."""
+        if cause not in self.open:
+            return []
+        del self.open[cause]
+        return [AlarmEvent("clear", cause, at, evidence=why)]
+
+    def set_online(self, online: bool) -> list[AlarmEvent]:
+        """From the agent's liveliness; `offline` is raised at the device's last window end."""
+        events: list[AlarmEvent] = []
+        self.online = online
+        at = self.last_t or 0.0
+        if not online:
+            self._raise(
+                events,
+                "offline",
+                at,
+                {"since": at},
+                f"the agent's liveliness token is gone; its last window ended at {at / HOUR_S:.2f} h drive time.",
+            )
+        elif "offline" in self.open:
+            events += self.clear("offline", at, "the agent's liveliness token is back.")
+        return events
+
+    def _fractions(self, f: Features, dt: float, events) -> None:
+        s = self.settings
+        if f.seen < 50:
+            return
+        for i, (reason, cause) in enumerate((("outlier", "outliers"), ("clipped", "adc_clipping"))):
+            count = f.rejected.get(reason, 0)
+            share = count / f.seen
+            w = max(1.0 - math.exp(-dt / HOUR_S), 0.05)  # an hour's mean share
+            self.frac_mean[reason] = (1 - w) * self.frac_mean[reason] + w * share
+            ref = s.fraction_ref[i]
+            expected = f.seen * ref
+            x = (count - expected) / math.sqrt(expected)
+            det = self.frac[reason].update(min(x, 6.0))
+            acc = self.frac_sum[reason]
+            self.frac_sum[reason] = [acc[0] + count, acc[1] + f.seen] if det.s > 0 else [0, 0]
+            if det.drift_detected and cause not in self.open:
+                acc = self.frac_sum[reason]
+                frac = acc[0] / acc[1] if acc[1] else share
+                what = (
+                    "jump off the circle (beyond 12 % of the radius)"
+                    if reason == "outlier"
+                    else ("sit pinned at a channel's extreme value while the other channel moves")
+                )
+                self._raise(
+                    events,
+                    cause,
+                    f.t,
+                    {"fraction": round(float(frac), 6)},
+                    f"{100 * frac:.2f} % of the samples {what} over the last {det.n} windows "
+                    f"({count} of {f.seen} in the latest), against a normal share under {100 * ref:.1f} %.",
+                )
+                det.reset()
+            self._quiet(
+                events,
+                cause,
+                f.t,
+                self.frac_mean[reason] < s.fraction_clear,
+                f"the share of {reason} samples has stayed under {100 * s.fraction_clear:.1f} %.",
+            )
+
+    def _shape(self, f: Features, fleet: FleetRates | None, events) -> None:
+        s = self.settings
+        y, sig = f.y, f.sigma
+        self.amp_ref = float(y[_AMP])
+        base = self.bands.get(f.band)
+        if base is None:
+            base = self.bands[f.band] = BandBaseline(f.band)
+        if not base.ready:
+            level = np.array(self.level) if self.level is not None else np.zeros(N_FEATURES)
+            base.learn(f.t, f.temp_c, y - level, s.learn_windows, s.learn_gap_s, s.learn_span_c)
+            if base.ready and self.level is None:
+                self.level = [0.0] * N_FEATURES
+                self.level_t = f.t
+            return
+        self.judged += 1
+        if self.first_judged_t is None:
+            self.first_judged_t = f.t
+        e = y - base.expected(f.temp_c)  # residual against the band: the device's level plus noise
+        noise = np.sqrt(sig**2 + np.array(base.spread) ** 2)
+        self._step(f, e, noise, events)
+        self._rates(f, e, fleet, events)
+        self._harmonics(f, e, noise, events)
+
+    def _step(self, f: Features, e: np.ndarray, noise: np.ndarray, events) -> None:
+        s = self.settings
+        level = np.array(self.level)
+        jump = e[_OFF] - level[_OFF]
+        size = float(np.hypot(*jump))
+        sd = float(math.hypot(noise[0], noise[1]) / math.sqrt(2))
+        x = (size - s.step_min / 2) / sd
+        det = self.step.update(max(min(x, 1e3), -5.0))
+        if self.step.s > 0:
+            self.step_sum = [self.step_sum[0] + jump[0], self.step_sum[1] + jump[1]]
+        else:
+            self.step_sum = [0.0, 0.0]
+        if det.drift_detected:
+            n = max(det.n, 1)
+            delta = np.array(self.step_sum) / n
+            self._raise(
+                events,
+                "offset_step",
+                f.t,
+                {"delta_d": round(float(delta[0]), 6), "delta_q": round(float(delta[1]), 6)},
+                f"the channel offsets jumped by {_pct(delta[0])} (d) and {_pct(delta[1])} (q) of the amplitude "
+                f"against their level before, {size / sd:.0f}× the window's uncertainty, over {n} window(s) "
+                f"at {f.temp_c:.1f} °C (band {f.band}).",
+            )
+            # the new offsets are the drive's level from now on; its rates restart with it
+            level[_OFF] += delta
+            self.level = list(level)
+            self.step.reset()
+            self.step_sum = [0.0, 0.0]
+            self.rates.reset()
+            for c in self.rate_cusum.values():
+                c.reset()
+            for band in self.bands.values():  # learning that saw the drive before the jump starts over
+                if not band.ready:
+                    band.restart()
+            return
+        if self.step.s == 0:  # follow slow drift (normal aging) only while no jump is building
+            dt = f.t - (self.level_t or f.t)
+            w = 1.0 - math.exp(-max(dt, 0.0) / s.level_tau_s)
+            level[_OFF] += w * jump
+            level[_AMP] += w * (e[_AMP] - level[_AMP])
+            level[_IMB] += w * (e[_IMB] - level[_IMB])
+            self.level = list(level)
+        self.level_t = f.t
+
+    def _rates(self, f: Features, e: np.ndarray, fleet: FleetRates | None, events) -> None:
+        s = self.settings
+        self.rates.update(f.t, [e[0], e[1], e[_AMP], e[_IMB]])
+        if fleet is not None:
+            fleet.report(self.device, self.rate_estimates())
+        got = self.rates.slopes()
+        if got is None or self.rates.span_s() < s.rate_min_span_s or f.t - self.first_judged_t < s.rates_after_s:
+            return
+        b, se = got
+        for kind, rate, sd, floor, cause in (
+            ("offset", math.hypot(b[0], b[1]), math.hypot(se[0], se[1]), s.offset_rate_floor, "accelerated_aging"),
+            ("amplitude", -b[2], se[2], s.amp_rate_floor, "magnet_weakening"),
+        ):
+            median, spread = (fleet or FleetRates(s)).norm(kind, exclude=self.device)
+            threshold = max(floor, median + s.fleet_mads * spread)
+            sd = math.hypot(sd, s.rate_model_floor)
+            x = (rate - threshold) / sd
+            det = self.rate_cusum[kind].update(max(min(x, 3.0), -3.0))
+            if det.drift_detected and cause not in self.open:
+                if cause == "accelerated_aging":
+                    params = {
+                        "rate_per_day": round(float(rate), 6),
+                        "fleet_median_rate_per_day": round(float(median), 6),
+                    }
+                    evidence = (
+                        f"the channel offsets drift by {100 * rate:.2f} % of the amplitude per day over the last "
+                        f"{self.rates.span_s() / HOUR_S:.1f} h at equal temperature, against a fleet median of "
+                        f"{100 * median:.2f} %/day (alarm above {100 * threshold:.2f} %/day)."
+                    )
+                else:
+                    params = {"loss_per_day": round(float(rate), 6)}
+                    evidence = (
+                        f"the common field amplitude falls by {100 * rate:.2f} % per day over the last "
+                        f"{self.rates.span_s() / HOUR_S:.1f} h at equal temperature, against a fleet median of "
+                        f"{100 * median:.2f} %/day (alarm above {100 * threshold:.2f} %/day)."
+                    )
+                self._raise(events, cause, f.t, params, evidence)
+                det.reset()
+            self._quiet(
+                events,
+                cause,
+                f.t,
+                rate < 0.5 * threshold,
+                f"the rate has stayed under half the alarm threshold ({100 * threshold / 2:.2f} %/day).",
+            )
+
+    def _harmonics(self, f: Features, e: np.ndarray, noise: np.ndarray, events) -> None:
+        s = self.settings
+        h = e[_HARM]
+        if self.harm_mean is None:
+            self.harm_mean = list(h)
+        else:
+            dt = f.t - (self.harm_t or f.t)
+            w = 1.0 - math.exp(-max(dt, 0.0) / s.harmonic_tau_s)
+            w = max(w, 0.02)
+            self.harm_mean = list((1 - w) * np.array(self.harm_mean) + w * h)
+        self.harm_t = f.t
+        mean = np.array(self.harm_mean).reshape(-1, 2)
+        amps = np.hypot(mean[:, 0], mean[:, 1])
+        k = int(np.argmax(amps))
+        sd = float(noise[4 + 2 * k])
+        x = (amps[k] - s.harmonic_min_rad / 2) / max(sd, 1e-6)
+        det = self.harm_cusum.update(max(min(x, 5.0), -5.0))
+        if det.drift_detected and "harmonic_growth" not in self.open:
+            order = HARMONIC_CYCLES[k] + 1
+            now = f.y[_HARM].reshape(-1, 2)[k]
+            amp_deg = float(np.degrees(np.hypot(*now)))
+            self._raise(
+                events,
+                "harmonic_growth",
+                f.t,
+                {"order": order, "amplitude_deg": round(amp_deg, 4)},
+                f"a {HARMONIC_CYCLES[k]}-cycle-per-turn ripple of the radius (field harmonic order {order}) grew by "
+                f"{np.degrees(amps[k]):.3f}° over its band's baseline (now {amp_deg:.3f}°, "
+                f"{amps[k] / max(sd, 1e-6):.0f}× a window's uncertainty).",
+            )
+            det.reset()
+        self._quiet(
+            events,
+            "harmonic_growth",
+            f.t,
+            float(amps.max()) < s.harmonic_min_rad / 2,
+            "the harmonic has stayed within half the alarm size of its baseline.",
+        )
+
+
+# --- the fleet ------------------------------------------------------------------------------------
+
+
+class FleetRates:
+    """Every device's current rates; the fleet's median and robust spread of each (cached)."""
+
+    def __init__(self, settings: Settings | None = None):
+        self.settings = settings or Settings()
+        self.rates: dict[str, dict[str, float]] = {}
+        self._cache: dict = {}
+        self._dirty = 0
+
+    def report(self, device: str, rates: dict[str, float] | None) -> None:
+        if rates is None:
+            return
+        self.rates[device] = rates
+        self._dirty += 1
+        if self._dirty > max(20, len(self.rates)):
+            self._cache.clear()
+            self._dirty = 0
+
+    def norm(self, kind: str, exclude: str | None = None) -> tuple[float, float]:
+        """(median, robust sigma) of the fleet's rate of this kind, leaving `exclude` out; the prior while
+        fewer than min_fleet other devices have a rate."""
+        s = self.settings
+        i = 0 if kind == "offset" else 1
+        prior, prior_spread = s.prior_rate[i], s.prior_spread[i]
+        others = [r[kind] for d, r in self.rates.items() if d != exclude]
+        if len(others) < s.min_fleet:
+            return prior, prior_spread
+        key = (kind, len(others) // 10)  # the distribution of a large fleet moves slowly: cache it
+        if key not in self._cache:
+            v = np.array(others)
+            med = float(np.median(v))
+            mad = float(1.4826 * np.median(np.abs(v - med)))
+            self._cache[key] = (max(med, 0.0), max(mad, 0.25 * prior_spread))
+        return self._cache[key]

@@ -1,0 +1,181 @@
+"""The drift monitor in the service: feeds stored windows to each device's monitor (encoder_core.monitor),
+keeps its state and alarms in SQLite (migration 020), publishes alarms on `encoders/<device>/alarms`.
+
+Windows are read back from the store in seq order, only up to the device's contiguous watermark, so each is
+seen exactly once and in order even when an agent catches up out of order; the monitor's state, the last seq
+it saw and the alarms it raised are written in one transaction. A restart loads the states and goes on from
+the last seq: a drift in progress is not forgotten, an alarm is not raised twice (a unique index allows one
+open alarm per device and cause).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+from encoder_core.monitor import DeviceMonitor, FleetRates, Settings, window_features
+from encoder_core.samples import InputError
+from encoder_core.stats import WindowStats
+from fleet_wire import alarms as alarm_wire
+
+from .store import Store
+
+log = logging.getLogger("service.monitor")
+STATES = ("ok", "watch", "alarm", "offline", "unknown")
+PAGE = 500  # windows read and committed at a time (a device that sends 10,000 at once is taken in pages)
+
+
+class Monitor:
+    def __init__(
+        self,
+        store: Store,
+        *,
+        publish: Callable[[str, bytes], None] | None = None,
+        settings: Settings | None = None,
+    ):
+        self.store = store
+        self.publish = publish
+        self.settings = settings or Settings()
+        self.fleet = FleetRates(self.settings)
+        self.devices: dict[str, DeviceMonitor] = {}
+        self.last_seq: dict[str, int] = {}
+        self._lock = threading.RLock()
+        for device, (state, last_seq) in store.monitor_states().items():
+            try:
+                mon = DeviceMonitor.from_dict(state, self.settings)
+            except (KeyError, TypeError, ValueError) as exc:  # a state from an incompatible version: start over
+                log.warning("monitor state unreadable, starting over", extra={"device": device, "error": str(exc)})
+                mon = DeviceMonitor(device, self.settings)
+            self.devices[device] = mon
+            self.last_seq[device] = last_seq
+            self.fleet.report(device, mon.rate_estimates())
+
+    def _device(self, device: str) -> DeviceMonitor:
+        mon = self.devices.get(device)
+        if mon is None:
+            mon = self.devices[device] = DeviceMonitor(device, self.settings)
+            self.last_seq[device] = 0
+        return mon
+
+    # --- feeding ------------------------------------------------------------------------------------
+
+    def process(self, device: str) -> list[dict]:
+        """Feed the device's stored windows it has not seen yet; returns the alarms raised or cleared."""
+        written = []
+        with self._lock:
+            mon = self._device(device)
+            through = self.store.contiguous_seq(device, start=self.last_seq[device])
+            while self.last_seq[device] < through:
+                rows = self.store.monitor_windows(device, self.last_seq[device], through, limit=PAGE)
+                if not rows:
+                    break
+                events = []
+                for row in rows:
+                    try:
+                        stats = WindowStats.from_dict(row["stats"])
+                    except (InputError, KeyError, TypeError, ValueError):
+                        continue  # stored windows were checked on the way in; never let one stop the monitor
+                    f = window_features(
+                        stats,
+                        t=row["window_end"],
+                        temp_c=row["temp_mean_c"],
+                        band=row["band"],
+                        rejected_by_reason=row["rejected_by_reason"],
+                    )
+                    events += mon.update(f, self.fleet)
+                events += self._refit_clears(device, mon)
+                written += self._save(device, mon, rows[-1]["seq"], events)
+        self._publish(written)
+        return written
+
+    def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
+        """An offset step is cleared once the fleet has re-corrected the drive: a coefficient set created
+        after the step has been applied by the agent (the refit history)."""
+        alarm = mon.open.get("offset_step")
+        if alarm is None:
+            return []
+        for ack in self.store.acks(device):
+            if ack["status"] != "applied" or ack["at"] < alarm["raised_at"]:
+                continue
+            msg = self.store.coefficient_set(device, ack["version"])
+            if msg is not None and msg["created_at"] >= alarm["raised_at"]:
+                return mon.clear(
+                    "offset_step",
+                    ack["at"],
+                    f"coefficient set v{ack['version']}, fitted after the step, was applied by the agent.",
+                )
+        return []
+
+    def set_online(self, device: str, online: bool) -> list[dict]:
+        """From the liveliness token: offline raised when it goes, cleared when it is back."""
+        with self._lock:
+            mon = self._device(device)
+            events = mon.set_online(online)
+            written = self._save(device, mon, self.last_seq[device], events) if events else []
+        self._publish(written)
+        return written
+
+    def _save(self, device: str, mon: DeviceMonitor, last_seq: int, events) -> list[dict]:
+        plain = [
+            {"kind": e.kind, "cause": e.cause, "at": e.at, "parameters": e.parameters, "evidence": e.evidence}
+            for e in events
+        ]
+        written = self.store.save_monitor(device, mon.to_dict(), last_seq, plain)
+        self.last_seq[device] = last_seq
+        for a in written:
+            log.warning(
+                "alarm " + ("raised" if a["cleared_at"] is None else "cleared"),
+                extra={"device": device, "cause": a["cause"], "raised_at": a["raised_at"], "evidence": a["evidence"]},
+            )
+        return written
+
+    def _publish(self, written: list[dict]) -> None:
+        if self.publish is None:
+            return
+        for alarm in written:
+            try:
+                key, payload = alarm_wire.encode(alarm)
+                self.publish(key, payload)
+            except Exception:  # publishing is best effort: the alarm is stored and listed either way
+                log.exception("publishing an alarm failed")
+
+    # --- reading ----------------------------------------------------------------------------------
+
+    def state(self, device: str, online: bool | None = None) -> str:
+        with self._lock:
+            mon = self.devices.get(device)
+            if mon is None:
+                return "offline" if online is False else "unknown"
+            return mon.state()
+
+
+def device_state(store: Store, device: str, monitor: Monitor | None = None) -> str:
+    """ok | watch | alarm | offline | unknown: from the running monitor, else from its stored state."""
+    if monitor is not None:
+        return monitor.state(device)
+    saved = store.monitor_states().get(device)
+    if saved is None:
+        return "unknown"
+    try:
+        return DeviceMonitor.from_dict(saved[0]).state()
+    except (KeyError, TypeError, ValueError):
+        return "unknown"
+
+
+def fleet_health(store: Store, monitor: Monitor | None = None) -> dict:
+    """Devices per state and open alarms per cause."""
+    counts = dict.fromkeys(STATES, 0)
+    saved = store.monitor_states() if monitor is None else {}
+    for d in store.devices():
+        if monitor is not None:
+            state = monitor.state(d["id"])
+        elif d["id"] in saved:
+            try:
+                state = DeviceMonitor.from_dict(saved[d["id"]][0]).state()
+            except (KeyError, TypeError, ValueError):
+                state = "unknown"
+        else:
+            state = "unknown"
+        counts[state] += 1
+    return {"devices": counts, "open_alarms": store.open_alarm_counts()}

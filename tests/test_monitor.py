@@ -1,0 +1,180 @@
+"""The drift monitor's logic (encoder_core/monitor.py) on seeded drives, offline: causes named, temperature
+and the first hours quiet, absurd windows ignored, state that survives a round trip through JSON."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from encoder_core.monitor import Cusum, DeviceMonitor, FleetRates, Settings, window_features
+from encoder_core.monitor_causes import CAUSES
+from encoder_core.physics import band_of
+from encoder_core.samples import Samples
+from encoder_core.stats import WindowStats, block_statistics, pinned_mask, rejected_by_reason
+from encoder_fleet.bench_monitor import drive_windows, features_of, run_offline
+from encoder_fleet.drift_events import DAY_S, draw_drive, score
+
+ARCH = open("docs/architecture.md", encoding="utf-8").read()
+
+
+def test_vocabulary_is_the_contract():
+    for name in ("offset_step", "accelerated_aging", "magnet_weakening", "harmonic_growth", "outliers"):
+        assert f"`{name}`" in ARCH
+    assert set(CAUSES) == {
+        "offset_step",
+        "accelerated_aging",
+        "magnet_weakening",
+        "harmonic_growth",
+        "outliers",
+        "adc_clipping",
+        "offline",
+    }
+    assert set(CAUSES["offset_step"].parameters) == {"delta_d", "delta_q"}
+    assert set(CAUSES["accelerated_aging"].parameters) == {"rate_per_day", "fleet_median_rate_per_day"}
+    assert set(CAUSES["magnet_weakening"].parameters) == {"loss_per_day"}
+    assert set(CAUSES["harmonic_growth"].parameters) == {"order", "amplitude_deg"}
+    assert set(CAUSES["outliers"].parameters) == {"fraction"} == set(CAUSES["adc_clipping"].parameters)
+    assert set(CAUSES["offline"].parameters) == {"since"}
+
+
+@pytest.fixture(scope="module")
+def planted():
+    """One drive per cause (onset at 30 h) and two clean ones, 2.5 days each, through the offline harness."""
+    causes = [None, None, "offset_step", "accelerated_aging", "magnet_weakening", "harmonic_growth"]
+    causes += ["outliers", "adc_clipping"]
+    specs = [draw_drive(40 + i, 2.5, c, onset_range_s=(30 * 3600, 30 * 3600)) for i, c in enumerate(causes)]
+    alarms, cost = run_offline(specs)
+    return specs, alarms, cost
+
+
+def test_every_planted_cause_is_named_after_its_onset_and_clean_drives_stay_quiet(planted):
+    specs, alarms, _ = planted
+    result = score(specs, alarms)
+    assert result["recall"] == 1.0, result["missed"]
+    assert result["false_alarms"] == 0, result["false"]
+    assert result["cause_precision"] == 1.0
+    for cause, c in result["per_cause"].items():
+        goal = 8 if cause in ("accelerated_aging", "magnet_weakening", "harmonic_growth") else 2
+        assert c["median_delay_h"] <= goal, (cause, c)
+
+
+def test_alarm_parameters_match_what_was_planted(planted):
+    specs, alarms, _ = planted
+    for spec in specs:
+        ev = spec.event
+        if ev is None:
+            continue
+        (alarm,) = [a for a in alarms[spec.name] if a["cause"] == ev.cause]
+        p = alarm["parameters"]
+        assert set(p) == set(CAUSES[ev.cause].parameters)
+        assert alarm["evidence"].endswith(".") and len(alarm["evidence"]) > 40
+        if ev.cause == "offset_step":
+            size = math.hypot(p["delta_d"], p["delta_q"])
+            assert size == pytest.approx(ev.size, rel=0.25)
+        elif ev.cause == "harmonic_growth":
+            assert p["order"] == ev.order
+        elif ev.cause in ("outliers", "adc_clipping"):
+            assert 0.3 * ev.size < p["fraction"] < 1.5 * ev.size
+        elif ev.cause == "accelerated_aging":
+            assert p["rate_per_day"] > 3 * p["fleet_median_rate_per_day"]
+
+
+def test_temperature_cycle_and_first_hours_never_alarm():
+    """A wide, fast cycle (−40…+85 °C every 8 h): the first hours are learning (state unknown), then ok."""
+    spec = draw_drive(7, 1.5, None)
+    spec.t_min, spec.t_max, spec.cycle_hours = -40.0, 85.0, 8.0
+    mon = DeviceMonitor(spec.name)
+    states = []
+    for w in drive_windows(spec, window_s=300, sample_hz=2.0):
+        assert mon.update(features_of(*w)) == []
+        states.append(mon.state())
+    assert states[0] == "unknown" and states[-1] == "ok"
+    assert len(mon.bands) >= 12  # every band of the cycle has its own baseline
+
+
+def _step_monitor():
+    spec = draw_drive(3, 2.0, "offset_step", onset_range_s=(30 * 3600, 30 * 3600))
+    return spec, [features_of(*w) for w in drive_windows(spec, window_s=300, sample_hz=2.0)]
+
+
+def test_absurd_window_never_moves_a_baseline():
+    spec, feats = _step_monitor()
+    mon = DeviceMonitor(spec.name)
+    for f in feats[:200]:
+        mon.update(f)
+    before = json.dumps(mon.to_dict(), sort_keys=True)
+    f = feats[200]
+    stats_10x = WindowStats(scale=1400.0)
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(0, 2 * np.pi, 600)
+    amp = 10 * 1400 * math.exp(f.y[2])
+    stats_10x.add(amp * np.cos(theta), amp * np.sin(theta), np.full(600, f.temp_c))
+    absurd = window_features(stats_10x, t=f.t, temp_c=f.temp_c, band=f.band)
+    assert mon.update(absurd) == []
+    after = mon.to_dict()
+    assert after["absurd"] == 1 and mon.state() == "watch"
+    for key in ("absurd", "last_absurd_t", "windows", "last_t"):
+        after.pop(key)
+    ref = json.loads(before)
+    for key in ("absurd", "last_absurd_t", "windows", "last_t"):
+        ref.pop(key)
+    assert json.loads(json.dumps(after, sort_keys=True)) == ref
+
+
+def test_state_through_json_mid_drift_gives_the_same_alarms():
+    spec, feats = _step_monitor()
+    whole = DeviceMonitor(spec.name)
+    events_whole = [(e.cause, e.at) for f in feats for e in whole.update(f)]
+    assert [c for c, _ in events_whole] == ["offset_step"]
+    cut = next(i for i, f in enumerate(feats) if f.t >= events_whole[0][1])  # the window that raised it
+    mon = DeviceMonitor(spec.name)
+    events = [(e.cause, e.at) for f in feats[:cut] for e in mon.update(f)]
+    mon = DeviceMonitor.from_dict(json.loads(json.dumps(mon.to_dict())))  # a service restart
+    events += [(e.cause, e.at) for f in feats[cut:] for e in mon.update(f)]
+    assert events == events_whole
+
+
+def test_sparse_windows_and_old_clock_are_harmless():
+    spec = draw_drive(5, 10.0, None)
+    feats = [features_of(*w) for w in drive_windows(spec, window_s=300, sample_hz=2.0)[:288]]
+    mon = DeviceMonitor(spec.name)
+    for f in feats:
+        mon.update(f)
+    for day in range(1, 10):  # then one window a day
+        f = feats[day * 17 % len(feats)]
+        f.t = day * DAY_S + 3600.0
+        assert mon.update(f) == []
+    f.t = 10.0
+    assert mon.update(f) == []  # a clock that goes back changes nothing
+
+
+def test_cusum_and_fleet_norm():
+    c = Cusum(k=0.5, h=3.0)
+    assert not c.update(1.0).drift_detected and c.s == 0.5
+    for _ in range(6):
+        c.update(1.0)
+    assert c.drift_detected and Cusum.from_dict(c.to_dict()) == c
+    fleet = FleetRates(Settings(min_fleet=3))
+    assert fleet.norm("offset") == (Settings().prior_rate[0], Settings().prior_spread[0])  # small fleet: prior
+    for i, r in enumerate([0.001, 0.0012, 0.0008, 0.02]):
+        fleet.report(f"d{i}", {"offset": r, "amplitude": 0.0})
+    median, spread = fleet.norm("offset", exclude="d3")
+    assert median == pytest.approx(0.001) and spread < 0.001
+
+
+def test_clipping_is_recognised_from_the_data_at_any_rail():
+    rng = np.random.default_rng(1)
+    theta = rng.uniform(0, 2 * np.pi, 2000)
+    d = np.round(30000 + 9000 * np.cos(theta) + rng.normal(0, 3, theta.size))  # counts of another range
+    q = np.round(-5000 + 9000 * np.sin(theta) + rng.normal(0, 3, theta.size))
+    rail = np.quantile(d, 0.99)
+    clipped = np.minimum(d, rail)
+    s = Samples(t=np.arange(theta.size, dtype=float), d=clipped, q=q, temp_c=np.full(theta.size, 20.0))
+    keep, counts = rejected_by_reason(s)
+    assert counts["clipped"] == int((d >= rail).sum()) and counts["non_finite"] == 0
+    assert not pinned_mask(d, q).any()  # the same data unclipped: nothing pinned
+    s.d[5] = np.nan
+    stats, counts = block_statistics(s, 9000.0)
+    assert counts["non_finite"] == 1 and stats.rejected == sum(counts.values())
+    assert band_of(stats.temp_mean) == 2

@@ -1,0 +1,140 @@
+"""The monitor in the service (service/monitor.py): stored windows in, alarms stored, listed and exported;
+a restart neither forgets a drift in progress nor raises an alarm twice; bursts and bad input survive."""
+
+import time
+from collections import Counter
+
+import pytest
+from fastapi.testclient import TestClient
+from mcap.reader import make_reader
+
+from encoder_core.stats import MONOMIALS
+from encoder_fleet.bench_monitor import drive_windows
+from encoder_fleet.drift_events import draw_drive
+from fleet_wire import alarms as alarm_wire
+from fleet_wire import messages as wire
+from service.api import create_app
+from service.mcap_export import export_mcap
+from service.monitor import Monitor
+from service.store import Store
+
+ONSET = 30 * 3600.0
+
+
+def messages(spec, start_seq=1, t_shift=0.0, windows=None):
+    out = []
+    for i, (stats, counts, t_end) in enumerate(windows or drive_windows(spec, window_s=300.0, sample_hz=2.0)):
+        out.append(
+            wire.window_message(
+                spec.name,
+                start_seq + i,
+                stats,
+                window_start=t_shift + t_end - 300.0 + 0.5,
+                window_end=t_shift + t_end,
+                temp_rate_c_per_s=0.0,
+                coefficients_version=0,
+                angle_quality_deg=0.1,
+                rejected_by_reason=counts,
+            )
+        )
+    return out
+
+
+@pytest.fixture(scope="module")
+def aging():
+    spec = draw_drive(21, 2.5, "accelerated_aging", onset_range_s=(ONSET, ONSET))
+    return spec, messages(spec)
+
+
+def insert(store, msgs):
+    with store.transaction():
+        for m in msgs:
+            store.insert_window(m)
+
+
+def test_restart_mid_drift_neither_forgets_nor_repeats(tmp_path, aging):
+    spec, msgs = aging
+    with Store.open(tmp_path / "whole.sqlite") as store:
+        insert(store, msgs)
+        whole = Monitor(store).process(spec.name)
+    assert [a["cause"] for a in whole] == ["accelerated_aging"]
+    raised_at = whole[0]["raised_at"]
+    cut = next(i for i, m in enumerate(msgs) if m["window_end"] >= raised_at) - 3  # the CUSUM is climbing here
+    published = []
+    with Store.open(tmp_path / "cut.sqlite") as store:
+        insert(store, msgs[:cut])
+        assert Monitor(store).process(spec.name) == []
+    with Store.open(tmp_path / "cut.sqlite") as store:  # the service restarted
+        insert(store, msgs[cut:])
+        monitor = Monitor(store, publish=lambda key, payload: published.append((key, payload)))
+        got = monitor.process(spec.name)
+        assert [(a["cause"], a["raised_at"]) for a in got] == [("accelerated_aging", raised_at)]
+        assert Monitor(store).process(spec.name) == []  # and again: nothing new, nothing twice
+        assert len(store.alarms(spec.name)) == 1
+        assert monitor.state(spec.name) == "alarm"
+    (key, payload) = published[0]
+    assert key == f"encoders/{spec.name}/alarms"
+    msg = alarm_wire.decode(payload)
+    assert msg["event"] == "raised" and msg["cause"] == "accelerated_aging" and msg["cleared_at"] is None
+
+
+def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
+    spec, msgs = aging
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        insert(store, msgs)
+        monitor = Monitor(store)
+        monitor.process(spec.name)
+        (offline,) = monitor.set_online(spec.name, False)
+        assert offline["cause"] == "offline" and offline["parameters"] == {"since": msgs[-1]["window_end"]}
+        assert monitor.set_online(spec.name, False) == []  # already open
+        api = TestClient(create_app(store))
+        body = api.get("/alarms").json()
+        assert {a["cause"] for a in body["alarms"]} == {"accelerated_aging", "offline"}
+        for a in body["alarms"]:
+            assert set(a) == {"id", "device", "cause", "parameters", "evidence", "raised_at", "cleared_at"}
+        assert api.get("/alarms", params={"cause": "offline"}).json()["alarms"][0]["cleared_at"] is None
+        assert api.get("/alarms", params={"device": "nobody"}).json() == {"alarms": []}
+        health = api.get(f"/devices/{spec.name}/health").json()
+        assert health["state"] == "offline" and len(health["alarms"]) == 2
+        fleet = api.get("/fleet/health").json()
+        assert fleet["devices"]["offline"] == 1 and fleet["open_alarms"] == {"accelerated_aging": 1, "offline": 1}
+        (back,) = monitor.set_online(spec.name, True)
+        assert back["cause"] == "offline" and back["cleared_at"] is not None
+        assert api.get("/alarms", params={"open": "false"}).json()["alarms"][0]["cause"] == "offline"
+        assert api.get(f"/devices/{spec.name}/health").json()["state"] == "alarm"
+        out = tmp_path / "d.mcap"
+        with open(out, "wb") as f:
+            export_mcap(store, spec.name, f)
+        with open(out, "rb") as f:
+            topics = Counter(ch.topic for _, ch, _ in make_reader(f).iter_messages())
+        assert topics[f"/encoders/{spec.name}/alarms"] == 2
+
+
+def test_a_burst_of_10000_windows_and_an_absurd_one(tmp_path):
+    spec = draw_drive(22, 1.0, None)
+    day = drive_windows(spec, window_s=300.0, sample_hz=2.0)
+    msgs = []
+    for k in range(35):  # the same day again and again: 10,080 windows, sent at once
+        msgs += messages(spec, start_seq=1 + k * len(day), t_shift=k * 86400.0, windows=day)
+    with Store.open(tmp_path / "burst.sqlite") as store:
+        insert(store, msgs)
+        started = time.perf_counter()
+        assert Monitor(store).process(spec.name) == []
+        elapsed = time.perf_counter() - started
+        assert store.monitor_states()[spec.name][1] == len(msgs)
+        # a valid window that is absurd for this drive: ten times the radius
+        stats = day[100][0]
+        big = stats.merge(stats)  # same normalisation; scale the sums as for a radius 10x
+        big.moments = stats.moments * [10.0 ** (i + j) for i, j in MONOMIALS]
+        big.bins = stats.bins.copy()
+        big.bins[:, 1:3] *= 10
+        big.bins[:, 3:6] *= 100
+        big.moments[0] = stats.moments[0]
+        absurd = messages(
+            spec, start_seq=len(msgs) + 1, t_shift=35 * 86400.0, windows=[(big, day[100][1], day[100][2])]
+        )
+        insert(store, absurd)
+        monitor = Monitor(store)
+        assert monitor.process(spec.name) == []
+        assert monitor.devices[spec.name].absurd == 1
+    assert elapsed < 60, elapsed
