@@ -1,0 +1,89 @@
+"""Greedy forward selection: name a cause only when adding its term cuts the held-out RMS enough.
+
+Each round every testable cause proposes its extensions of the current model (its `Term.propose`);
+those that cut the held-out RMS by at least `MIN_GAIN` and that the term admits are candidates. The
+best wins, but among candidates within `PARSIMONY` of it the one with the fewest parameters: the terms
+overlap (zero offset + phase spans what phase + a 3rd harmonic spans). After a term joins, the terms
+already in the model may re-tune their argument (thermal lag's τ).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+from .crossval import CrossValidation, Eval
+from .data import RecordingData
+from .terms import TERMS, Spec
+
+MIN_GAIN = 0.10  # a term must cut the held-out RMS by 10 % to be named
+PARSIMONY = 0.03
+
+
+@dataclass
+class Step:
+    """One named cause: the term added, the model after it, and the held-out result before and after."""
+
+    name: str
+    arg: object
+    spec: Spec
+    before: Eval
+    after: Eval
+
+
+@dataclass
+class Selection:
+    baseline: Eval
+    spec: Spec
+    result: Eval
+    steps: list[Step]
+
+
+@dataclass
+class Search:
+    """What a term's `propose` may use: the data, a counted evaluation, and memory between rounds."""
+
+    data: RecordingData
+    cv: CrossValidation
+    on_step: Callable[[str], None]
+    memory: dict = field(default_factory=dict)
+
+    def evaluate(self, spec: Spec, label: str) -> Eval:
+        self.on_step(label)
+        return self.cv(spec)
+
+
+def forward_selection(search: Search, testable: list[str]) -> Selection:
+    baseline = search.evaluate(Spec(), "baseline")
+    current, result = Spec(), baseline
+    steps: list[Step] = []
+    proposers = sorted(testable, key=lambda name: TERMS[name].scans)
+    while True:
+        options = [(name, ext, ev) for name in proposers for ext, ev in TERMS[name].propose(search, current)]
+        chosen = _choose(search.data, options, result)
+        if chosen is None:
+            break
+        name, ext, ev = chosen
+        steps.append(Step(name, ext.added_over(current)[1], ext, result, ev))
+        current, result = ext, ev
+        for other in dict.fromkeys(current.causes()):
+            refined = TERMS[other].refine(search, current, result) if other != name else None
+            if refined:
+                current, result = refined
+                steps[-1] = replace(steps[-1], spec=current, after=result)
+    return Selection(baseline, current, result, steps)
+
+
+def _choose(data: RecordingData, options: list, current: Eval):
+    """The option to name, or None: enough gain, admitted by its term, then best with parsimony."""
+    accepted = [
+        (ev.rms, name, ext, ev)
+        for name, ext, ev in options
+        if ev.rms < (1 - MIN_GAIN) * current.rms and TERMS[name].admissible(data, ev)
+    ]
+    if not accepted:
+        return None
+    best = min(a[0] for a in accepted)
+    near = [a for a in accepted if a[0] <= best * (1 + PARSIMONY)]
+    _, name, ext, ev = min(near, key=lambda a: (TERMS[a[1]].n_params, a[0]))
+    return name, ext, ev
