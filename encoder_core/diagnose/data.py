@@ -2,7 +2,8 @@
 
 The masks mark samples that no fit may use: channels stuck at a rail (`clipped`), dropped reads whose
 field collapsed (`dropped`), and isolated samples far off the circle (`suspect`, set after the robust
-baseline). The radius rules that find them need no reference, so any stream can apply them.
+baseline). The radius rules that find them need no reference, so any stream can apply them, and they
+work on a recording of a few hundred rows as on one of a million.
 """
 
 from __future__ import annotations
@@ -56,7 +57,9 @@ class RecordingData:
         self.rate = self._temp_rate()
         self.run = None if samples.run is None else np.asarray(samples.run)
         self._lagged: dict[float, np.ndarray] = {}
-        self.clip_d, self.clip_q, self.clip_info = find_clipping(samples, self.d, self.q)
+        self.read_ratio = field_ratio(self.d, self.q)
+        self.dropped = self.read_ratio < DROPPED_READ_RATIO
+        self.clip_d, self.clip_q, self.clip_info = find_clipping(samples, self.d, self.q, self.dropped)
         self.clipped = self.clip_d | self.clip_q
         self.suspect = np.zeros(n, bool)  # set after the baseline: isolated samples far off the circle
         self._distinct_angles: int | None = None
@@ -68,7 +71,7 @@ class RecordingData:
     @property
     def unfit(self) -> np.ndarray:
         """Samples no fit may use."""
-        return self.suspect | self.clipped
+        return self.suspect | self.clipped | self.dropped
 
     def observables(self) -> Observables:
         return Observables(
@@ -108,8 +111,9 @@ class RecordingData:
         return np.where(span > 0, (ahead - behind) / np.where(span > 0, span, 1.0) * 60.0, 0.0)
 
 
-def find_clipping(samples: Samples, d_norm: np.ndarray, q_norm: np.ndarray):
-    """Channels stuck at one extreme value while the other channel keeps moving."""
+def find_clipping(samples: Samples, d_norm: np.ndarray, q_norm: np.ndarray, dropped: np.ndarray):
+    """Channels stuck at one extreme value while the other channel keeps moving (a dropped read that
+    reads a rail on every channel is the outlier rule's, not clipping)."""
     n = len(samples)
     clip = {"d": np.zeros(n, bool), "q": np.zeros(n, bool)}
     info = []
@@ -117,7 +121,7 @@ def find_clipping(samples: Samples, d_norm: np.ndarray, q_norm: np.ndarray):
     norm = {"d": d_norm, "q": q_norm}
     for name, other in (("d", "q"), ("q", "d")):
         for value in (raw[name].max(), raw[name].min()):
-            at = raw[name] == value
+            at = (raw[name] == value) & ~dropped
             count = int(at.sum())
             if count < max(5, 0.0005 * n):
                 continue
@@ -128,7 +132,7 @@ def find_clipping(samples: Samples, d_norm: np.ndarray, q_norm: np.ndarray):
     if samples.halls is not None:
         for key, arr in samples.halls.items():
             arr = np.asarray(arr, float)
-            at = (arr <= 0) | (arr >= 4095)
+            at = ((arr <= 0) | (arr >= 4095)) & ~dropped
             if at.sum() >= max(5, 0.0005 * n):
                 chan = "q" if key.startswith("a_") else "d"
                 clip[chan] |= at
@@ -139,20 +143,40 @@ def find_clipping(samples: Samples, d_norm: np.ndarray, q_norm: np.ndarray):
 # --- radius rules for corrupted samples ------------------------------------------------------------
 
 
-def local_deviation(radius: np.ndarray, phi: np.ndarray, bins: int = 64) -> np.ndarray:
+def field_ratio(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Each sample's distance from the centre of the locus over the typical (median) distance: about 1
+    for every healthy sample, near 0 where the field reading collapsed. The centre is an algebraic
+    circle fit on the samples not near it (a median centre is off when angles are visited unevenly)."""
+    cx, cy = np.median(x), np.median(y)
+    for _ in range(2):
+        r = np.hypot(x - cx, y - cy)
+        keep = r >= DROPPED_READ_RATIO * np.median(r)
+        a = np.column_stack([2 * x[keep], 2 * y[keep], np.ones(int(keep.sum()))])
+        (cx, cy, _), *_ = np.linalg.lstsq(a, x[keep] ** 2 + y[keep] ** 2, rcond=None)
+    r = np.hypot(x - cx, y - cy)
+    return r / np.median(r)
+
+
+def local_deviation(radius: np.ndarray, phi: np.ndarray, known_bad: np.ndarray | None = None, bins: int = 64):
     """What of the radius neither angle nor time explains: minus its median in the sample's angle bin
     (64 bins), then minus its running median over 11 samples in time. Harmonics, phase and slow drifts
-    (temperature, lag, aging) cancel; an isolated corrupted sample stands out."""
+    (temperature, lag, aging) cancel; an isolated corrupted sample stands out. Samples already known to
+    be bad (dropped reads) take no part in the medians: in a short recording an angle bin holds two or
+    three samples, and a dropped one would make its healthy neighbour look off the circle."""
+    good = np.ones(radius.size, bool) if known_bad is None else ~known_bad
     idx = np.minimum(((phi % (2 * np.pi)) * (bins / (2 * np.pi))).astype(int), bins - 1)
-    order = np.lexsort((radius, idx))
-    starts = np.searchsorted(idx[order], np.arange(bins + 1))
+    gidx, grad = idx[good], radius[good]
+    order = np.lexsort((grad, gidx))
+    starts = np.searchsorted(gidx[order], np.arange(bins + 1))
     med = np.zeros(bins)
     for b in range(bins):
         lo, hi = starts[b], starts[b + 1]
         if hi > lo:
-            med[b] = radius[order[(lo + hi - 1) // 2]]
+            med[b] = grad[order[(lo + hi - 1) // 2]]
     r = radius - med[idx]
-    return r - median_filter(r, size=11, mode="nearest")
+    rows = np.arange(r.size)
+    filled = r if good.all() else np.interp(rows, rows[good], r[good])  # bad samples: their neighbours' value
+    return r - median_filter(filled, size=11, mode="nearest")
 
 
 def outlier_threshold(dev: np.ndarray) -> float:

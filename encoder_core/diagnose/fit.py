@@ -80,7 +80,7 @@ def fit_stage_a(data: RecordingData, spec: Spec, train: np.ndarray, phi0: np.nda
     if data.ref is not None:
         cd, cq = fit(np.cos(data.ref[train]), np.sin(data.ref[train]))
     else:
-        phi = phi0[train] if phi0 is not None else np.arctan2(qtr, dtr)
+        phi = phi0[train] if phi0 is not None else conic_angle(dtr, qtr)
         iterations = RADIUS_ITERATIONS if phi0 is None else 3
         for _ in range(iterations):
             cd, cq = fit(np.cos(phi), np.sin(phi))
@@ -90,6 +90,18 @@ def fit_stage_a(data: RecordingData, spec: Spec, train: np.ndarray, phi0: np.nda
     for name, _ in spec.terms:
         x, y = TERMS[name].repair(data, x, y)
     return StageA(cd, cq, x, y, names)
+
+
+def conic_angle(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The angle on a direct fit of an axis-aligned ellipse, a·x² + c·y² + d·x + e·y = 1: where the
+    reference-free iteration starts. From atan2 of the raw channels it needs dozens of rounds when few
+    angles are visited, or unevenly (a short jig recording); from here it needs two or three."""
+    (a, c, d, e), *_ = np.linalg.lstsq(np.column_stack([x * x, y * y, x, y]), np.ones_like(x), rcond=None)
+    if not (a > 0 and c > 0):
+        return np.arctan2(y, x)  # not an ellipse: the raw angle is as good a start as any
+    x0, y0 = -d / (2 * a), -e / (2 * c)
+    g = 1 + a * x0 * x0 + c * y0 * y0
+    return np.arctan2((y - y0) * np.sqrt(c / g), (x - x0) * np.sqrt(a / g))
 
 
 def target(data: RecordingData, sa: StageA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -154,7 +166,7 @@ def flag_suspects(data: RecordingData) -> None:
     suspect, so that no later fit uses them (whether or not they become a finding)."""
     fit = fit_model(data, Spec(), np.ones(data.n, bool))
     _, phi, radius = target(data, fit.stage_a)
-    dev = local_deviation(radius, phi)
-    far = np.abs(dev) > outlier_threshold(dev[~data.clipped])
+    dev = local_deviation(radius, phi, data.dropped)
+    far = np.abs(dev) > outlier_threshold(dev[~data.clipped & ~data.dropped])
     isolated = far & ~np.roll(far, 1) & ~np.roll(far, -1)
     data.suspect = isolated & ~data.clipped

@@ -1,6 +1,7 @@
 """Greedy forward selection: name a cause only when adding its term cuts the held-out RMS enough.
 
-Each round every testable cause proposes its extensions of the current model (its `Term.propose`);
+A cause whose term finds it evident in the data (dropped reads) is named first, without a gain test.
+Then each round every testable cause proposes its extensions of the current model (its `Term.propose`);
 those that cut the held-out RMS by at least `MIN_GAIN` and that the term admits are candidates. The
 best wins, but among candidates within `PARSIMONY` of it the one with the fewest parameters: the terms
 overlap (zero offset + phase spans what phase + a 3rd harmonic spans). After a term joins, the terms
@@ -57,6 +58,11 @@ def forward_selection(search: Search, testable: list[str]) -> Selection:
     baseline = search.evaluate(Spec(), "baseline")
     current, result = Spec(), baseline
     steps: list[Step] = []
+    for name in testable:  # what the data shows by itself is named first
+        for ext in TERMS[name].extensions(search.data, current)[:1] if TERMS[name].evident(search.data) else []:
+            ev = search.evaluate(ext, name)
+            steps.append(Step(name, ext.added_over(current)[1], ext, result, ev))
+            current, result = ext, ev
     proposers = sorted(testable, key=lambda name: TERMS[name].scans)
     while True:
         options = [(name, ext, ev) for name in proposers for ext, ev in TERMS[name].propose(search, current)]

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .causes import CAUSES, Cause
-from .data import OUTLIER_SIGMAS, T_SCALE, local_deviation, outlier_threshold
+from .data import DROPPED_READ_RATIO, OUTLIER_SIGMAS, T_SCALE, local_deviation, outlier_threshold
 
 MAX_OUTLIER_FRACTION = 0.05
 MIN_OUTLIERS = 3  # fewer isolated jumps than this are noise's tail, not a cause
@@ -99,6 +99,10 @@ class Term:
     def admissible(self, data, ev) -> bool:
         """Whether a held-out result may be named at all (beyond cutting the RMS enough)."""
         return True
+
+    def evident(self, data) -> bool:
+        """The data shows this cause by itself: it is named before the search, without a gain test."""
+        return False
 
     def refine(self, search, spec: Spec, ev):
         """After another term joined: a better (spec, eval) for this term's argument, or None."""
@@ -324,28 +328,43 @@ class Aging(Term):
 
 
 class Outliers(Term):
-    """Samples whose radius jumps, alone, far from what angle and time explain are rejected; the rule
-    needs no reference, so any stream can apply it to its own radius."""
+    """Corrupted samples are rejected: dropped reads (field under half the typical one, found in the
+    data) and samples whose radius jumps, alone, far from what angle and time explain. Neither rule
+    needs a reference, so any stream can apply them to its own radius."""
 
     name = "outliers"
     kind = "sample"
     action = "rejecting them"
 
+    def evident(self, data):
+        return bool(data.dropped.any())  # a read with no field carries no angle: no test needed
+
     def admissible(self, data, ev):
-        return MIN_OUTLIERS <= ev.rejected <= MAX_OUTLIER_FRACTION * data.n
+        return data.dropped.any() or MIN_OUTLIERS <= ev.rejected <= MAX_OUTLIER_FRACTION * data.n
 
     def rejected(self, data, view, phi, radius, rows):
-        dev = view.get("local_dev", lambda: local_deviation(radius, phi))[rows]
-        clipped = data.clipped[rows]  # clipped samples are adc_clipping's
-        return (np.abs(dev) > outlier_threshold(dev[~clipped])) & ~clipped
+        dev = view.get("local_dev", lambda: local_deviation(radius, phi, data.dropped))[rows]
+        clipped, dropped = data.clipped[rows], data.dropped[rows]  # clipped samples are adc_clipping's
+        jumps = (np.abs(dev) > outlier_threshold(dev[~clipped & ~dropped])) & ~clipped
+        return jumps | dropped
 
     def parameters(self, ctx, arg):
+        data = ctx.data
         count = ctx.after.rejected
-        frac = count / ctx.data.n
-        how = (
-            f"jump off the circle, each alone, beyond {OUTLIER_SIGMAS:.0f}× the robust spread of the radius "
-            "about its running median"
-        )
+        frac = count / data.n
+        beyond = f"beyond {OUTLIER_SIGMAS:.0f}× the robust spread of the radius about its running median"
+        dropped = int(data.dropped.sum())
+        if not dropped:
+            how = f"jump off the circle, each alone, {beyond}"
+        else:
+            ratio = 100 * data.read_ratio[data.dropped]
+            how = (
+                f"are corrupted: {dropped} dropped read(s), a field magnitude of {ratio.min():.1f}-{ratio.max():.1f} % "
+                f"of the typical one (under {100 * DROPPED_READ_RATIO:.0f} %: a failed conversion or a loose "
+                "connector, whatever the reference says)"
+            )
+            if count > dropped:
+                how += f", and {count - dropped} isolated jump(s) off the circle {beyond}"
         return {"fraction": round(frac, 6)}, {"count": count, "percent": 100 * frac, "how": how}
 
 
