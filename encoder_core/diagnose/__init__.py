@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..samples import InputError, Samples
-from .causes import CAUSES, Cause, Observables, Param, testability
+from .causes import CAUSES, Cause, Observables, Param, split_by_testability
 from .crossval import CrossValidation
 from .data import MIN_SAMPLES, RecordingData
 from .fit import fit_model, flag_suspects
@@ -47,7 +47,7 @@ __all__ = [
 def diagnose(samples: Samples, *, on_step: Callable[[str], None] | None = None) -> Diagnosis:
     """Fit the baseline, name what it misses, and measure every gain on held-out data."""
     data = RecordingData(samples)
-    testable, not_testable = testability(data.observables())
+    testable, not_testable = split_by_testability(data.observables())
     flag_suspects(data)
     cv = CrossValidation(data)
     selection = forward_selection(Search(data, cv, on_step or (lambda _name: None)), testable)

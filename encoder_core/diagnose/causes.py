@@ -203,7 +203,7 @@ _ALL = (
 CAUSES: dict[str, Cause] = {c.name: c for c in _ALL}
 
 
-def testability(obs: Observables) -> tuple[list[str], list[dict]]:
+def split_by_testability(obs: Observables) -> tuple[list[str], list[dict]]:
     """The causes that can be tested, and the Diagnose JSON's "not_testable" entries (whole causes
     first, then causes only part of which can be tested)."""
     whole = [{"cause": c.name, "why": why} for c in _ALL if (why := c.not_testable(obs))]

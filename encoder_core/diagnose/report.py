@@ -51,6 +51,8 @@ class FindingContext:
 def finding(step: Step, ctx: FindingContext) -> dict:
     term = TERMS[step.name]
     params, facts = term.parameters(ctx, step.arg)
+    if set(params) != set(term.cause.param_names):  # the sample form must report the cause's parameters
+        raise AssertionError(f"{step.name}: parameters {sorted(params)}, cause has {term.cause.param_names}")
     what = "angle error" if ctx.reference else "radius ripple"
     cut = f"cuts the held-out RMS {what} from {step.before.rms:.3f}° to {step.after.rms:.3f}°"
     return {
