@@ -56,28 +56,34 @@ class Search:
 
 def forward_selection(search: Search, testable: list[str]) -> Selection:
     baseline = search.evaluate(Spec(), "baseline")
-    current, result = Spec(), baseline
-    steps: list[Step] = []
-    for name in testable:  # what the data shows by itself is named first
-        for ext in TERMS[name].extensions(search.data, current)[:1] if TERMS[name].evident(search.data) else []:
-            ev = search.evaluate(ext, name)
-            steps.append(Step(name, ext.added_over(current)[1], ext, result, ev))
-            current, result = ext, ev
+    sel = Selection(baseline, Spec(), baseline, [])
+    for name in testable:  # what the data shows by itself is named first, without a gain test
+        if TERMS[name].evident(search.data):
+            for ext in TERMS[name].extensions(search.data, sel.spec)[:1]:
+                _add(sel, name, ext, search.evaluate(ext, name))
     proposers = sorted(testable, key=lambda name: TERMS[name].scans)
-    while True:
-        options = [(name, ext, ev) for name in proposers for ext, ev in TERMS[name].propose(search, current)]
-        chosen = _choose(search.data, options, result)
-        if chosen is None:
-            break
-        name, ext, ev = chosen
-        steps.append(Step(name, ext.added_over(current)[1], ext, result, ev))
-        current, result = ext, ev
-        for other in dict.fromkeys(current.causes()):
-            refined = TERMS[other].refine(search, current, result) if other != name else None
-            if refined:
-                current, result = refined
-                steps[-1] = replace(steps[-1], spec=current, after=result)
-    return Selection(baseline, current, result, steps)
+    while (chosen := _choose(search.data, _options(search, proposers, sel.spec), sel.result)) is not None:
+        _add(sel, *chosen)
+        _retune(search, sel, chosen[0])
+    return sel
+
+
+def _options(search: Search, proposers: list[str], spec: Spec) -> list[tuple[str, Spec, Eval]]:
+    return [(name, ext, ev) for name in proposers for ext, ev in TERMS[name].propose(search, spec)]
+
+
+def _add(sel: Selection, name: str, ext: Spec, ev: Eval) -> None:
+    sel.steps.append(Step(name, ext.added_over(sel.spec)[1], ext, sel.result, ev))
+    sel.spec, sel.result = ext, ev
+
+
+def _retune(search: Search, sel: Selection, joined: str) -> None:
+    """The terms already in the model re-tune their argument now that `joined` is in (thermal lag's τ)."""
+    for name in dict.fromkeys(sel.spec.causes()):
+        refined = TERMS[name].refine(search, sel.spec, sel.result) if name != joined else None
+        if refined:
+            sel.spec, sel.result = refined
+            sel.steps[-1] = replace(sel.steps[-1], spec=sel.spec, after=sel.result)
 
 
 def _choose(data: RecordingData, options: list, current: Eval):

@@ -340,7 +340,7 @@ class Outliers(Term):
         return bool(data.dropped.any())  # a read with no field carries no angle: no test needed
 
     def admissible(self, data, ev):
-        return data.dropped.any() or MIN_OUTLIERS <= ev.rejected <= MAX_OUTLIER_FRACTION * data.n
+        return MIN_OUTLIERS <= ev.rejected <= MAX_OUTLIER_FRACTION * data.n
 
     def rejected(self, data, view, phi, radius, rows):
         dev = view.get("local_dev", lambda: local_deviation(radius, phi, data.dropped))[rows]
@@ -361,7 +361,7 @@ class Outliers(Term):
             how = (
                 f"are corrupted: {dropped} dropped read(s), a field magnitude of {ratio.min():.1f}-{ratio.max():.1f} % "
                 f"of the typical one (under {100 * DROPPED_READ_RATIO:.0f} %: a failed conversion or a loose "
-                "connector, whatever the reference says)"
+                "connector)"
             )
             if count > dropped:
                 how += f", and {count - dropped} isolated jump(s) off the circle {beyond}"
