@@ -33,19 +33,34 @@ def test_registry_holds_designs_causes_each_with_its_sample_form():
     assert CAUSES["thermal_lag"].param_names == ("tau_s",)
 
 
+EXAMPLE_PARAMETERS = {  # as a monitor would have them, from window statistics
+    "zero_offset": {"offset_deg": -1.2},
+    "phase_nonorthogonality": {"phase_error_deg": 0.8},
+    "phase_drift": {"phase_drift_deg_per_c": 0.02},
+    "harmonic_distortion": {"order": 5, "amplitude": 0.01},
+    "thermal_lag": {"tau_s": 300.0},
+    "nonlinear_temperature": {"gain_tc2_per_c2": [2e-5, 1e-5], "offset_tc2_per_c2": [0.01, -0.01]},
+    "aging": {"gain_loss_per_khour": [0.3, 0.2], "offset_per_khour": [1.0, -2.0]},
+    "outliers": {"fraction": 0.01},
+    "adc_clipping": {"fraction": 0.02, "channels": ["d"]},
+}
+
+
 @pytest.mark.parametrize("name", DESIGN_NAMES)
 def test_every_cause_states_itself_from_its_parameters_alone(name):
     """A monitor describing a finding from window statistics has the parameters, not diagnose's fit."""
     cause = CAUSES[name]
-    values = {p.name: 0.5 for p in cause.params}
-    text = cause.state(**values)
-    assert text and "{" not in text
+    params = EXAMPLE_PARAMETERS[name]
+    assert tuple(params) == cause.param_names
+    text = cause.state(**params)
+    assert text and "{" not in text and "nan" not in text
 
 
-def test_statement_with_facts():
-    text = CAUSES["harmonic_distortion"].state(order=5, amplitude=0.01, cycles=4, amplitude_deg=0.573)
+def test_statement_derives_what_it_can_and_takes_facts():
+    text = CAUSES["harmonic_distortion"].state(order=5, amplitude=0.01)
     assert text.startswith("the residual has a 4-cycle-per-turn component of 0.573° (harmonic order 5")
-    assert "2 samples (0.42 %) are far off the circle" == CAUSES["outliers"].state(count=2, percent=0.42)
+    assert CAUSES["outliers"].state(fraction=0.0042, count=2) == "2 samples (0.42 %) are far off the circle"
+    assert "over 48.0 h" in CAUSES["aging"].state(**EXAMPLE_PARAMETERS["aging"], over=" over 48.0 h")
 
 
 def test_testability_reads_only_observables_from_either_form():

@@ -54,15 +54,18 @@ def _testable(_obs: Observables) -> str | None:
 class Cause:
     """One cause: identity, parameters, testability and the sentence that states it.
 
-    `statement` is a `str.format` template over the parameters and the extra `facts` (each with the
-    default used when the caller has none). `not_testable` gives the reason a cause cannot be tested
-    at all, `partly_testable` what part of it cannot (both None when there is nothing to say)."""
+    `statement` is a `str.format` template over the parameters and some extra facts: `derive` computes
+    facts from the parameters (a harmonic's cycles per turn from its order), `facts` holds the default
+    of those only the caller can know (diagnose's held-out split by heating and cooling). `not_testable`
+    gives the reason a cause cannot be tested at all, `partly_testable` what part of it cannot (None
+    when there is nothing to say)."""
 
     name: str
     summary: str
     params: tuple[Param, ...]
     statement: str
     facts: dict = field(default_factory=dict)
+    derive: Callable[[dict], dict] | None = None
     not_testable: Callable[[Observables], str | None] = _testable
     partly_testable: Callable[[Observables], str | None] = _testable
 
@@ -71,8 +74,9 @@ class Cause:
         return tuple(p.name for p in self.params)
 
     def state(self, **values) -> str:
-        """The statement with these parameter values and facts (facts not given take their default)."""
-        merged = {**self.facts, **values}
+        """The statement with these parameter values (and facts: given ones win over derived ones, which
+        win over the defaults)."""
+        merged = {**self.facts, **(self.derive(values) if self.derive else {}), **values}
         missing = [f for _, f, _, _ in string.Formatter().parse(self.statement) if f and f not in merged]
         if missing:
             raise KeyError(f"{self.name}: statement needs {missing}")
@@ -145,17 +149,16 @@ _ALL = (
         ),
         "the residual has a {cycles}-cycle-per-turn component of {amplitude_deg:.3f}° "
         "(harmonic order {order}, seed 001 eq. 18)",
-        {"cycles": "n - 1", "amplitude_deg": math.nan},
+        derive=lambda v: {"cycles": int(v["order"]) - 1, "amplitude_deg": math.degrees(v["amplitude"])},
         partly_testable=_low_orders_need_reference,
     ),
     Cause(
         "thermal_lag",
         "the hall die's temperature lags the sensor that reports it (first order)",
         (Param("tau_s", "s", "time constant of the lag"),),
-        "the residual depends on the rate of temperature change, and lagging temp_c fixes it where the "
-        "temperature moves (held-out RMS {rate_split}); the die follows temp_c with a first-order lag of "
-        "τ = {tau_s:.0f} s",
-        {"rate_split": "heating, cooling and steady"},
+        "the residual depends on the rate of temperature change{where_fixed}; the die follows temp_c with a "
+        "first-order lag of τ = {tau_s:.0f} s",
+        {"where_fixed": ""},
         not_testable=_needs_temperature,
     ),
     Cause(
@@ -166,7 +169,7 @@ _ALL = (
             Param("offset_tc2_per_c2", "unit/°C²", f"quadratic temperature coefficient of the offset, {_OFFSETS}"),
         ),
         "gains and offsets curve with temperature (d, q gain {gain_d:.2e}, {gain_q:.2e} per °C²)",
-        {"gain_d": math.nan, "gain_q": math.nan},
+        derive=lambda v: dict(zip(("gain_d", "gain_q"), v["gain_tc2_per_c2"], strict=True)),
         not_testable=_needs_temperature,
     ),
     Cause(
@@ -177,8 +180,9 @@ _ALL = (
             Param("offset_per_khour", "unit/1000 h", f"offset change per 1000 h of operation, {_OFFSETS}"),
         ),
         "gains and offsets trend with operating time at equal temperature (gain loss {loss_d:.3f}, "
-        "{loss_q:.3f} per 1000 h over {hours:.1f} h)",
-        {"loss_d": math.nan, "loss_q": math.nan, "hours": math.nan},
+        "{loss_q:.3f} per 1000 h{over})",
+        {"over": ""},
+        derive=lambda v: dict(zip(("loss_d", "loss_q"), v["gain_loss_per_khour"], strict=True)),
         not_testable=_needs_duration,
     ),
     Cause(
@@ -186,7 +190,8 @@ _ALL = (
         "corrupted samples: dropped reads (field collapsed) and isolated jumps off the circle",
         (Param("fraction", "", "share of the samples rejected"),),
         "{count} samples ({percent:.2f} %) {how}",
-        {"count": "some", "percent": math.nan, "how": "are far off the circle"},
+        {"count": "some", "how": "are far off the circle"},
+        derive=lambda v: {"percent": 100 * v["fraction"]},
     ),
     Cause(
         "adc_clipping",

@@ -237,7 +237,8 @@ class ThermalLag(Term):
     def parameters(self, ctx, arg):
         tau = ctx.spec.tau_s
         split = rate_split(ctx.data, ctx.before.err_deg, ctx.after.err_deg)
-        return {"tau_s": round(tau, 2)}, {"tau_s": tau, "rate_split": split}
+        where_fixed = f", and lagging temp_c fixes it where the temperature moves (held-out RMS {split})"
+        return {"tau_s": round(tau, 2)}, {"tau_s": tau, "where_fixed": where_fixed}
 
 
 def best_tau(search, spec: Spec, around: float | None) -> tuple[float, object]:
@@ -324,7 +325,8 @@ class Aging(Term):
             "gain_loss_per_khour": [round(float(v), 6) for v in loss],
             "offset_per_khour": [round(float(v), 4) for v in drift],
         }
-        return params, {"loss_d": float(loss[0]), "loss_q": float(loss[1]), "hours": ctx.data.span_s / 3600}
+        over = f" over {ctx.data.span_s / 3600:.1f} h"
+        return params, {"loss_d": float(loss[0]), "loss_q": float(loss[1]), "over": over}
 
 
 class Outliers(Term):
