@@ -105,23 +105,11 @@ def repeatability(data: RecordingData, extended: Eval) -> dict | None:
     that no term fitted on other runs can predict; it is reported per run here, and the RMS the
     extended model would reach without it, rather than left in the residual unexplained. Needs a
     reference (the radius cannot see a shift along the circle) and at least two runs."""
-    if data.ref is None or data.run is None:
+    if data.ref is None or data.run is None or np.unique(data.run).size < 2:
         return None
-    runs = np.unique(data.run)
-    if runs.size < 2:
-        return None
-    err = extended.err_deg
-    shifts = {}
-    within = np.full(data.n, np.nan)
-    for run in runs:
-        rows = (data.run == run) & np.isfinite(err)
-        if rows.any():
-            shifts[run] = float(np.mean(err[rows]))
-            within[rows] = err[rows] - shifts[run]
-    values = np.array(list(shifts.values()))
-    ok = np.isfinite(within)
-    within_rms = float(np.sqrt(np.mean(within[ok] ** 2))) if ok.any() else float("nan")
-    rms = float(np.sqrt(np.mean(values**2)))
+    shifts, within = run_shifts(data.run, extended.err_deg)
+    rms = float(np.sqrt(np.mean(np.square(list(shifts.values())))))
+    within_rms = _rms(within)
     return {
         "runs": {_run_label(r): round(v, 6) for r, v in shifts.items()},
         "rms_deg": round(rms, 6),
@@ -135,8 +123,29 @@ def repeatability(data: RecordingData, extended: Eval) -> dict | None:
     }
 
 
+def run_shifts(run: np.ndarray, err_deg: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Each run's mean error (rejected samples, NaN, left out), and the error less its run's mean."""
+    shifts = {}
+    within = np.full(err_deg.size, np.nan)
+    for r in np.unique(run):
+        rows = (run == r) & np.isfinite(err_deg)
+        if rows.any():
+            shifts[r] = float(np.mean(err_deg[rows]))
+            within[rows] = err_deg[rows] - shifts[r]
+    return shifts, within
+
+
+def _rms(v: np.ndarray) -> float:
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v**2))) if v.size else float("nan")
+
+
 def _run_label(run) -> str:
-    value = float(run)
+    """ "1" for run 1.0 (the CSV reader gives floats), the value as written otherwise."""
+    try:
+        value = float(run)
+    except (TypeError, ValueError):
+        return str(run)
     return str(int(value)) if value.is_integer() else str(run)
 
 
