@@ -121,7 +121,7 @@ def factory_calibration(model: EncoderModel, seed: int) -> BandedCorrection:
     rng = np.random.default_rng([seed, 2])
     sweep = record(model, bench_profile((20.0,), soak_s=0.0), rng)
     method = OursLsRef().fit(sweep)
-    return method.correction
+    return method.correction_
 
 
 def evaluation_set(

@@ -10,7 +10,9 @@
 - OursEllipse: reference-free, from additive window statistics: direct ellipse fit, then
   harmonics from the sample density (see ellipse.py); optional zero anchor from a reference.
 
-Every method fits one correction per temperature band and interpolates between bands.
+Every method fits one correction per temperature band and interpolates between bands. They follow
+scikit-learn's estimator convention: constructor parameters stored verbatim, learned state (`correction_`
+and a per-band record such as `descents_`) set only by `fit`, which returns the method itself.
 """
 
 from __future__ import annotations
@@ -59,14 +61,17 @@ class ReferenceTable:
 
 
 class Method:
-    """Base: fit per temperature band, correct by interpolating between bands."""
+    """Base: fit per temperature band, correct by interpolating between bands.
+
+    The estimator convention (scikit-learn's): the constructor stores its parameters verbatim and
+    nothing else; what is learned ends in an underscore (`correction_`, and a method's per-band
+    record named by `band_record`) and is set only by `fit`, all at once at its end, so a second fit
+    replaces every learned attribute and leaves nothing of the first."""
 
     name = "method"
     needs_reference = False
     needs_table = False
-
-    def __init__(self):
-        self.correction: BandedCorrection | None = None
+    band_record: str | None = None  # learned attribute holding what fit_band reports per band
 
     def fit(self, samples: Samples, table: ReferenceTable | None = None) -> Method:
         check_fit_input(samples.d, samples.q, theta_ref=samples.theta_ref, temp_c=samples.temp_c)
@@ -75,7 +80,7 @@ class Method:
         if self.needs_table and table is None:
             raise InputError(f"{self.name} needs the +20 °C reference table")
         bands = band_of(samples.temp_c) if samples.temp_c is not None else np.zeros(len(samples), int)
-        fits = []
+        fits, records = [], []
         for band in np.unique(bands):
             part = samples.subset(bands == band)
             where = (
@@ -85,19 +90,27 @@ class Method:
             )
             theta = part.theta_ref if part.theta_ref is not None else angle(part.d, part.q)
             check_angle_coverage(theta, what=f"angle{where}")
-            corr = self.fit_band(part, table)
+            corr, record = self.fit_band(part, table)
             corr.temp_c = float(np.mean(part.temp_c)) if part.temp_c is not None else None
             fits.append(corr)
-        self.correction = BandedCorrection(fits)
+            records.append(record)
+        self.correction_ = self.finish_fit(BandedCorrection(fits), table)
+        if self.band_record:
+            setattr(self, self.band_record, records)
         return self
 
-    def fit_band(self, samples: Samples, table: ReferenceTable | None) -> Correction:
+    def fit_band(self, samples: Samples, table: ReferenceTable | None) -> tuple[Correction, object]:
+        """One band's correction, and what the method records about that band (or None)."""
         raise NotImplementedError
 
+    def finish_fit(self, correction: BandedCorrection, table: ReferenceTable | None) -> BandedCorrection:
+        """A last step over all bands (the default: none)."""
+        return correction
+
     def correct(self, samples: Samples) -> np.ndarray:
-        if self.correction is None:
+        if not hasattr(self, "correction_"):
             raise InputError(f"{self.name}: fit before correct")
-        return self.correction.angle(samples.d, samples.q, samples.temp_c)
+        return self.correction_.angle(samples.d, samples.q, samples.temp_c)
 
 
 # --- seed 000 ----------------------------------------------------------------------------------
@@ -167,18 +180,19 @@ class Seed000(Method):
     needs_reference = True
     needs_table = True
 
+    band_record = "descents_"  # one GradientDescentResult per band
+
     def __init__(self, step: float = 0.001, max_iter: int = 1000, data_scale: float | str = "auto"):
-        super().__init__()
-        self.step, self.max_iter, self.data_scale = step, max_iter, data_scale
-        self.descents: list[GradientDescentResult] = []
+        self.step = step
+        self.max_iter = max_iter
+        self.data_scale = data_scale
 
     def fit_band(self, samples, table):
         d_c, q_c = table.lookup(samples.theta_ref)  # Fig. 8: look the +20 °C values up by angle
         s = seed000_auto_scale(d_c, q_c, self.step) if self.data_scale == "auto" else float(self.data_scale)
         res = seed000_descent(samples.d * s, samples.q * s, d_c * s, q_c * s, step=self.step, max_iter=self.max_iter)
-        self.descents.append(res)
         w = res.weights
-        return Correction(w1=w[0], w2=w[1] / s, w3=w[2], w4=w[3] / s)
+        return Correction(w1=w[0], w2=w[1] / s, w3=w[2], w4=w[3] / s), res
 
 
 # --- seed 001 ----------------------------------------------------------------------------------
@@ -190,10 +204,12 @@ class Seed001(Method):
 
     name = "seed001"
 
+    band_record = "betas_"  # the phase error β (rad) found in each band
+
     def __init__(self, median_window: int = 5, mean_window: int = 5, a_out: float = 2.0):
-        super().__init__()
-        self.median_window, self.mean_window, self.a_out = median_window, mean_window, a_out
-        self.betas: list[float] = []
+        self.median_window = median_window
+        self.mean_window = mean_window
+        self.a_out = a_out
 
     def fit_band(self, samples, table):
         order = (
@@ -215,11 +231,11 @@ class Seed001(Method):
             norm.append((v_min, a_in, np.angle(spectrum[1])))
         (dmin, da, phase_d), (qmin, qa, phase_q) = norm
         beta = float(wrap_rad(phase_d - phase_q - np.pi / 2))  # d = cos(θ+β), q = sin θ; one revolution: bin 1
-        self.betas.append(beta)
         # eq. 19 as weights, eq. 14 as harmonics: θ = φ + ε(φ), ε = -β/2·(1 - cos 2φ)
         w1, w2 = self.a_out / da, -self.a_out * dmin / da - self.a_out / 2
         w3, w4 = self.a_out / qa, -self.a_out * qmin / qa - self.a_out / 2
-        return Correction(w1=w1, w2=w2, w3=w3, w4=w4, zero_offset_rad=-beta / 2, harmonics={2: (beta / 2, 0.0)})
+        corr = Correction(w1=w1, w2=w2, w3=w3, w4=w4, zero_offset_rad=-beta / 2, harmonics={2: (beta / 2, 0.0)})
+        return corr, beta
 
 
 # --- ours ----------------------------------------------------------------------------------------
@@ -248,7 +264,7 @@ class OursLsTable(Method):
         d_c, q_c = table.lookup(samples.theta_ref)
         w1, w2 = affine_ls(samples.d, d_c)
         w3, w4 = affine_ls(samples.q, q_c)
-        return Correction(w1=w1, w2=w2, w3=w3, w4=w4)
+        return Correction(w1=w1, w2=w2, w3=w3, w4=w4), None
 
 
 def fit_harmonics(theta0, residual, orders) -> tuple[float, dict[int, tuple[float, float]]]:
@@ -267,9 +283,8 @@ class OursLsRef(Method):
     name = "ours-ls-ref"
     needs_reference = True
 
-    def __init__(self, harmonic_orders=range(1, 9), outlier_tolerance: float | None = 0.12):
-        super().__init__()
-        self.orders = list(harmonic_orders)
+    def __init__(self, harmonic_orders=tuple(range(1, 9)), outlier_tolerance: float | None = 0.12):
+        self.harmonic_orders = harmonic_orders
         self.outlier_tolerance = outlier_tolerance
 
     def fit_band(self, samples, table):
@@ -289,10 +304,10 @@ class OursLsRef(Method):
         base = Correction(w1=corr.w1, w2=corr.w2, w3=corr.w3, w4=corr.w4, w5=corr.w5)
         theta0 = base.angle(d, q)
         resid = wrap_rad(th - theta0 - corr.zero_offset_rad)
-        const, harmonics = fit_harmonics(theta0, resid, self.orders)
+        const, harmonics = fit_harmonics(theta0, resid, list(self.harmonic_orders))
         corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad + const))
         corr.harmonics = harmonics
-        return corr
+        return corr, None
 
 
 def zero_error_rad(correction: Correction, samples: Samples) -> float:
@@ -306,27 +321,26 @@ class OursEllipse(Method):
 
     name = "ours-ellipse"
 
+    band_record = "quality_"  # the ellipse fit's quality figures per band
+
     def __init__(self, harmonics_from_density: bool = True, outlier_tolerance: float = 0.12):
-        super().__init__()
         self.harmonics_from_density = harmonics_from_density
         self.outlier_tolerance = outlier_tolerance
-        self.quality: list[dict] = []
-
-    def fit(self, samples, table=None):
-        super().fit(samples, table)
-        if table is not None:
-            ref = Samples(t=np.arange(table.theta.size, dtype=float), d=table.d, q=table.q, theta_ref=table.theta)
-            temps = np.array([b.temp_c if b.temp_c is not None else REFERENCE_TEMP_C for b in self.correction.bands])
-            shift = zero_error_rad(self.correction.bands[int(np.argmin(np.abs(temps - REFERENCE_TEMP_C)))], ref)
-            for band in self.correction.bands:
-                band.zero_offset_rad = float(wrap_rad(band.zero_offset_rad + shift))
-        return self
 
     def fit_band(self, samples, table):
         stats = stats_for(samples, outlier_tolerance=self.outlier_tolerance)
-        corr, quality = fit_from_stats(stats, harmonics_from_density=self.harmonics_from_density)
-        self.quality.append(quality)
-        return corr
+        return fit_from_stats(stats, harmonics_from_density=self.harmonics_from_density)
+
+    def finish_fit(self, correction, table):
+        """With a reference table, shift every band's zero by the +20 °C band's error on the table."""
+        if table is None:
+            return correction
+        ref = Samples(t=np.arange(table.theta.size, dtype=float), d=table.d, q=table.q, theta_ref=table.theta)
+        temps = np.array([b.temp_c if b.temp_c is not None else REFERENCE_TEMP_C for b in correction.bands])
+        shift = zero_error_rad(correction.bands[int(np.argmin(np.abs(temps - REFERENCE_TEMP_C)))], ref)
+        for band in correction.bands:
+            band.zero_offset_rad = float(wrap_rad(band.zero_offset_rad + shift))
+        return correction
 
 
 def stats_for(

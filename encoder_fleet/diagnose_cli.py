@@ -93,6 +93,11 @@ def _print_summary(report: dict) -> None:
     if not report["findings"]:
         print("  no findings: the baseline explains the recording down to its noise")
     print(f"extended: rms {e['rms_error_deg']:.4f}°  max {e['max_error_deg']:.4f}°")
+    rep = report.get("repeatability")
+    if rep:
+        shifts = ", ".join(f"run {run} {shift:+.3f}°" for run, shift in rep["runs"].items())
+        within = rep["within_run_rms_error_deg"]
+        print(f"  run-to-run repeatability: {shifts} (rms {rep['rms_deg']:.3f}°; within runs {within:.3f}°)")
     for item in report["not_testable"]:
         print(f"  not testable: {item['cause']}: {item['why']}")
 

@@ -113,6 +113,7 @@ vertical-align:top}}table{{border-collapse:collapse}}img{{max-width:100%}}</styl
 <tr><td>baseline: {esc(b["model"])}</td><td>{b["rms_error_deg"]:.4f}</td><td>{b["max_error_deg"]:.4f}</td></tr>
 <tr><td>extended: baseline + {esc(", ".join(e["causes"]) or "nothing")}</td><td>{e["rms_error_deg"]:.4f}</td>
 <td>{e["max_error_deg"]:.4f}</td></tr></table>
+{_repeatability(r.get("repeatability"))}
 <h2>Findings</h2>
 <table><tr><th>cause</th><th>parameters</th><th>RMS before (°)</th><th>RMS after (°)</th>
 <th>evidence</th></tr>{rows}</table>
@@ -120,6 +121,18 @@ vertical-align:top}}table{{border-collapse:collapse}}img{{max-width:100%}}</styl
 <h2>Plots</h2>{figs}
 </body></html>
 """
+
+
+def _repeatability(rep: dict | None) -> str:
+    """Run-to-run repeatability: a shift per run that no model fitted on other runs can predict."""
+    if not rep:
+        return ""
+    esc = html.escape
+    cells = "".join(f"<td>run {esc(run)}: {shift:+.3f}°</td>" for run, shift in rep["runs"].items())
+    return (
+        f"<h2>Run-to-run repeatability</h2><table><tr>{cells}<td>RMS {rep['rms_deg']:.3f}°</td>"
+        f"<td>within runs {rep['within_run_rms_error_deg']:.3f}°</td></tr></table><p>{esc(rep['note'])}</p>"
+    )
 
 
 def write_report(diagnosis, path, title: str = "recording") -> None:

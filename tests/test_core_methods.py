@@ -31,10 +31,10 @@ def test_seed000_recovers_gain_ratio(rng):
     table = ReferenceTable.from_samples(sweep(model, 20.0, rng))
     train, test = held_out(sweep(model, -40.0, rng))
     method = Seed000().fit(train, table)
-    band = method.correction.bands[0]
+    band = method.correction_.bands[0]
     assert band.w1 == pytest.approx(1 / 1.12, rel=0.01)  # k1(-40) = 1 + 0.002·60
     assert band.w3 == pytest.approx(1 / 1.06, rel=0.01)
-    assert method.descents[0].history[-1] < 0.01 * method.descents[0].history[0]
+    assert method.descents_[0].history[-1] < 0.01 * method.descents_[0].history[0]
     assert error_summary(method.correct(test), test.theta_ref)["rms_error_deg"] < 0.1
 
 
@@ -52,7 +52,7 @@ def test_seed001_recovers_phase(rng):
     model = EncoderModel(phase_error_rad=beta, amplitude_imbalance=0.04, noise_counts=1.0)
     train, test = held_out(sweep(model, 20.0, rng))
     method = Seed001().fit(train)
-    assert method.betas[0] == pytest.approx(beta, abs=np.radians(0.05))
+    assert method.betas_[0] == pytest.approx(beta, abs=np.radians(0.05))
     assert error_summary(method.correct(test), test.theta_ref)["max_error_deg"] < 0.5
 
 
@@ -70,7 +70,7 @@ def test_ls_ref_recovers_zero_offset_phase_and_harmonic(rng):
     err = error_summary(method.correct(test), test.theta_ref)
     assert err["rms_error_deg"] < 0.08 and err["max_error_deg"] < 0.3
     # the weights take d as the axis, and d carries the phase error: the rotation left is zero + β
-    assert method.correction.bands[0].zero_offset_rad == pytest.approx(-np.radians(7.0 - 2.0), abs=np.radians(0.1))
+    assert method.correction_.bands[0].zero_offset_rad == pytest.approx(-np.radians(7.0 - 2.0), abs=np.radians(0.1))
 
 
 def test_ellipse_recovers_offsets_and_density_finds_hidden_harmonic():
@@ -89,7 +89,7 @@ def test_ellipse_recovers_offsets_and_density_finds_hidden_harmonic():
     assert center == pytest.approx([30.0, -20.0], abs=1.0)
     found = density_harmonics(stats, fit).significant()
     assert set(found) == {2}  # the 3rd harmonic shows as a 2θ angle error; nothing else is significant
-    corr = OursEllipse().fit(s).correction
+    corr = OursEllipse().fit(s).correction_
     err = angle_error_deg(corr.angle(s.d, s.q, s.temp_c), theta)
     assert rms(err - np.mean(err)) < 0.12  # noise floor is about 0.09°; the zero is not observable
 
@@ -142,3 +142,51 @@ def test_reference_table_needs_distinct_angles(rng):
     few = sweep(EncoderModel(), 20.0, rng, positions=8)
     with pytest.raises(InputError, match="distinct reference angles"):
         ReferenceTable.from_samples(few)
+
+
+NON_DEFAULT_PARAMS = {
+    Seed000: {"step": 0.002, "max_iter": 50, "data_scale": 0.01},
+    Seed001: {"median_window": 3, "mean_window": 7, "a_out": 1.0},
+    OursLsTable: {},
+    OursLsRef: {"harmonic_orders": [2, 3], "outlier_tolerance": None},
+    OursEllipse: {"harmonics_from_density": False, "outlier_tolerance": 0.2},
+}
+
+
+@pytest.mark.parametrize("method_cls", list(NON_DEFAULT_PARAMS))
+def test_constructor_stores_parameters_verbatim_and_learns_nothing(method_cls):
+    params = NON_DEFAULT_PARAMS[method_cls]
+    method = method_cls(**params)
+    assert vars(method) == params  # nothing derived, nothing learned before fit
+    for key, value in params.items():
+        assert getattr(method, key) is value
+    with pytest.raises(InputError, match="fit before correct"):
+        method.correct(Samples(t=np.arange(3.0), d=np.ones(3), q=np.ones(3)))
+
+
+@pytest.mark.parametrize("method_cls", [Seed000, Seed001, OursLsTable, OursLsRef, OursEllipse])
+def test_second_fit_leaves_nothing_stale(method_cls, rng):
+    """Fit on three temperature bands, then on one: every learned attribute is the one-band fit's."""
+    model = EncoderModel(gain_tc_per_c=(-0.002, -0.001), phase_error_rad=0.01, noise_counts=1.0)
+    table = ReferenceTable.from_samples(sweep(model, 20.0, rng, positions=720))
+    wide = concat_samples([sweep(model, temp, rng, positions=720) for temp in (-30.0, 20.0, 70.0)])
+    narrow = sweep(model, 40.0, rng, positions=720)
+    refitted = method_cls().fit(wide, table).fit(narrow, table)
+    fresh = method_cls().fit(narrow, table)
+    learned = {k for k in vars(fresh) if k.endswith("_")}
+    assert "correction_" in learned and set(vars(refitted)) == set(vars(fresh))
+    assert len(refitted.correction_.bands) == 1
+    assert refitted.correction_.to_dict() == fresh.correction_.to_dict()
+    if method_cls.band_record:
+        assert len(getattr(refitted, method_cls.band_record)) == 1
+    assert np.array_equal(refitted.correct(narrow), fresh.correct(narrow))
+
+
+def concat_samples(parts):
+    return Samples(
+        t=np.concatenate([p.t + 1e4 * i for i, p in enumerate(parts)]),
+        d=np.concatenate([p.d for p in parts]),
+        q=np.concatenate([p.q for p in parts]),
+        temp_c=np.concatenate([p.temp_c for p in parts]),
+        theta_ref=np.concatenate([p.theta_ref for p in parts]),
+    )

@@ -74,6 +74,9 @@ def test_wheel_ships_schemas_and_migrations_and_an_agent_needs_no_service_packag
     schemas = {p.name for p in (REPO / "schemas").glob("*.schema.json")}
     migrations = {p.name for p in (REPO / "migrations").glob("*.sql")}
     assert {f"fleet_wire/schemas/{n}" for n in schemas} <= names
+    for package in ("encoder_core", "fleet_wire", "edge_agent", "service", "encoder_fleet"):
+        for source in (REPO / package).rglob("*.py"):  # every module of the checkout is in the wheel
+            assert str(source.relative_to(REPO)) in names, source
     assert {f"service/migrations/{n}" for n in migrations} <= names
     base = [r.split(";")[0].split("=")[0].strip() for r in meta.get_all("Requires-Dist") if "extra ==" not in r]
     assert "eclipse-zenoh" in base and "numpy" in base
