@@ -23,14 +23,29 @@ DESIGN_NAMES = [
 
 
 def test_registry_holds_designs_causes_each_with_its_sample_form():
-    assert list(CAUSES) == DESIGN_NAMES
+    from encoder_core.diagnose.causes import DIAGNOSE_CAUSES
+
+    assert list(DIAGNOSE_CAUSES) == DESIGN_NAMES
     assert list(TERMS) == DESIGN_NAMES
-    for name, cause in CAUSES.items():
+    for name, cause in DIAGNOSE_CAUSES.items():
         assert cause.name == name and cause.summary and cause.params
-        assert TERMS[name].cause is cause
+        assert TERMS[name].cause is cause is CAUSES[name]
     assert CAUSES["harmonic_distortion"].param_names == ("order", "amplitude")
     assert CAUSES["outliers"].param_names == ("fraction",)
     assert CAUSES["thermal_lag"].param_names == ("tau_s",)
+
+
+def test_the_monitor_names_alarms_from_the_same_registry():
+    from encoder_core import monitor_causes
+
+    alarm_names = {"offset_step", "accelerated_aging", "magnet_weakening", "harmonic_growth", "outliers"}
+    alarm_names |= {"adc_clipping", "offline"}
+    assert set(monitor_causes.CAUSES) == alarm_names  # the Alarms contract of docs/architecture.md
+    for name, cause in monitor_causes.CAUSES.items():
+        assert CAUSES[name] is cause and set(cause.alarm_params) <= set(cause.param_names)
+        values = {p: 2 if p == "order" else 0.01 for p in cause.param_names}
+        assert cause.state(**values)  # every alarm cause states itself from its parameters
+    assert CAUSES["outliers"] is monitor_causes.CAUSES["outliers"]  # one object, two data forms
 
 
 EXAMPLE_PARAMETERS = {  # as a monitor would have them, from window statistics

@@ -30,12 +30,12 @@ def test_vocabulary_is_the_contract():
         "adc_clipping",
         "offline",
     }
-    assert set(CAUSES["offset_step"].parameters) == {"delta_d", "delta_q"}
-    assert set(CAUSES["accelerated_aging"].parameters) == {"rate_per_day", "fleet_median_rate_per_day"}
-    assert set(CAUSES["magnet_weakening"].parameters) == {"loss_per_day"}
-    assert set(CAUSES["harmonic_growth"].parameters) == {"order", "amplitude_deg"}
-    assert set(CAUSES["outliers"].parameters) == {"fraction"} == set(CAUSES["adc_clipping"].parameters)
-    assert set(CAUSES["offline"].parameters) == {"since"}
+    assert set(CAUSES["offset_step"].alarm_params) == {"delta_d", "delta_q"}
+    assert set(CAUSES["accelerated_aging"].alarm_params) == {"rate_per_day", "fleet_median_rate_per_day"}
+    assert set(CAUSES["magnet_weakening"].alarm_params) == {"loss_per_day"}
+    assert set(CAUSES["harmonic_growth"].alarm_params) == {"order", "amplitude_deg"}
+    assert set(CAUSES["outliers"].alarm_params) == {"fraction"} == set(CAUSES["adc_clipping"].alarm_params)
+    assert set(CAUSES["offline"].alarm_params) == {"since"}
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def test_alarm_parameters_match_what_was_planted(planted):
             continue
         (alarm,) = [a for a in alarms[spec.name] if a["cause"] == ev.cause]
         p = alarm["parameters"]
-        assert set(p) == set(CAUSES[ev.cause].parameters)
+        assert set(p) == set(CAUSES[ev.cause].alarm_params)
         assert alarm["evidence"].endswith(".") and len(alarm["evidence"]) > 40
         if ev.cause == "offset_step":
             size = math.hypot(p["delta_d"], p["delta_q"])

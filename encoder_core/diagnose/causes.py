@@ -68,6 +68,7 @@ class Cause:
     derive: Callable[[dict], dict] | None = None
     not_testable: Callable[[Observables], str | None] = _testable
     partly_testable: Callable[[Observables], str | None] = _testable
+    alarm_params: tuple[str, ...] = ()  # the parameters an alarm of this cause carries (the Alarms contract)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -192,6 +193,7 @@ _ALL = (
         "{count} samples ({percent:.2f} %) {how}",
         {"count": "some", "how": "are far off the circle"},
         derive=lambda v: {"percent": 100 * v["fraction"]},
+        alarm_params=("fraction",),
     ),
     Cause(
         "adc_clipping",
@@ -202,10 +204,68 @@ _ALL = (
         ),
         "{where} while the other channel keeps moving",
         {"where": "a channel is stuck at a rail"},
+        alarm_params=("fraction",),
     ),
 )
 
-CAUSES: dict[str, Cause] = {c.name: c for c in _ALL}
+
+def _rate(name: str, meaning: str) -> Param:
+    return Param(name, "1/day", meaning)
+
+
+# Causes only the drift monitor names (from window statistics over time); diagnose does not search them.
+_MONITOR_ONLY = (
+    Cause(
+        "offset_step",
+        "channel offsets jumped (knocked magnet, stray field)",
+        (
+            Param("delta_d", "", "jump of the d channel's offset, fraction of the amplitude"),
+            Param("delta_q", "", "jump of the q channel's offset, fraction of the amplitude"),
+        ),
+        "the channel offsets jumped by {delta_d:+.4f}, {delta_q:+.4f} of the amplitude",
+        alarm_params=("delta_d", "delta_q"),
+    ),
+    Cause(
+        "accelerated_aging",
+        "offsets or gains drift far faster than the fleet's normal rate",
+        (
+            _rate("rate_per_day", "the device's drift rate, fraction of the amplitude per day"),
+            _rate("fleet_median_rate_per_day", "the fleet's median rate of the same quantity"),
+        ),
+        "drifts at {rate_per_day:.4f} of the amplitude per day, the fleet at {fleet_median_rate_per_day:.4f}",
+        alarm_params=("rate_per_day", "fleet_median_rate_per_day"),
+    ),
+    Cause(
+        "magnet_weakening",
+        "the common field amplitude falls (demagnetisation, growing air gap)",
+        (_rate("loss_per_day", "fractional loss of the common amplitude per day"),),
+        "the common field amplitude falls by {percent:.2f} % per day",
+        derive=lambda v: {"percent": 100 * v["loss_per_day"]},
+        alarm_params=("loss_per_day",),
+    ),
+    Cause(
+        "harmonic_growth",
+        "a field harmonic grows (eccentricity, wear)",
+        (
+            Param("order", "", "harmonic order n as in harmonic_distortion ((n - 1) cycles per turn)"),
+            Param("amplitude_deg", "°", "the harmonic's angle-error amplitude now"),
+        ),
+        "harmonic order {order} has grown to {amplitude_deg:.3f}°",
+        alarm_params=("order", "amplitude_deg"),
+    ),
+    Cause(
+        "offline",
+        "the agent's liveliness is gone",
+        (Param("since", "s", "drive clock of the device's last window"),),
+        "the agent's liveliness token is gone since drive time {since:.0f} s",
+        alarm_params=("since",),
+    ),
+)
+
+DIAGNOSE_CAUSES: dict[str, Cause] = {c.name: c for c in _ALL}  # what diagnose searches, in its order
+CAUSES: dict[str, Cause] = {c.name: c for c in _ALL + _MONITOR_ONLY}
+# the drift monitor's vocabulary (docs/architecture.md, "Alarms"): a selection of the one registry
+ALARM_CAUSES: dict[str, Cause] = {name: c for name, c in CAUSES.items() if c.alarm_params}
 
 
 def split_by_testability(obs: Observables) -> tuple[list[str], list[dict]]:

@@ -21,14 +21,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .causes import CAUSES, Cause
+from .causes import CAUSES, DIAGNOSE_CAUSES, Cause
 from .data import DROPPED_READ_RATIO, OUTLIER_SIGMAS, T_SCALE, local_deviation, outlier_threshold
 
 MAX_OUTLIER_FRACTION = 0.05
 MIN_OUTLIERS = 3  # fewer isolated jumps than this are noise's tail, not a cause
 REF_ORDERS = tuple(range(2, 9))
 RADIUS_ORDERS = tuple(range(4, 9))  # without a reference order 2 looks like an offset, 3 like imbalance
-ORDER = {name: i for i, name in enumerate(CAUSES)}
+ORDER = {name: i for i, name in enumerate(DIAGNOSE_CAUSES)}
 
 
 @dataclass(frozen=True)
@@ -417,4 +417,4 @@ TERMS: dict[str, Term] = {
         AdcClipping(),
     )
 }
-assert list(TERMS) == list(CAUSES), "one sample form per cause, in the registry's order"
+assert list(TERMS) == list(DIAGNOSE_CAUSES), "one sample form per diagnose cause, in the registry's order"
