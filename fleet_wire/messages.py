@@ -223,6 +223,8 @@ def _check_consistency(kind: str, msg: dict) -> None:
         if msg["band"] != band_of(msg["temp_mean_c"]):
             bad("$.band", f"{msg['band']} is not floor(temp_mean_c / {BAND_WIDTH_C:g}) = {band_of(msg['temp_mean_c'])}")
     elif kind == "coefficients":
+        if (msg["basis"] == "rollback") != ("restores_version" in msg):
+            bad("$.restores_version", "a rollback set names the version it restores, and only a rollback set does")
         bands = [b["band"] for b in msg["bands"]]
         if len(set(bands)) != len(bands):
             bad("$.bands", f"a band appears twice: {bands}")
@@ -313,19 +315,22 @@ def band_entry(band: int, correction: dict, quality: dict) -> dict:
     return {"band": int(band), **correction, "quality": dict(quality)}
 
 
-def coefficients_message(device: str, version: int, created_at: float, basis: str, bands: list[dict]) -> dict:
-    """bands: entries from band_entry(), in any order (sent sorted by band)."""
-    return check(
-        "coefficients",
-        {
-            "schema": SCHEMA_NAME["coefficients"],
-            "device": device,
-            "version": int(version),
-            "created_at": float(created_at),
-            "basis": basis,
-            "bands": sorted(bands, key=lambda b: b["band"]),
-        },
-    )
+def coefficients_message(
+    device: str, version: int, created_at: float, basis: str, bands: list[dict], *, restores_version: int | None = None
+) -> dict:
+    """bands: entries from band_entry(), in any order (sent sorted by band). restores_version: only for
+    basis 'rollback', the confirmed set it carries again."""
+    msg = {
+        "schema": SCHEMA_NAME["coefficients"],
+        "device": device,
+        "version": int(version),
+        "created_at": float(created_at),
+        "basis": basis,
+        "bands": sorted(bands, key=lambda b: b["band"]),
+    }
+    if restores_version is not None:
+        msg["restores_version"] = int(restores_version)
+    return check("coefficients", msg)
 
 
 def ack_message(

@@ -172,13 +172,25 @@ class CoefficientSet(BaseModel):
     created_at: float
     basis: str
     published_at: float | None
+    state: str = Field(description="trial (outcome being measured), confirmed, or rolled_back.")
+    state_reason: str | None = Field(description="Why the guard put the set in this state.")
+    restores_version: int | None = Field(description="For basis 'rollback': the confirmed set it restores.")
     message: dict = Field(description="The encoder-fleet/coefficients/1 message.")
     acks: list[dict] = Field(description="encoder-fleet/ack/1 messages for this version, oldest first.")
+
+
+class SetEvent(BaseModel):
+    version: int
+    state: str
+    at: float = Field(description="Drive clock of the newest window the decision saw, s.")
+    decided_at: float = Field(description="Service clock, unix s.")
+    reason: str
 
 
 class CoefficientHistory(BaseModel):
     device: str
     sets: list[CoefficientSet] = Field(description="Newest first.")
+    events: list[SetEvent] = Field(description="The guard's transitions (trial, confirmed, rolled_back), oldest first.")
 
 
 class WindowList(BaseModel):
@@ -314,6 +326,7 @@ def coefficient_history(device: DeviceDep, store: StoreDep):
             CoefficientSet(**h, acks=[a for a in acks if a["version"] == h["version"]])
             for h in store.coefficient_history(device["id"])
         ],
+        events=store.set_events(device["id"]),
     )
 
 

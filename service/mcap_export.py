@@ -89,6 +89,8 @@ SCHEMAS = {
             "created_at": {**NUMBER, "description": "Drive clock, s."},
             "basis": STRING,
             "published_at": {**NUMBER, "description": "Service clock, unix s (absent: never published)."},
+            "state": {**STRING, "description": "The guard's state now: trial, confirmed or rolled_back."},
+            "restores_version": {**INTEGER, "description": "Basis rollback only: the confirmed set it restores."},
             "bands": {
                 "type": "array",
                 "items": _object(
@@ -218,6 +220,8 @@ def coefficient_set_record(entry: dict) -> dict:
             "created_at": msg["created_at"],
             "basis": msg["basis"],
             "published_at": entry["published_at"],
+            "state": entry["state"],
+            "restores_version": entry["restores_version"],
             "bands": bands,
         }
     )
@@ -287,6 +291,12 @@ def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, st
         bands = ", ".join(str(b["band"]) for b in msg["bands"])
         text = f"coefficient set v{msg['version']} published (basis {msg['basis']}; bands {bands})"
         yield entry["published_at"], "log", log_record(entry["published_at"], INFO, text, device)
+    for event in store.set_events(device):  # the guard: trial, confirmed, rolled_back
+        if not _in_range(event["at"], t_from, t_to):
+            continue
+        level = WARNING if event["state"] == "rolled_back" else INFO
+        text = f"coefficient set v{event['version']} {event['state'].replace('_', ' ')}: {event['reason']}"
+        yield event["decided_at"], "log", log_record(event["decided_at"], level, text, device)
     for ack in store.acks(device, with_received_at=True):
         if not _in_range(ack["at"], t_from, t_to):
             continue

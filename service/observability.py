@@ -65,6 +65,7 @@ class FleetCollector(Collector):
         yield CounterMetricFamily("encoder_fleet_refits", "Device refits run.", value=counters["refits"])
         rollouts = CounterMetricFamily("encoder_fleet_rollouts", "Coefficient sets by outcome.", labels=["outcome"])
         rollouts.add_metric(["published"], counters["rollouts"])
+        rollouts.add_metric(["rolled_back"], counters["rollbacks"])
         yield rollouts
 
 

@@ -11,6 +11,7 @@ import queue
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import zenoh
@@ -22,6 +23,8 @@ from fleet_wire import messages as wire
 from service.monitor import Monitor
 from service.refit import MIN_BAND_SAMPLES, refit_device
 from service.store import Store
+from service.trial import TrialEvidence, Verdict, changed_bands
+from service.trial import judge as default_judge
 
 log = logging.getLogger("service")
 MAX_BATCH = 500  # messages per ingest transaction
@@ -32,13 +35,19 @@ BAND_HORIZON = 1440  # newest windows per band in the refit's sums (a day of one
 class ServiceCounters:
     ingested: dict[str, int] = field(default_factory=dict)  # status -> count ('stored', 'duplicate', reasons)
     refits: int = 0
-    rollouts: int = 0
+    rollouts: int = 0  # sets published: fits and rollbacks
+    rollbacks: int = 0
 
     def count(self, status: str) -> None:
         self.ingested[status] = self.ingested.get(status, 0) + 1
 
     def snapshot(self) -> dict:
-        return {"ingested": dict(self.ingested), "refits": self.refits, "rollouts": self.rollouts}
+        return {
+            "ingested": dict(self.ingested),
+            "refits": self.refits,
+            "rollouts": self.rollouts,
+            "rollbacks": self.rollbacks,
+        }
 
 
 class FleetService:
@@ -52,8 +61,10 @@ class FleetService:
         signer=None,
         guard=None,
         monitor_interval_s: float = 0.5,
+        judge: Callable[[TrialEvidence], Verdict] = default_judge,
     ):
         self.store = store
+        self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
         self.signer = signer  # fleet_wire.security.SetSigner: every published set is signed
         self.guard = guard  # service.guard.IngestGuard: registry, forged and replayed acks
         self.session = session
@@ -259,6 +270,11 @@ class FleetService:
         return published
 
     def refit(self, device: str) -> int | None:
+        """Judge the set on trial, if there is one (the device gets nothing new meanwhile); otherwise refit
+        and publish what changed, on trial. Returns the version published (a fit or a rollback)."""
+        trial = self.store.set_on_trial(device)
+        if trial is not None:
+            return self._judge_trial(device, trial)
         factory_msg = self.store.coefficient_set(device, 0)
         running_msg = self.store.current_coefficients(device, published_only=True)
         if running_msg is None:
@@ -271,8 +287,7 @@ class FleetService:
             self.counters.refits += 1
         if not result.changed:
             return None
-        recent = self.store.window_summary(device, recent=1)["recent"]
-        drive_now = recent[0]["window_end"] if recent else 0.0  # message times are on the drive's clock
+        drive_now = self._drive_now(device)
         with self.store.transaction():  # the fits and the set they make land together, or not at all
             version = self.store.next_version(device)
             for decision in result.decisions:
@@ -290,22 +305,74 @@ class FleetService:
             msg = wire.coefficients_message(
                 device=device, version=version, created_at=drive_now, basis="fit", bands=result.bands
             )
-            if self.signer is not None:
-                msg = self.signer.sign(msg)  # stored signed: the queryable replies with the same bytes' meaning
-            self.store.insert_coefficient_set(msg)
-        self.session.put(
-            keys.key(device, keys.COEFFICIENTS),
-            wire.encode("coefficients", msg),
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
-        self.store.mark_published(device, version)
-        with self._lock:
-            self.counters.rollouts += 1
+            msg = self._publishable(msg)
+            self.store.insert_coefficient_set(msg, state="trial")
+        self._publish(msg)
         log.info(
-            "published coefficient set",
+            "published coefficient set on trial",
             extra={"device": device, "version": version, "bands_adopted": sum(d.adopted for d in result.decisions)},
         )
         return version
+
+    def _judge_trial(self, device: str, trial: dict) -> int | None:
+        """Confirm, roll back (a new set, basis rollback, carrying the last confirmed set again) or wait."""
+        before = self.store.last_confirmed(device, before=trial["version"])
+        if before is None:  # nothing to go back to (cannot happen once the factory set is stored)
+            self.store.set_state(
+                device, trial["version"], "confirmed", at=self._drive_now(device), reason="no set before"
+            )
+            return None
+        bands = changed_bands(trial["message"], before)
+        evidence = TrialEvidence(trial["message"], before, self.store.stats_run_on(device, trial["version"], bands))
+        verdict = self.judge(evidence)
+        if verdict.action == "wait":
+            return None
+        drive_now = self._drive_now(device)
+        if verdict.action == "confirm":
+            self.store.set_state(device, trial["version"], "confirmed", at=drive_now, reason=verdict.reason)
+            log.info("coefficient set confirmed", extra={"device": device, "version": trial["version"]})
+            return None
+        with self.store.transaction():
+            version = self.store.next_version(device)
+            bands_again = [{k: v for k, v in b.items()} for b in before["bands"]]
+            msg = wire.coefficients_message(
+                device, version, drive_now, "rollback", bands_again, restores_version=before["version"]
+            )
+            msg = self._publishable(msg)
+            self.store.set_state(device, trial["version"], "rolled_back", at=drive_now, reason=verdict.reason)
+            self.store.insert_coefficient_set(msg, reason=f"restores v{before['version']}: {verdict.reason}")
+        self._publish(msg)
+        with self._lock:
+            self.counters.rollbacks += 1
+        log.warning(
+            "coefficient set rolled back",
+            extra={
+                "device": device,
+                "version": trial["version"],
+                "restored": before["version"],
+                "new_version": version,
+            },
+        )
+        return version
+
+    def _publishable(self, msg: dict) -> dict:
+        # stored signed: the queryable replies with the same content the subscribers got
+        return self.signer.sign(msg) if self.signer is not None else msg
+
+    def _publish(self, msg: dict) -> None:
+        self.session.put(
+            keys.key(msg["device"], keys.COEFFICIENTS),
+            wire.encode("coefficients", msg),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        self.store.mark_published(msg["device"], msg["version"])
+        with self._lock:
+            self.counters.rollouts += 1
+
+    def _drive_now(self, device: str) -> float:
+        """The device's newest window end: message times are on the drive's clock."""
+        recent = self.store.window_summary(device, recent=1)["recent"]
+        return recent[0]["window_end"] if recent else 0.0
 
 
 def open_session(*, listen: list[str] | None = None, connect: list[str] | None = None, pki=None) -> zenoh.Session:

@@ -429,7 +429,11 @@ class Store:
             "SELECT coalesce(max(version), 0) + 1 AS v FROM coefficient_sets WHERE device = ?", (device,)
         )[0]["v"]
 
-    def insert_coefficient_set(self, msg: dict) -> None:
+    def insert_coefficient_set(self, msg: dict, *, state: str = "confirmed", reason: str | None = None) -> None:
+        """Keep a set (wire message) in its first guard state: a fitted set starts on trial, the factory's
+        and a rollback (which carries a confirmed set again) start confirmed."""
+        if state not in self.SET_STATES:
+            raise ValueError(f"set state {state!r} is not one of {self.SET_STATES}")
         with self._tx() as c:
             if c.execute(
                 "SELECT 1 FROM coefficient_sets WHERE device = ? AND version = ?", (msg["device"], msg["version"])
@@ -437,9 +441,24 @@ class Store:
                 raise StoreError("version_exists", f"coefficient set {msg['device']} v{msg['version']} already exists")
             self._touch(c, msg["device"], time.time(), heard=False)
             c.execute(
-                "INSERT INTO coefficient_sets (device, version, created_at, basis, body_json) VALUES (?, ?, ?, ?, ?)",
-                (msg["device"], msg["version"], msg["created_at"], msg["basis"], _json(msg)),
+                "INSERT INTO coefficient_sets (device, version, created_at, basis, body_json, state, state_reason, "
+                "restores_version) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    msg["device"],
+                    msg["version"],
+                    msg["created_at"],
+                    msg["basis"],
+                    _json(msg),
+                    state,
+                    reason,
+                    msg.get("restores_version"),
+                ),
             )
+            if state == "trial" or reason:
+                c.execute(
+                    "INSERT INTO set_events (device, version, state, at, decided_at, reason) VALUES (?, ?, ?, ?, ?, ?)",
+                    (msg["device"], msg["version"], state, msg["created_at"], time.time(), reason or "new fit"),
+                )
 
     def mark_published(self, device: str, version: int, at: float | None = None) -> None:
         with self._tx() as c:
@@ -466,17 +485,81 @@ class Store:
         return json.loads(rows[0]["body_json"]) if rows else None
 
     def coefficient_history(self, device: str) -> list[dict]:
-        """Every set, newest first: version, created_at, basis, published_at and the wire message."""
+        """Every set, newest first: version, created_at, basis, published_at, its guard state (trial,
+        confirmed, rolled_back) with the reason, the version a rollback restores, and the wire message."""
         return [
             {
                 "version": r["version"],
                 "created_at": r["created_at"],
                 "basis": r["basis"],
                 "published_at": r["published_at"],
+                "state": r["state"],
+                "state_reason": r["state_reason"],
+                "restores_version": r["restores_version"],
                 "message": json.loads(r["body_json"]),
             }
             for r in self._rows("SELECT * FROM coefficient_sets WHERE device = ? ORDER BY version DESC", (device,))
         ]
+
+    # --- the guard's states -----------------------------------------------------------------
+
+    SET_STATES = ("trial", "confirmed", "rolled_back")
+
+    def set_state(self, device: str, version: int, state: str, *, at: float, reason: str) -> None:
+        """Move a set to `state` and keep the transition (`at`: the drive clock the decision is made at)."""
+        if state not in self.SET_STATES:
+            raise ValueError(f"set state {state!r} is not one of {self.SET_STATES}")
+        with self._tx() as c:
+            cur = c.execute(
+                "UPDATE coefficient_sets SET state = ?, state_reason = ? WHERE device = ? AND version = ?",
+                (state, reason, device, version),
+            )
+            if cur.rowcount == 0:
+                raise KeyError(f"no coefficient set {device} v{version}")
+            c.execute(
+                "INSERT INTO set_events (device, version, state, at, decided_at, reason) VALUES (?, ?, ?, ?, ?, ?)",
+                (device, version, state, at, time.time(), reason),
+            )
+
+    def set_events(self, device: str) -> list[dict]:
+        """Every guard transition of the device's sets, oldest first."""
+        return [
+            dict(r)
+            for r in self._rows(
+                "SELECT version, state, at, decided_at, reason FROM set_events WHERE device = ? ORDER BY id", (device,)
+            )
+        ]
+
+    def stats_run_on(self, device: str, version: int, bands: set[int] | None = None) -> dict[int, WindowStats]:
+        """band -> the summed statistics of the windows the agent ran on coefficient set `version`."""
+        out: dict[int, WindowStats] = {}
+        for r in self._rows(
+            "SELECT band, stats_json FROM windows WHERE device = ? AND coefficients_version = ?", (device, version)
+        ):
+            if bands is None or r["band"] in bands:
+                stats = WindowStats.from_dict(json.loads(r["stats_json"]))
+                out[r["band"]] = out[r["band"]].merge(stats) if r["band"] in out else stats
+        return out
+
+    def set_on_trial(self, device: str) -> dict | None:
+        """The newest published set, when it is on trial: {version, message}."""
+        rows = self._rows(
+            "SELECT version, body_json, state FROM coefficient_sets WHERE device = ? AND published_at IS NOT NULL "
+            "ORDER BY version DESC LIMIT 1",
+            (device,),
+        )
+        if not rows or rows[0]["state"] != "trial":
+            return None
+        return {"version": rows[0]["version"], "message": json.loads(rows[0]["body_json"])}
+
+    def last_confirmed(self, device: str, before: int | None = None) -> dict | None:
+        """The newest confirmed set (wire message) older than `before`: what a rollback restores."""
+        rows = self._rows(
+            "SELECT body_json FROM coefficient_sets WHERE device = ? AND state = 'confirmed' AND version < ? "
+            "ORDER BY version DESC LIMIT 1",
+            (device, 2**62 if before is None else before),
+        )
+        return json.loads(rows[0]["body_json"]) if rows else None
 
     def acks(self, device: str, *, with_received_at: bool = False) -> list[dict]:
         """Every ack (wire message), in the order the agent sent them; with_received_at adds the service's

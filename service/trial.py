@@ -1,0 +1,80 @@
+"""The guard's trial of a new coefficient set (issue 8): no I/O here, the service hands in the evidence.
+
+A fitted set is published on trial. While it is on trial the device gets no other new set, so what the
+drive does next is the trial set's doing. The evidence is the raw statistics of the windows the drive
+ran on the trial set (the soak), per band the set changed; the judge compares the trial set with the set
+it replaced on that same data and says confirm, rollback or wait.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from encoder_core.correction import BandedCorrection
+from encoder_core.ellipse import ellipse_correction, fit_ellipse
+from encoder_core.samples import InputError
+from encoder_core.stats import WindowStats
+
+from .refit import difference_deg
+
+MIN_SOAK_SAMPLES = 20000  # samples run on the trial set, summed over the bands it changed
+MAX_SOAK_SAMPLES = 200000  # past this, a set whose outcome cannot be measured is kept (and says so)
+SIGMAS = 2.0
+TOLERANCE_DEG = 0.002
+
+
+@dataclass
+class TrialEvidence:
+    trial: dict  # the set on trial (wire message)
+    before: dict  # the confirmed set it replaced (wire message)
+    soak: dict[int, WindowStats]  # band -> windows run on the trial set, in the bands it changed
+
+    @property
+    def soak_samples(self) -> int:
+        return sum(s.n for s in self.soak.values())
+
+
+@dataclass
+class Verdict:
+    action: str  # confirm | rollback | wait
+    reason: str
+
+
+def changed_bands(trial: dict, before: dict) -> set[int]:
+    """Bands whose entry the trial set changed (a band it adds counts as changed)."""
+    old = {b["band"]: {k: v for k, v in b.items() if k != "quality"} for b in before["bands"]}
+    return {b["band"] for b in trial["bands"] if old.get(b["band"]) != {k: v for k, v in b.items() if k != "quality"}}
+
+
+def judge(evidence: TrialEvidence) -> Verdict:
+    """Each band of the soak is fitted afresh (reference-free); the set whose angles stay closer to that
+    fit is the better one there. Worse than the set before by more than SIGMAS times the fit's own
+    scatter (and TOLERANCE_DEG) in any band: rollback."""
+    trial = BandedCorrection.from_dict({"bands": evidence.trial["bands"]})
+    before = BandedCorrection.from_dict({"bands": evidence.before["bands"]})
+    worst, measured = None, 0
+    for band, stats in sorted(evidence.soak.items()):
+        try:
+            fit = fit_ellipse(stats)
+        except InputError:
+            continue  # too little of the circle seen in this band
+        fresh = ellipse_correction(stats, fit)
+        fresh.temp_c = stats.temp_mean
+        err_trial = difference_deg(trial.at(fresh.temp_c), fresh)
+        err_before = difference_deg(before.at(fresh.temp_c), fresh)
+        scatter = float(np.degrees(fit.residual_rms / np.sqrt(max(stats.n, 1))))
+        measured += 1
+        if err_trial - err_before > SIGMAS * scatter + TOLERANCE_DEG and (worst is None or err_trial > worst[1]):
+            worst = (band, err_trial, err_before)
+    if worst is not None:
+        band, err_trial, err_before = worst
+        return Verdict("rollback", f"band {band}: {err_trial:.4f}° from the drive's own fit against {err_before:.4f}°")
+    if evidence.soak_samples < MIN_SOAK_SAMPLES:
+        return Verdict("wait", f"soak {evidence.soak_samples} of {MIN_SOAK_SAMPLES} samples")
+    if measured:
+        return Verdict("confirm", f"not worse than v{evidence.before['version']} in {measured} band(s)")
+    if evidence.soak_samples >= MAX_SOAK_SAMPLES:
+        return Verdict("confirm", "outcome not measurable (too little of the circle seen); kept on the refit's")
+    return Verdict("wait", "outcome not measurable yet")

@@ -1,0 +1,104 @@
+"""The guard (issue 8): a fitted set is on trial until the windows the drive ran on it say it is not worse
+than the set before; worse -> the service re-publishes the last confirmed set (basis rollback). Real
+SQLite, a real Zenoh session, a simulated drive (the physics the fleet never sees)."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+from fastapi.testclient import TestClient
+from mcap.reader import make_reader
+
+from edge_agent.agent import factory_message
+from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
+from encoder_core.stats import normalisation_scale, window_stats
+from fleet_wire import messages as wire
+from fleet_wire.session import loopback_endpoint
+from service.api import create_app
+from service.mcap_export import iter_mcap
+from service.runtime import FleetService, open_session
+from service.store import Store
+
+DEVICE, SEED = "drive-7", 7
+
+
+@pytest.fixture
+def fleet(tmp_path):
+    store = Store.open(tmp_path / "fleet.sqlite")
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0).start()
+    yield store, service
+    service.stop()
+    session.close()
+    store.close()
+
+
+def run_on(store, version: int, hours: float = 2.0) -> None:
+    """Windows of the simulated drive as an agent running set `version` would send them."""
+    factory = factory_calibration(drive_model(SEED), SEED)
+    scale = normalisation_scale(factory)
+    source = SimulatedDrive(SEED, hours=hours, t_min=15.0, t_max=35.0, cycle_hours=1.0)
+    seq = store.max_seq(DEVICE)
+    while (block := source.read(60.0)) is not None:
+        seq += 1
+        msg = wire.window_message(
+            DEVICE,
+            seq,
+            window_stats(block, scale),
+            window_start=float(block.t[0]) + 10_000 * version,
+            window_end=float(block.t[-1]) + 10_000 * version,
+            temp_rate_c_per_s=0.0,
+            coefficients_version=version,
+            angle_quality_deg=0.1,
+        )
+        store.insert_window(msg)
+
+
+def publish_trial(store, service, bands: list[dict]) -> int:
+    msg = wire.coefficients_message(DEVICE, 1, 5000.0, "fit", bands)
+    store.insert_coefficient_set(msg, state="trial")
+    service._publish(msg)
+    return 1
+
+
+def factory_set(store) -> dict:
+    msg = factory_message(DEVICE, factory_calibration(drive_model(SEED), SEED))
+    store.insert_coefficient_set(msg)
+    store.mark_published(DEVICE, 0)
+    return msg
+
+
+@pytest.mark.parametrize("offset_error", [0.0, 0.03])
+def test_a_worse_set_on_trial_is_rolled_back_and_a_good_one_confirmed(fleet, offset_error):
+    store, service = fleet
+    factory = factory_set(store)
+    bands = [dict(b) for b in factory["bands"]]
+    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + offset_error, *bands[0]["w"][2:]]}
+    bands[0]["zero_offset_rad"] = bands[0]["zero_offset_rad"] + 1e-6  # changed even when the offset is not
+    publish_trial(store, service, bands)
+    assert service.refit(DEVICE) is None  # no windows on the trial set yet: wait, and publish nothing new
+    run_on(store, 1)
+    published = service.refit(DEVICE)
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    if offset_error == 0.0:
+        assert published is None and history[1]["state"] == "confirmed", history[1]["state_reason"]
+        assert set(history) == {0, 1}
+        return
+    # worse by far: the factory set comes back under a new version, signed off as a rollback of v1
+    assert published == 2 and history[1]["state"] == "rolled_back"
+    assert history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
+    assert history[2]["state"] == "confirmed" and history[2]["published_at"] is not None
+    assert [b["w"] for b in history[2]["message"]["bands"]] == [b["w"] for b in factory["bands"]]
+    assert store.set_on_trial(DEVICE) is None and service.counters.rollbacks == 1
+
+    api = TestClient(create_app(store)).get(f"/devices/{DEVICE}/coefficients").json()
+    assert [(s["version"], s["state"]) for s in api["sets"]] == [(2, "confirmed"), (1, "rolled_back"), (0, "confirmed")]
+    assert [e["state"] for e in api["events"]] == ["trial", "rolled_back", "confirmed"]
+    log = [
+        json.loads(m.data)["message"]
+        for _, c, m in make_reader(io.BytesIO(b"".join(iter_mcap(store, DEVICE)))).iter_messages()
+        if c.topic.endswith("/log")
+    ]
+    assert any("v1 rolled back" in line for line in log) and any("basis rollback" in line for line in log)
