@@ -33,7 +33,7 @@ from service.store import Store
 A, B = "drive-a", "drive-b"
 
 
-def wait_for(predicate, timeout=5.0):
+def wait_for(predicate, timeout=20.0):  # returns as soon as it holds; long for a loaded machine
     deadline = time.monotonic() + timeout
     while not predicate() and time.monotonic() < deadline:
         time.sleep(0.05)
