@@ -6,6 +6,7 @@ endpoints it joins external routers as a client instead.
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import socket
@@ -221,6 +222,13 @@ class FleetService:
 
     def _publish_alarm(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        alarm = json.loads(payload)
+        if alarm["cause"] == "offset_step" and alarm["event"] == "raised":
+            # memory is drive time and a detected step restarts it: refits learn the drive as it is now
+            bands = self.store.restart_band_memory(alarm["device"], after=alarm["raised_at"])
+            with self._lock:
+                self._changed.add(alarm["device"])
+            log.info("band memory restarted after an offset step", extra={"device": alarm["device"], "bands": bands})
 
     # --- queries -----------------------------------------------------------------------------------
 

@@ -289,6 +289,43 @@ class Store:
             )
         return True
 
+    def restart_band_memory(self, device: str, after: float) -> list[int]:
+        """Forget, in every band's sum, the windows that ended at or before `after` (drive clock): after an
+        offset step the refit must learn the drive as it is now, not average it with what it was. Every
+        window stays stored. Returns the bands whose sums changed."""
+        changed = []
+        with self._tx() as c:
+            for row in c.execute("SELECT band, first_seq FROM band_stats WHERE device = ?", (device,)).fetchall():
+                band = row["band"]
+                kept = c.execute(
+                    "SELECT seq, samples, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ? "
+                    "AND window_end > ? ORDER BY seq",
+                    (device, band, row["first_seq"], after),
+                ).fetchall()
+                if not kept:
+                    c.execute("DELETE FROM band_stats WHERE device = ? AND band = ?", (device, band))
+                    changed.append(band)
+                    continue
+                total = WindowStats.from_dict(json.loads(kept[0]["stats_json"]))
+                for r in kept[1:]:
+                    total = total.merge(WindowStats.from_dict(json.loads(r["stats_json"])))
+                c.execute(
+                    "UPDATE band_stats SET stats_json = ?, windows = ?, samples = ?, first_seq = ?, updated_at = ? "
+                    "WHERE device = ? AND band = ? AND first_seq < ?",
+                    (
+                        _json(total.to_dict()),
+                        len(kept),
+                        sum(r["samples"] for r in kept),
+                        kept[0]["seq"],
+                        time.time(),
+                        device,
+                        band,
+                        kept[0]["seq"],
+                    ),
+                )
+                changed.append(band)
+        return changed
+
     def _forget_oldest(self, c, device, band, total, windows, samples, first_seq):
         """Subtract the band's oldest summed windows until it holds band_horizon of them."""
         old = c.execute(

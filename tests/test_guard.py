@@ -102,3 +102,21 @@ def test_a_worse_set_on_trial_is_rolled_back_and_a_good_one_confirmed(fleet, off
         if c.topic.endswith("/log")
     ]
     assert any("v1 rolled back" in line for line in log) and any("basis rollback" in line for line in log)
+
+
+def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_set(store)
+    run_on(store, 0, hours=3.0)
+    before = {band: windows for band, (_, windows, _) in store.band_stats(DEVICE).items()}
+    step_at = 2 * 3600.0
+    alarm = {"id": 1, "device": DEVICE, "cause": "offset_step", "parameters": {"delta_d": 0.02, "delta_q": 0.0}}
+    alarm |= {"evidence": "a test step", "raised_at": step_at, "cleared_at": None}
+    service._publish_alarm(*alarms.encode(alarm))
+    after = {band: windows for band, (_, windows, _) in store.band_stats(DEVICE).items()}
+    kept = {w["band"] for w in store.windows(DEVICE) if w["window_end"] > step_at}
+    assert set(after) == kept and sum(after.values()) < sum(before.values())
+    assert sum(after.values()) == len([w for w in store.windows(DEVICE) if w["window_end"] > step_at])
+    assert DEVICE in service._changed  # refitted on the next pass

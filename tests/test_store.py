@@ -267,3 +267,27 @@ def test_a_corrupt_database_is_refused_at_start(tmp_path):
     with pytest.raises(StoreError, match="corrupt") as err:
         Store.open(path, check_integrity=True)
     assert err.value.reason == "unavailable" and str(path) in str(err.value)
+
+
+def test_restarting_band_memory_keeps_only_windows_after_the_step(store):
+    from encoder_core.stats import WindowStats
+
+    msgs = [window(seq=seq, temp_c=23.0 if seq % 2 else 33.0) for seq in range(1, 11)]
+    for msg in msgs:
+        store.insert_window(msg)
+    step_at = msgs[5]["window_end"]  # windows 1-6 end at or before it
+    assert sorted(store.restart_band_memory("drive-001", after=step_at)) == [2, 3]
+    for band, (total, windows, samples) in store.band_stats("drive-001").items():
+        after = [m for m in msgs if m["band"] == band and m["window_end"] > step_at]
+        expected = WindowStats.from_dict(after[0]["stats"])
+        for m in after[1:]:
+            expected = expected.merge(WindowStats.from_dict(m["stats"]))
+        assert windows == len(after) and samples == sum(m["samples"] for m in after)
+        assert np.allclose(total.moments, expected.moments)
+    assert store.max_seq("drive-001") == 10  # every window is still stored
+    store.insert_window(window(seq=11, temp_c=23.0))  # and new ones add to the restarted sums
+    assert (
+        store.band_stats("drive-001")[2][1]
+        == len([m for m in msgs if m["band"] == 2 and m["window_end"] > step_at]) + 1
+    )
+    assert store.restart_band_memory("drive-001", after=1e12) == [2, 3] and store.band_stats("drive-001") == {}
