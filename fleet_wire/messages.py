@@ -32,8 +32,8 @@ MAX_PAYLOAD = 256 * 1024
 
 class WireError(InputError):
     """A message that cannot be accepted. `reason` is a short code, the message says what and where
-    (a JSON path). Codes: too_large, not_json (neither JSON nor MessagePack), non_finite, schema, inconsistent, device_mismatch,
-    bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
+    (a JSON path). Codes: too_large, not_json (neither JSON nor MessagePack), non_finite, schema, inconsistent,
+    device_mismatch, bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
     normalisation_mismatch for well-formed messages it cannot take."""
 
     def __init__(self, reason: str, message: str):
@@ -298,7 +298,25 @@ def pack_stats(stats: PackedStats) -> bytes:
 
 
 def unpack_stats(blob: bytes) -> PackedStats:
-    return msgspec.msgpack.decode(blob, type=PackedStats)
+    """Stored bytes -> PackedStats, unchecked (the store wrote them; a band's sum may round a bound)."""
+    return PackedStats(**msgspec.msgpack.decode(blob))
+
+
+def packed_stats(stats: WindowStats) -> PackedStats:
+    finite = stats.temp_n > 0
+    return PackedStats(
+        scale=float(stats.scale),
+        center_d=float(stats.center_d),
+        center_q=float(stats.center_q),
+        moments=np.ascontiguousarray(stats.moments, _F8).tobytes(),
+        bins=np.ascontiguousarray(stats.bins, _F8).tobytes(),
+        temp_n=int(stats.temp_n),
+        temp_sum=float(stats.temp_sum),
+        temp_sq_sum=float(stats.temp_sq_sum),
+        temp_min=float(stats.temp_min) if finite else None,
+        temp_max=float(stats.temp_max) if finite else None,
+        rejected=int(stats.rejected),
+    )
 
 
 def encode_window(win: Window) -> bytes:
