@@ -560,6 +560,12 @@ class Store:
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
+    def published_version(self, device: str) -> int | None:
+        """The version of the latest published set (what current_coefficients(published_only=True) returns)."""
+        return self._rows(
+            "SELECT max(version) AS v FROM coefficient_sets WHERE device = ? AND published_at IS NOT NULL", (device,)
+        )[0]["v"]
+
     def coefficient_set(self, device: str, version: int) -> dict | None:
         """One set (wire message) by version; version 0 is the factory's."""
         rows = self._rows("SELECT body_json FROM coefficient_sets WHERE device = ? AND version = ?", (device, version))
