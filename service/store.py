@@ -123,6 +123,7 @@ class Store:
         # device -> band -> [WindowStats, windows, samples, first_seq]: band_stats, kept in memory once read and
         # written behind in the transaction that changes them; dropped whenever a transaction rolls back
         self._bands: dict[str, dict[int, list]] = {}
+        self._max_seq: dict[str, int] = {}  # device -> highest seq stored or staged (read with its bands)
 
     @classmethod
     def open(
@@ -178,6 +179,7 @@ class Store:
                 yield self._conn
             except BaseException:
                 if not depth:
+                    self._max_seq.clear()
                     self._bands.clear()  # sums may hold what the rollback took back: read them again
                 self._conn.execute(f"ROLLBACK TO sp{depth}" if depth else "ROLLBACK")
                 if depth:
@@ -286,6 +288,9 @@ class Store:
                     (device,),
                 )
             }
+            self._max_seq[device] = self._conn.execute(
+                "SELECT coalesce(max(seq), 0) FROM windows WHERE device = ?", (device,)
+            ).fetchone()[0]
         return bands
 
     @staticmethod
@@ -303,8 +308,9 @@ class Store:
         False for a duplicate; StoreError (nothing changed) for a conflict or a sum it cannot join."""
         device, seq, band = win.device, win.seq, win.band
         blob = wire.pack_stats(win.stats)
+        bands = self._device_bands(device)
         old = batch.staged.get((device, seq))
-        if old is None:
+        if old is None and seq <= self._max_seq[device]:  # above every stored seq it cannot be a repeat
             r = self._conn.execute(
                 "SELECT window_start, window_end, stats, stats_json FROM windows WHERE device = ? AND seq = ?",
                 (device, seq),
@@ -319,7 +325,6 @@ class Store:
                 f"window {device}#{seq} is already stored with different content (agent restarted its sequence?)",
             )
         stats = win.stats.window_stats()
-        bands = self._device_bands(device)
         entry = bands.get(band)
         pending = batch.by_band.setdefault((device, band), [])
         if entry is None:
@@ -345,6 +350,7 @@ class Store:
             ]
         )
         pending.append((seq, win.samples, stats))
+        self._max_seq[device] = max(self._max_seq[device], seq)
         if seq > batch.newest.get(device, (0, 0))[0]:
             batch.newest[device] = (seq, win.coefficients_version)
         if entry is not None:
