@@ -401,6 +401,12 @@ def decode_window(payload: bytes, *, key_device: str | None) -> Window:
         try:
             win = _window_msgpack.decode(payload)
         except msgspec.ValidationError as exc:
+            try:
+                found = _find_non_finite(msgspec.msgpack.decode(payload))  # a NaN also fails its bound: name it
+            except msgspec.DecodeError as bad:
+                raise WireError("not_json", f"window message: not MessagePack: {bad}") from None
+            if found:
+                raise WireError("non_finite", f"window message: {found[0]}: non-finite number {found[1]}") from None
             raise WireError("schema", f"window message: {_where(exc)}") from None
         except msgspec.DecodeError as exc:
             raise WireError("not_json", f"window message: not MessagePack: {exc}") from None
