@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import signal
 import threading
@@ -173,10 +174,20 @@ def cmd_demo(args) -> int:
     )
 
 
+def size_list(text: str) -> list[int]:
+    """'10,100,1000' -> [10, 100, 1000]; each a positive integer."""
+    try:
+        return [positive_int(part) for part in text.split(",")]
+    except Exception:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of positive integers") from None
+
+
 def cmd_bench_fleet(args) -> int:
     from encoder_fleet.bench_fleet import run_bench
 
-    return run_bench(sizes=args.devices, windows_per_device=args.windows, security=args.security)
+    return run_bench(
+        sizes=args.sizes or args.devices, windows_per_device=args.windows, security=args.security, json_path=args.json
+    )
 
 
 def cmd_bench_monitor(args) -> int:
@@ -263,8 +274,10 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench-fleet", help="windows ingested and refits per second for fleets of several sizes")
-    p.add_argument("--devices", type=positive_int, nargs="+", default=[10, 100, 1000], help="fleet sizes to run")
+    p.add_argument("--sizes", type=size_list, help="fleet sizes to run, comma-separated (default 10,100,1000)")
+    p.add_argument("--devices", type=positive_int, nargs="+", default=[10, 100, 1000], help="fleet sizes, spaced")
     p.add_argument("--windows", type=positive_int, default=20, help="windows per device")
+    p.add_argument("--json", metavar="FILE", help='also write {"rows": [...]} to FILE')
     p.add_argument(
         "--security",
         choices=["both", "off", "on"],

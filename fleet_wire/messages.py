@@ -11,13 +11,16 @@ import json
 import math
 from functools import cache
 from importlib import resources
+from typing import Annotated, Literal
 
+import msgspec
+import numpy as np
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import best_match
 
 from encoder_core.physics import BAND_WIDTH_C, band_of
 from encoder_core.samples import InputError
-from encoder_core.stats import WindowStats
+from encoder_core.stats import BIN_COLUMNS, MONOMIALS, N_BINS, WindowStats
 
 from . import keys
 
@@ -29,8 +32,8 @@ MAX_PAYLOAD = 256 * 1024
 
 class WireError(InputError):
     """A message that cannot be accepted. `reason` is a short code, the message says what and where
-    (a JSON path). Codes: too_large, not_json, non_finite, schema, inconsistent, device_mismatch,
-    bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
+    (a JSON path). Codes: too_large, not_json (neither JSON nor MessagePack), non_finite, schema, inconsistent,
+    device_mismatch, bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
     normalisation_mismatch for well-formed messages it cannot take."""
 
     def __init__(self, reason: str, message: str):
@@ -116,6 +119,307 @@ def _fast_valid(kind: str, msg) -> bool:
     return True
 
 
+# --- windows: typed Structs, compiled once (msgspec) ---------------------------------------------
+#
+# A window is ~400 floats of statistics. On the wire it is MessagePack with `moments` and `bins` as
+# packed little-endian float64 bytes (~3.6 KB, decoded in a few µs); JSON windows (first byte `{`) of
+# older agents are still accepted. Both decode into the Structs below, whose fields, types and bounds
+# are those of schemas/window.schema.json (tests/test_wire.py proves they agree); the decoded form, the
+# dict of window_to_dict(), has the arrays as lists of numbers and validates against the schema file.
+
+MAX_INT = 2**63 - 1  # what an SQLite INTEGER holds
+N_MOMENTS = len(MONOMIALS)
+N_BIN_VALUES = N_BINS * len(BIN_COLUMNS)
+_F8 = np.dtype("<f8")
+
+Count = Annotated[int, msgspec.Meta(ge=0, le=MAX_INT)]
+Temp = Annotated[float, msgspec.Meta(ge=-273.15, le=300)]
+Time = Annotated[float, msgspec.Meta(ge=0, le=1e10)]
+Device = Annotated[str, msgspec.Meta(pattern=keys.DEVICE_RE.pattern)]
+
+
+class RejectedByReason(msgspec.Struct, forbid_unknown_fields=True):
+    non_finite: Count
+    clipped: Count
+    outlier: Count
+
+
+class _StatsBase(msgspec.Struct, forbid_unknown_fields=True):
+    scale: Annotated[float, msgspec.Meta(gt=0)]
+    center_d: float
+    center_q: float
+
+
+class _StatsTail(msgspec.Struct, forbid_unknown_fields=True):
+    temp_n: Count
+    temp_sum: float
+    temp_sq_sum: Annotated[float, msgspec.Meta(ge=0)]
+    temp_min: Temp | None
+    temp_max: Temp | None
+    rejected: Count
+
+
+class PackedStats(msgspec.Struct, forbid_unknown_fields=True):
+    """WindowStats with its arrays as little-endian float64 bytes: the MessagePack wire form and the stored blob."""
+
+    scale: Annotated[float, msgspec.Meta(gt=0)]
+    center_d: float
+    center_q: float
+    moments: Annotated[bytes, msgspec.Meta(min_length=8 * N_MOMENTS, max_length=8 * N_MOMENTS)]
+    bins: Annotated[bytes, msgspec.Meta(min_length=8 * N_BIN_VALUES, max_length=8 * N_BIN_VALUES)]
+    temp_n: Count
+    temp_sum: float
+    temp_sq_sum: Annotated[float, msgspec.Meta(ge=0)]
+    temp_min: Temp | None
+    temp_max: Temp | None
+    rejected: Count
+
+    def moments_array(self) -> np.ndarray:
+        return np.frombuffer(self.moments, _F8)
+
+    def bins_array(self) -> np.ndarray:
+        return np.frombuffer(self.bins, _F8).reshape(N_BINS, len(BIN_COLUMNS))
+
+    def window_stats(self) -> WindowStats:
+        return WindowStats(
+            scale=self.scale,
+            center_d=self.center_d,
+            center_q=self.center_q,
+            moments=self.moments_array(),
+            bins=self.bins_array(),
+            temp_n=self.temp_n,
+            temp_sum=self.temp_sum,
+            temp_sq_sum=self.temp_sq_sum,
+            temp_min=float("inf") if self.temp_min is None else self.temp_min,
+            temp_max=float("-inf") if self.temp_max is None else self.temp_max,
+            rejected=self.rejected,
+        )
+
+    def to_dict(self) -> dict:
+        """The decoded form: WindowStats.to_dict()'s shape, arrays as lists."""
+        d = msgspec.structs.asdict(self)
+        d["moments"] = self.moments_array().tolist()
+        d["bins"] = self.bins_array().tolist()
+        return d
+
+
+class ArrayStats(msgspec.Struct, forbid_unknown_fields=True):
+    """The same statistics with arrays of numbers: JSON windows and the decoded form."""
+
+    scale: Annotated[float, msgspec.Meta(gt=0)]
+    center_d: float
+    center_q: float
+    moments: Annotated[list[float], msgspec.Meta(min_length=N_MOMENTS, max_length=N_MOMENTS)]
+    bins: Annotated[
+        list[Annotated[list[float], msgspec.Meta(min_length=len(BIN_COLUMNS), max_length=len(BIN_COLUMNS))]],
+        msgspec.Meta(min_length=N_BINS, max_length=N_BINS),
+    ]
+    temp_n: Count
+    temp_sum: float
+    temp_sq_sum: Annotated[float, msgspec.Meta(ge=0)]
+    temp_min: Temp | None
+    temp_max: Temp | None
+    rejected: Count
+
+    def packed(self) -> PackedStats:
+        d = msgspec.structs.asdict(self)
+        d["moments"] = np.asarray(self.moments, _F8).tobytes()
+        d["bins"] = np.asarray(self.bins, _F8).tobytes()
+        return PackedStats(**d)
+
+
+class _WindowFields(msgspec.Struct, forbid_unknown_fields=True):
+    schema: Literal["encoder-fleet/window/1"]
+    device: Device
+    seq: Annotated[int, msgspec.Meta(ge=1, le=2**53 - 1)]
+    window_start: Time
+    window_end: Time
+    samples: Count
+    rejected: Count
+    temp_mean_c: Temp
+    temp_min_c: Temp
+    temp_max_c: Temp
+    temp_rate_c_per_s: Annotated[float, msgspec.Meta(ge=-100, le=100)]
+    band: Annotated[int, msgspec.Meta(ge=-28, le=30)]
+    coefficients_version: Count
+    angle_quality_deg: Annotated[float, msgspec.Meta(ge=0, le=180)]
+
+
+class Window(_WindowFields, forbid_unknown_fields=True):
+    """A window as the service handles it: statistics packed (PackedStats)."""
+
+    stats: PackedStats
+    rejected_by_reason: RejectedByReason | msgspec.UnsetType = msgspec.UNSET
+
+
+class ArrayWindow(_WindowFields, forbid_unknown_fields=True):
+    """A JSON window (and the decoded form): statistics as arrays of numbers."""
+
+    stats: ArrayStats
+    rejected_by_reason: RejectedByReason | msgspec.UnsetType = msgspec.UNSET
+
+    def packed(self) -> Window:
+        d = {f: getattr(self, f) for f in self.__struct_fields__}
+        d["stats"] = self.stats.packed()
+        return Window(**d)
+
+
+_FLOAT_FIELDS = tuple(
+    f.name for f in msgspec.inspect.type_info(_WindowFields).fields if isinstance(f.type, msgspec.inspect.FloatType)
+)
+_STATS_FLOATS = ("scale", "center_d", "center_q", "temp_sum", "temp_sq_sum", "temp_min", "temp_max")
+_window_msgpack = msgspec.msgpack.Decoder(Window)
+_msgpack_encoder = msgspec.msgpack.Encoder()
+_MSGPACK_MAP = frozenset([*range(0x80, 0x90), 0xDE, 0xDF])  # a MessagePack map's first byte
+
+
+def window_to_dict(win: Window) -> dict:
+    """The decoded form: the wire-shaped dict the rest of the code and the schema file know."""
+    d = msgspec.structs.asdict(win)
+    d["stats"] = win.stats.to_dict()
+    if win.rejected_by_reason is msgspec.UNSET:
+        del d["rejected_by_reason"]
+    else:
+        d["rejected_by_reason"] = msgspec.structs.asdict(win.rejected_by_reason)
+    return d
+
+
+def window_from_dict(msg: dict) -> Window:
+    """A wire-shaped window dict (arrays as lists) -> Window, checked by the same Structs as the wire."""
+    try:
+        return msgspec.convert(msg, ArrayWindow).packed()
+    except msgspec.ValidationError as exc:
+        raise WireError("schema", f"window message: {_where(exc)}") from None
+
+
+def pack_stats(stats: PackedStats) -> bytes:
+    """The canonical bytes of a window's statistics (what the store keeps and compares)."""
+    return _msgpack_encoder.encode(stats)
+
+
+def unpack_stats(blob: bytes) -> PackedStats:
+    """Stored bytes -> PackedStats, unchecked (the store wrote them; a band's sum may round a bound)."""
+    return PackedStats(**msgspec.msgpack.decode(blob))
+
+
+def packed_stats(stats: WindowStats) -> PackedStats:
+    finite = stats.temp_n > 0
+    return PackedStats(
+        scale=float(stats.scale),
+        center_d=float(stats.center_d),
+        center_q=float(stats.center_q),
+        moments=np.ascontiguousarray(stats.moments, _F8).tobytes(),
+        bins=np.ascontiguousarray(stats.bins, _F8).tobytes(),
+        temp_n=int(stats.temp_n),
+        temp_sum=float(stats.temp_sum),
+        temp_sq_sum=float(stats.temp_sq_sum),
+        temp_min=float(stats.temp_min) if finite else None,
+        temp_max=float(stats.temp_max) if finite else None,
+        rejected=int(stats.rejected),
+    )
+
+
+def encode_window(win: Window) -> bytes:
+    return _msgpack_encoder.encode(win)
+
+
+def _where(exc: msgspec.ValidationError) -> str:
+    """msgspec's message with its path first, as '$.a.b: what' like the rest of the wire's errors."""
+    text = str(exc).replace("`", "'")
+    what, sep, path = text.rpartition(" - at ")
+    if not sep:
+        return f"$: {text}"
+    return f"{path.strip(chr(39))}: {what}"
+
+
+def _check_window(win: Window) -> Window:
+    """Non-finite numbers (MessagePack carries NaN and infinities) and the relations a schema cannot state."""
+    for name in _FLOAT_FIELDS:
+        value = getattr(win, name)
+        if not math.isfinite(value):
+            raise WireError("non_finite", f"window message: $.{name}: non-finite number {value!r}")
+    stats = win.stats
+    for name in _STATS_FLOATS:
+        value = getattr(stats, name)
+        if value is not None and not math.isfinite(value):
+            raise WireError("non_finite", f"window message: $.stats.{name}: non-finite number {value!r}")
+    for name, arr in (("moments", stats.moments_array()), ("bins", stats.bins_array())):
+        finite = np.isfinite(arr)
+        if not finite.all():
+            where = "".join(f"[{i}]" for i in np.argwhere(~finite)[0])
+            raise WireError("non_finite", f"window message: $.stats.{name}{where}: non-finite number")
+
+    def bad(path: str, text: str):
+        raise WireError("inconsistent", f"window message: {path}: {text}")
+
+    if win.window_end < win.window_start:
+        bad("$.window_end", f"{win.window_end} is before window_start {win.window_start}")
+    if win.rejected != stats.rejected:
+        bad("$.rejected", f"{win.rejected} differs from stats.rejected = {stats.rejected}")
+    rbr = win.rejected_by_reason
+    if rbr is not msgspec.UNSET and rbr.non_finite + rbr.clipped + rbr.outlier != win.rejected:
+        bad("$.rejected_by_reason", f"{msgspec.structs.asdict(rbr)} does not sum to rejected = {win.rejected}")
+    n = float(stats.moments_array()[0])
+    if win.samples != round(n):
+        bad("$.samples", f"{win.samples} differs from stats.moments[0] = {n}")
+    slack = 1e-9 * max(1.0, abs(win.temp_min_c), abs(win.temp_max_c))  # Σt/n rounds past min/max
+    if not win.temp_min_c - slack <= win.temp_mean_c <= win.temp_max_c + slack:
+        bad("$.temp_mean_c", f"{win.temp_mean_c} is outside [temp_min_c, temp_max_c]")
+    if win.band != band_of(win.temp_mean_c):
+        bad("$.band", f"{win.band} is not floor(temp_mean_c / {BAND_WIDTH_C:g}) = {band_of(win.temp_mean_c)}")
+    return win
+
+
+def _parse_json(kind: str, payload: bytes):
+    """JSON text -> Python values, refusing what JSON parsers disagree on (duplicate keys) and naming
+    non-finite numbers where they stand."""
+    try:
+        text = bytes(payload).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise WireError("not_json", f"{kind} message: not UTF-8 at byte {exc.start}") from None
+    try:
+        msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float, object_pairs_hook=_unique_keys)
+    except json.JSONDecodeError as exc:
+        raise WireError(
+            "not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
+        ) from None
+    except _DuplicateKey as exc:
+        raise WireError("not_json", f"{kind} message: key {exc.args[0]!r} appears twice in one object") from None
+    found = _find_non_finite(msg)
+    if found:
+        raise WireError(
+            "non_finite", f"{kind} message: {found[0]}: non-finite number {found[1]} (JSON allows finite numbers only)"
+        )
+    return msg
+
+
+def decode_window(payload: bytes, *, key_device: str | None) -> Window:
+    """Bytes off the wire (MessagePack, or JSON from older agents) -> a checked Window."""
+    if len(payload) > MAX_PAYLOAD:
+        raise WireError("too_large", f"window message: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD} bytes")
+    if payload[:1] and payload[0] in _MSGPACK_MAP:
+        try:
+            win = _window_msgpack.decode(payload)
+        except msgspec.ValidationError as exc:
+            try:
+                found = _find_non_finite(msgspec.msgpack.decode(payload))  # a NaN also fails its bound: name it
+            except msgspec.DecodeError as bad:
+                raise WireError("not_json", f"window message: not MessagePack: {bad}") from None
+            if found:
+                raise WireError("non_finite", f"window message: {found[0]}: non-finite number {found[1]}") from None
+            raise WireError("schema", f"window message: {_where(exc)}") from None
+        except msgspec.DecodeError as exc:
+            raise WireError("not_json", f"window message: not MessagePack: {exc}") from None
+    else:
+        win = window_from_dict(_parse_json("window", payload))
+    _check_window(win)
+    if key_device is not None and win.device != key_device:
+        raise WireError(
+            "device_mismatch", f"window message: $.device: {win.device!r} differs from the key's device {key_device!r}"
+        )
+    return win
+
+
 # --- keys -------------------------------------------------------------------------------------
 
 
@@ -189,6 +493,14 @@ def _find_non_finite(value, path: str = "$") -> tuple[str, str] | None:
 
 def check(kind: str, msg) -> dict:
     """Raise WireError unless msg is a valid message of this kind; returns msg."""
+    if kind == "window":
+        if not isinstance(msg, dict):
+            raise WireError("schema", f"window message: $: expected an object, got {type(msg).__name__}")
+        _find = _find_non_finite(msg)
+        if _find:
+            raise WireError("non_finite", f"window message: {_find[0]}: non-finite number {_find[1]}")
+        _check_window(window_from_dict(msg))
+        return msg
     found = _find_non_finite(msg)
     if found:
         raise WireError(
@@ -232,20 +544,13 @@ def _check_consistency(kind: str, msg: dict) -> None:
 
 def decode(kind: str, payload: bytes, *, key_device: str | None) -> dict:
     """Bytes off the wire -> a checked message. key_device: the <device> of the key it arrived on."""
+    if kind == "window":
+        return window_to_dict(decode_window(payload, key_device=key_device))
+    if kind not in KINDS:
+        raise WireError("unknown_kind", f"unknown message kind {kind!r}; expected one of {', '.join(KINDS)}")
     if len(payload) > MAX_PAYLOAD:
         raise WireError("too_large", f"{kind} message: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD} bytes")
-    try:
-        text = bytes(payload).decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise WireError("not_json", f"{kind} message: not UTF-8 at byte {exc.start}") from None
-    try:
-        msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float, object_pairs_hook=_unique_keys)
-    except json.JSONDecodeError as exc:
-        raise WireError(
-            "not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
-        ) from None
-    except _DuplicateKey as exc:
-        raise WireError("not_json", f"{kind} message: key {exc.args[0]!r} appears twice in one object") from None
+    msg = _parse_json(kind, payload)
     check(kind, msg)
     if key_device is not None and msg["device"] != key_device:
         raise WireError(
@@ -256,7 +561,21 @@ def decode(kind: str, payload: bytes, *, key_device: str | None) -> dict:
 
 
 def encode(kind: str, msg: dict) -> bytes:
-    """A message -> bytes to send, after the same checks the receiver makes."""
+    """A message -> bytes to send, after the same checks the receiver makes. Windows go as MessagePack
+    (statistics packed), the rare messages as JSON."""
+    if kind == "window":
+        check(kind, msg)
+        payload = encode_window(window_from_dict(msg))
+    else:
+        check(kind, msg)
+        payload = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    if len(payload) > MAX_PAYLOAD:
+        raise WireError("too_large", f"{kind} message: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD} bytes")
+    return payload
+
+
+def encode_json(kind: str, msg: dict) -> bytes:
+    """A message as JSON text (what agents before MessagePack windows sent; still accepted)."""
     check(kind, msg)
     payload = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
     if len(payload) > MAX_PAYLOAD:

@@ -79,6 +79,7 @@ class FleetService:
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
         self._changed: set[str] = set()  # devices with windows stored since their last refit
+        self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
         # drift monitor (service/monitor.py): devices with windows it has not seen, fed on its own thread
         self.monitor = Monitor(store, publish=self._publish_alarm)
@@ -277,19 +278,29 @@ class FleetService:
                 published.append(version)
         return published
 
+    def _correction(self, device: str, version: int) -> BandedCorrection | None:
+        """A stored set, decoded once: (device, version) never changes content (insert refuses a reuse)."""
+        key = (device, version)
+        corr = self._corrections.get(key)
+        if corr is None:
+            msg = self.store.coefficient_set(device, version)
+            if msg is None:
+                return None
+            corr = self._corrections[key] = BandedCorrection.from_dict({"bands": msg["bands"]})
+        return corr
+
     def refit(self, device: str) -> int | None:
         """Judge the set on trial, if there is one (the device gets nothing new meanwhile); otherwise refit
         and publish what changed, on trial. Returns the version published (a fit or a rollback)."""
         trial = self.store.set_on_trial(device)
         if trial is not None:
             return self._judge_trial(device, trial)
-        factory_msg = self.store.coefficient_set(device, 0)
-        running_msg = self.store.current_coefficients(device, published_only=True)
-        if running_msg is None:
+        running_version = self.store.published_version(device)
+        if running_version is None:
             return None  # no factory set known yet: nothing to anchor a rollout to
+        factory = self._correction(device, 0)
+        running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
-        factory = BandedCorrection.from_dict({"bands": factory_msg["bands"]}) if factory_msg else None
-        running = BandedCorrection.from_dict({"bands": running_msg["bands"]})
         result = refit_device(band_stats, running, factory, min_samples=self.min_band_samples)
         with self._lock:
             self.counters.refits += 1

@@ -20,8 +20,11 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
+
+import msgspec
 
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -66,6 +69,22 @@ def _json(value) -> str:
     return json.dumps(value, separators=(",", ":"), allow_nan=False)
 
 
+def _pack(stats: WindowStats) -> bytes:
+    return wire.pack_stats(wire.packed_stats(stats))
+
+
+@dataclass
+class _Batch:
+    """What one ingest transaction has staged and not yet written."""
+
+    now: float
+    rows: list = field(default_factory=list)  # window rows for executemany
+    staged: dict = field(default_factory=dict)  # (device, seq) -> (window_start, window_end, stats blob)
+    by_band: dict = field(default_factory=dict)  # (device, band) -> [(seq, samples, WindowStats)] staged
+    newest: dict = field(default_factory=dict)  # device -> (seq, coefficients_version) of its newest staged window
+    dirty: set = field(default_factory=set)  # (device, band) whose sum changed
+
+
 def migration_files(migrations_dir=MIGRATIONS_DIR) -> list[tuple[int, Traversable]]:
     """(version, file) of every numbered SQL file, in order; StoreError when there is none (a broken
     install must stop at start-up, not run on a database without tables)."""
@@ -101,6 +120,10 @@ class Store:
         # a band's sum covers at most this many of its newest windows, so refits follow a drive as it
         # ages; None keeps all history in the sum (every window is stored either way)
         self.band_horizon = band_horizon
+        # device -> band -> [WindowStats, windows, samples, first_seq]: band_stats, kept in memory once read and
+        # written behind in the transaction that changes them; dropped whenever a transaction rolls back
+        self._bands: dict[str, dict[int, list]] = {}
+        self._max_seq: dict[str, int] = {}  # device -> highest seq stored or staged (read with its bands)
 
     @classmethod
     def open(
@@ -155,6 +178,9 @@ class Store:
             try:
                 yield self._conn
             except BaseException:
+                if not depth:
+                    self._max_seq.clear()
+                    self._bands.clear()  # sums may hold what the rollback took back: read them again
                 self._conn.execute(f"ROLLBACK TO sp{depth}" if depth else "ROLLBACK")
                 if depth:
                     self._conn.execute(f"RELEASE sp{depth}")
@@ -201,21 +227,15 @@ class Store:
         )
 
     # --- ingest -----------------------------------------------------------------------------
+    #
+    # Windows are checked, deduplicated and added to their band's sum in memory, then written in bulk
+    # (executemany) when the batch ends, with the changed band sums (one UPSERT each), all in the
+    # batch's one transaction: a crash loses the batch and the sums together. A bad message is refused
+    # before anything of it is written, so it alone is dead-lettered and the batch goes on.
 
     def ingest(self, key_expr: str, payload: bytes, *, received_at: float | None = None) -> str:
         """A Zenoh sample in, whatever it is: 'stored', 'duplicate', or the reason it went to dead letters."""
-        try:
-            device, kind = wire.parse_key(key_expr)
-            if kind not in ("window", "ack"):
-                raise wire.WireError("unexpected_kind", f"the service does not accept {kind} messages on {key_expr}")
-            msg = wire.decode(kind, payload, key_device=device)
-            if kind == "ack":
-                self.insert_ack(msg, received_at=received_at)
-                return "stored"
-            return "stored" if self.insert_window(msg, received_at=received_at) else "duplicate"
-        except (wire.WireError, StoreError) as exc:
-            self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=received_at)
-            return exc.reason
+        return self.ingest_many([(key_expr, payload)], received_at=received_at)[0]
 
     @contextmanager
     def transaction(self) -> Iterator[Store]:
@@ -225,68 +245,117 @@ class Store:
 
     def ingest_many(self, items: list[tuple[str, bytes]], *, received_at: float | None = None) -> list[str]:
         """Several Zenoh samples in one transaction (one disk sync): the statuses of ingest(), in order."""
+        now = time.time() if received_at is None else received_at
         with self._tx():
-            return [self.ingest(key, payload, received_at=received_at) for key, payload in items]
+            batch = _Batch(now)
+            out = [self._ingest_one(batch, key, payload, now) for key, payload in items]
+            self._flush(batch, bands=True)
+            return out
+
+    def _ingest_one(self, batch: _Batch, key_expr: str, payload: bytes, now: float) -> str:
+        try:
+            device, kind = wire.parse_key(key_expr)
+            if kind == "window":
+                win = wire.decode_window(payload, key_device=device)
+                return "stored" if self._stage_window(batch, win) else "duplicate"
+            if kind != "ack":
+                raise wire.WireError("unexpected_kind", f"the service does not accept {kind} messages on {key_expr}")
+            msg = wire.decode(kind, payload, key_device=device)
+            self._flush(batch)  # an ack and the windows before it update current_version in arrival order
+            self.insert_ack(msg, received_at=now)
+            return "stored"
+        except (wire.WireError, StoreError) as exc:
+            self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=now)
+            return exc.reason
 
     def insert_window(self, msg: dict, *, received_at: float | None = None) -> bool:
         """Store a window and add it to its band's sum in one transaction. False (nothing changed) for a duplicate."""
-        now = time.time() if received_at is None else received_at
-        device, seq, band = msg["device"], msg["seq"], msg["band"]
-        stats = WindowStats.from_dict(msg["stats"])
-        stats_json = _json(msg["stats"])
-        with self._tx() as c:
-            old = c.execute(
-                "SELECT window_start, window_end, stats_json FROM windows WHERE device = ? AND seq = ?", (device, seq)
+        win = wire.window_from_dict(msg)
+        with self._tx():
+            batch = _Batch(time.time() if received_at is None else received_at)
+            stored = self._stage_window(batch, win)
+            self._flush(batch, bands=True)
+        return stored
+
+    def _device_bands(self, device: str) -> dict[int, list]:
+        """band -> [WindowStats, windows, samples, first_seq]: the device's band sums, read once, then kept."""
+        bands = self._bands.get(device)
+        if bands is None:
+            bands = self._bands[device] = {
+                r["band"]: [self._stats_of(r).window_stats(), r["windows"], r["samples"], r["first_seq"]]
+                for r in self._conn.execute(
+                    "SELECT band, stats, stats_json, windows, samples, first_seq FROM band_stats WHERE device = ?",
+                    (device,),
+                )
+            }
+            self._max_seq[device] = self._conn.execute(
+                "SELECT coalesce(max(seq), 0) FROM windows WHERE device = ?", (device,)
+            ).fetchone()[0]
+        return bands
+
+    @staticmethod
+    def _stats_of(r: sqlite3.Row) -> wire.PackedStats:
+        if r["stats"] is not None:
+            return wire.unpack_stats(r["stats"])
+        return msgspec.convert(json.loads(r["stats_json"]), wire.ArrayStats).packed()  # before migration 040
+
+    @staticmethod
+    def _stats_dict(r: sqlite3.Row) -> dict:
+        return wire.unpack_stats(r["stats"]).to_dict() if r["stats"] is not None else json.loads(r["stats_json"])
+
+    def _stage_window(self, batch: _Batch, win: wire.Window) -> bool:
+        """Check a window against what is stored and staged, add it to its band's sum; written by _flush.
+        False for a duplicate; StoreError (nothing changed) for a conflict or a sum it cannot join."""
+        device, seq, band = win.device, win.seq, win.band
+        blob = wire.pack_stats(win.stats)
+        bands = self._device_bands(device)
+        old = batch.staged.get((device, seq))
+        if old is None and seq <= self._max_seq[device]:  # above every stored seq it cannot be a repeat
+            r = self._conn.execute(
+                "SELECT window_start, window_end, stats, stats_json FROM windows WHERE device = ? AND seq = ?",
+                (device, seq),
             ).fetchone()
-            if old is not None:
-                if (old["window_start"], old["window_end"], old["stats_json"]) == (
-                    msg["window_start"],
-                    msg["window_end"],
-                    stats_json,
-                ):
-                    return False  # redelivery: same window again
-                raise StoreError(
-                    "seq_conflict",
-                    f"window {device}#{seq} is already stored with different content (agent restarted its sequence?)",
-                )
-            self._touch(c, device, now)
-            c.execute(
-                f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, received_at, rejected_by_reason_json) "
-                f"VALUES ({', '.join('?' * (len(WINDOW_FIELDS) + 3))})",
-                [msg[f] for f in WINDOW_FIELDS]
-                + [stats_json, now, _json(msg["rejected_by_reason"]) if "rejected_by_reason" in msg else None],
+            if r is not None:
+                old = (r["window_start"], r["window_end"], wire.pack_stats(self._stats_of(r)))
+        if old is not None:
+            if old == (win.window_start, win.window_end, blob):
+                return False  # redelivery: same window again
+            raise StoreError(
+                "seq_conflict",
+                f"window {device}#{seq} is already stored with different content (agent restarted its sequence?)",
             )
-            row = c.execute(
-                "SELECT stats_json, windows, samples, first_seq FROM band_stats WHERE device = ? AND band = ?",
-                (device, band),
-            ).fetchone()
-            if row is None:
-                c.execute(
-                    "INSERT INTO band_stats (device, band, stats_json, windows, samples, updated_at, first_seq) "
-                    "VALUES (?, ?, ?, 1, ?, ?, 1)",
-                    (device, band, _json(stats.to_dict()), msg["samples"], now),
-                )
-            elif seq >= row["first_seq"]:  # older ones are past the band's horizon: kept, not summed
-                try:
-                    total = WindowStats.from_dict(json.loads(row["stats_json"])).merge(stats)
-                except InputError as exc:
-                    raise StoreError("normalisation_mismatch", f"window {device}#{seq}, band {band}: {exc}") from None
-                windows, samples, first_seq = row["windows"] + 1, row["samples"] + msg["samples"], row["first_seq"]
-                if self.band_horizon and windows > self.band_horizon:
-                    total, windows, samples, first_seq = self._forget_oldest(
-                        c, device, band, total, windows, samples, first_seq
-                    )
-                c.execute(
-                    "UPDATE band_stats SET stats_json = ?, windows = ?, samples = ?, first_seq = ?, updated_at = ?"
-                    " WHERE device = ? AND band = ?",
-                    (_json(total.to_dict()), windows, samples, first_seq, now, device, band),
-                )
-            # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
-            c.execute(
-                "UPDATE devices SET current_version = ? WHERE id = ? AND "
-                "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
-                (msg["coefficients_version"], device, seq, device),
-            )
+        stats = win.stats.window_stats()
+        entry = bands.get(band)
+        pending = batch.by_band.setdefault((device, band), [])
+        if entry is None:
+            entry = [stats, 1, win.samples, 1]
+        elif seq >= entry[3]:  # older ones are past the band's horizon: kept, not summed
+            try:
+                total = entry[0].merge(stats)
+            except InputError as exc:
+                raise StoreError("normalisation_mismatch", f"window {device}#{seq}, band {band}: {exc}") from None
+            entry = [total, entry[1] + 1, entry[2] + win.samples, entry[3]]
+            if self.band_horizon and entry[1] > self.band_horizon:
+                entry = self._forget_oldest(device, band, entry, pending + [(seq, win.samples, stats)])
+        else:
+            entry = None
+        # nothing can fail from here on: the window is staged and its band's sum replaced
+        batch.staged[(device, seq)] = (win.window_start, win.window_end, blob)
+        batch.rows.append(
+            [getattr(win, f) for f in WINDOW_FIELDS]
+            + [
+                blob,
+                batch.now,
+                None if win.rejected_by_reason is msgspec.UNSET else _json(msgspec.to_builtins(win.rejected_by_reason)),
+            ]
+        )
+        pending.append((seq, win.samples, stats))
+        self._max_seq[device] = max(self._max_seq[device], seq)
+        if seq > batch.newest.get(device, (0, 0))[0]:
+            batch.newest[device] = (seq, win.coefficients_version)
+        if entry is not None:
+            bands[band] = entry
+            batch.dirty.add((device, band))
         return True
 
     def restart_band_memory(self, device: str, after: float) -> list[int]:
@@ -298,44 +367,81 @@ class Store:
             for row in c.execute("SELECT band, first_seq FROM band_stats WHERE device = ?", (device,)).fetchall():
                 band = row["band"]
                 kept = c.execute(
-                    "SELECT seq, samples, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ? "
+                    "SELECT seq, samples, stats, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ? "
                     "AND window_end > ? ORDER BY seq",
                     (device, band, row["first_seq"], after),
                 ).fetchall()
+                changed.append(band)
                 if not kept:
                     c.execute("DELETE FROM band_stats WHERE device = ? AND band = ?", (device, band))
-                    changed.append(band)
                     continue
-                total = WindowStats.from_dict(json.loads(kept[0]["stats_json"]))
+                total = self._stats_of(kept[0]).window_stats()
                 for r in kept[1:]:
-                    total = total.merge(WindowStats.from_dict(json.loads(r["stats_json"])))
+                    total = total.merge(self._stats_of(r).window_stats())
                 c.execute(
-                    "UPDATE band_stats SET stats_json = ?, windows = ?, samples = ?, first_seq = ?, updated_at = ? "
-                    "WHERE device = ? AND band = ? AND first_seq < ?",
+                    "UPDATE band_stats SET stats_json = '', stats = ?, windows = ?, samples = ?, first_seq = ?, "
+                    "updated_at = ? WHERE device = ? AND band = ?",
                     (
-                        _json(total.to_dict()),
+                        _pack(total),
                         len(kept),
                         sum(r["samples"] for r in kept),
                         kept[0]["seq"],
                         time.time(),
                         device,
                         band,
-                        kept[0]["seq"],
                     ),
                 )
-                changed.append(band)
+            self._bands.pop(device, None)  # the kept sums are read again, from what was just written
         return changed
 
-    def _forget_oldest(self, c, device, band, total, windows, samples, first_seq):
-        """Subtract the band's oldest summed windows until it holds band_horizon of them."""
-        old = c.execute(
-            "SELECT seq, samples, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ?"
+    def _forget_oldest(self, device, band, entry, pending):
+        """Subtract the band's oldest summed windows (stored or staged) until it holds band_horizon of them."""
+        total, windows, samples, first_seq = entry
+        k = windows - self.band_horizon
+        rows = self._conn.execute(
+            "SELECT seq, samples, stats, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ?"
             " ORDER BY seq LIMIT ?",
-            (device, band, first_seq, windows - self.band_horizon),
+            (device, band, first_seq, k),
         ).fetchall()
-        for r in old:
-            total = total.subtract(WindowStats.from_dict(json.loads(r["stats_json"])))
-        return total, windows - len(old), samples - sum(r["samples"] for r in old), old[-1]["seq"] + 1
+        old = sorted(
+            [(r["seq"], r["samples"], self._stats_of(r).window_stats()) for r in rows]
+            + [p for p in pending if p[0] >= first_seq]
+        )[:k]
+        for _, _, stats in old:
+            total = total.subtract(stats)
+        return [total, windows - len(old), samples - sum(o[1] for o in old), old[-1][0] + 1]
+
+    def _flush(self, batch: _Batch, *, bands: bool = False) -> None:
+        """Write what is staged: devices, windows (executemany), current versions; with bands, the changed sums."""
+        c = self._conn
+        if batch.rows:
+            c.executemany(
+                "INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
+                "UPDATE SET last_seen = max(last_seen, excluded.last_seen)",
+                [(device, batch.now, batch.now) for device in batch.newest],
+            )
+            c.executemany(
+                f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, stats, received_at,"
+                f" rejected_by_reason_json) VALUES ({', '.join('?' * len(WINDOW_FIELDS))}, '', ?, ?, ?)",
+                batch.rows,
+            )
+            # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
+            c.executemany(
+                "UPDATE devices SET current_version = ? WHERE id = ? AND "
+                "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
+                [(version, device, seq, device) for device, (seq, version) in batch.newest.items()],
+            )
+            batch.rows, batch.newest = [], {}
+        if bands and batch.dirty:
+            sums = [(device, band, self._bands[device][band]) for device, band in batch.dirty]
+            c.executemany(
+                "INSERT INTO band_stats (device, band, stats_json, stats, windows, samples, updated_at, first_seq) "
+                "VALUES (?, ?, '', ?, ?, ?, ?, ?) ON CONFLICT(device, band) DO UPDATE SET stats_json = '', "
+                "stats = excluded.stats, windows = excluded.windows, samples = excluded.samples, "
+                "updated_at = excluded.updated_at, first_seq = excluded.first_seq",
+                [(device, band, _pack(e[0]), e[1], e[2], batch.now, e[3]) for device, band, e in sums],
+            )
+            batch.dirty = set()
 
     def dead_letter(
         self, key_expr: str, reason: str, detail: str, payload: bytes, *, received_at: float | None = None
@@ -406,11 +512,10 @@ class Store:
     # --- refit and rollout ------------------------------------------------------------------
 
     def band_stats(self, device: str) -> dict[int, tuple[WindowStats, int, int]]:
-        """band -> (merged statistics, windows, samples): everything a refit needs."""
-        return {
-            r["band"]: (WindowStats.from_dict(json.loads(r["stats_json"])), r["windows"], r["samples"])
-            for r in self._rows("SELECT * FROM band_stats WHERE device = ? ORDER BY band", (device,))
-        }
+        """band -> (merged statistics, windows, samples): everything a refit needs (kept in memory)."""
+        with self._lock:
+            bands = self._device_bands(device)
+            return {band: (e[0], e[1], e[2]) for band, e in sorted(bands.items())}
 
     def record_fit(
         self,
@@ -516,6 +621,12 @@ class Store:
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
+    def published_version(self, device: str) -> int | None:
+        """The version of the latest published set (what current_coefficients(published_only=True) returns)."""
+        return self._rows(
+            "SELECT max(version) AS v FROM coefficient_sets WHERE device = ? AND published_at IS NOT NULL", (device,)
+        )[0]["v"]
+
     def coefficient_set(self, device: str, version: int) -> dict | None:
         """One set (wire message) by version; version 0 is the factory's."""
         rows = self._rows("SELECT body_json FROM coefficient_sets WHERE device = ? AND version = ?", (device, version))
@@ -571,10 +682,11 @@ class Store:
         """band -> the summed statistics of the windows the agent ran on coefficient set `version`."""
         out: dict[int, WindowStats] = {}
         for r in self._rows(
-            "SELECT band, stats_json FROM windows WHERE device = ? AND coefficients_version = ?", (device, version)
+            "SELECT band, stats, stats_json FROM windows WHERE device = ? AND coefficients_version = ?",
+            (device, version),
         ):
             if bands is None or r["band"] in bands:
-                stats = WindowStats.from_dict(json.loads(r["stats_json"]))
+                stats = self._stats_of(r).window_stats()
                 out[r["band"]] = out[r["band"]].merge(stats) if r["band"] in out else stats
         return out
 
@@ -678,7 +790,7 @@ class Store:
     def _window(r: sqlite3.Row, stats: bool) -> dict:
         msg = {"schema": wire.SCHEMA_NAME["window"], **{f: r[f] for f in WINDOW_FIELDS}}
         if stats:
-            msg["stats"] = json.loads(r["stats_json"])
+            msg["stats"] = Store._stats_dict(r)
         return msg
 
     def windows(
@@ -691,7 +803,7 @@ class Store:
         limit: int | None = None,
     ) -> list[dict]:
         """Windows with t_from <= window_start <= t_to, by window_start; wire messages (without stats unless asked)."""
-        cols = ", ".join(WINDOW_FIELDS) + (", stats_json" if stats else "")
+        cols = ", ".join(WINDOW_FIELDS) + (", stats_json, stats" if stats else "")
         sql = (
             f"SELECT {cols} FROM windows WHERE device = ? AND window_start >= ? AND window_start <= ? "
             "ORDER BY window_start, seq LIMIT ?"
@@ -724,7 +836,7 @@ class Store:
         hi = float("inf") if t_to is None else t_to
         while True:
             rows = self._rows(
-                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json, received_at FROM windows WHERE device = ? "
+                f"SELECT {', '.join(WINDOW_FIELDS)}, stats_json, stats, received_at FROM windows WHERE device = ? "
                 "AND window_start >= ? AND window_start <= ? AND (window_end, seq) > (?, ?) "
                 "ORDER BY window_end, seq LIMIT ?",
                 (device, lo, hi, *after, page),
@@ -768,7 +880,7 @@ class Store:
     def monitor_windows(self, device: str, after_seq: int, through_seq: int, limit: int = 500) -> list[dict]:
         """Windows after_seq < seq <= through_seq in seq order, with what the monitor reads of them."""
         rows = self._rows(
-            "SELECT seq, window_end, temp_mean_c, band, stats_json, rejected_by_reason_json FROM windows "
+            "SELECT seq, window_end, temp_mean_c, band, stats_json, stats, rejected_by_reason_json FROM windows "
             "WHERE device = ? AND seq > ? AND seq <= ? ORDER BY seq LIMIT ?",
             (device, after_seq, through_seq, limit),
         )
@@ -778,7 +890,7 @@ class Store:
                 "window_end": r["window_end"],
                 "temp_mean_c": r["temp_mean_c"],
                 "band": r["band"],
-                "stats": json.loads(r["stats_json"]),
+                "stats": self._stats_dict(r),
                 "rejected_by_reason": json.loads(r["rejected_by_reason_json"])
                 if r["rejected_by_reason_json"]
                 else None,
