@@ -23,7 +23,7 @@ from fleet_wire.session import free_port, loopback_endpoint
 from service.auth import TokenAuth
 from service.guard import service_security
 from service.mcap_export import export_mcap
-from service.runtime import BAND_HORIZON, FleetService, HttpServer, open_session
+from service.runtime import BAND_HORIZON_H, FleetService, HttpServer, open_session
 from service.store import Store
 
 WINDOW_S = 60.0
@@ -153,7 +153,7 @@ def run_demo(
         endpoint = endpoint.replace("tcp/", "tls/", 1)
         pki = demo_pki(out_dir / "pki", names)
         security_args = ["--pki", str(pki)]
-    store = Store.open(db, band_horizon=BAND_HORIZON)
+    store = Store.open(db, band_horizon_s=BAND_HORIZON_H * 3600.0)
     session = open_session(listen=[endpoint], pki=pki)
     service = FleetService(store, session, refit_interval_s=1.0, **service_security(store, pki)).start()
     auth = None

@@ -126,7 +126,7 @@ def cmd_service(args) -> int:
     from service.runtime import run_service
 
     insecure_or_pki(args, "the service", warn=False)
-    horizon = {} if args.band_horizon is None else {"band_horizon": args.band_horizon}
+    horizon = {} if args.band_horizon_h is None else {"band_horizon_h": args.band_horizon_h}
     return run_service(
         pki=args.pki,
         admin_token_file=args.admin_token_file,
@@ -242,10 +242,10 @@ def register(sub) -> None:
     p.add_argument("--http-port", type=port, default=8000, help="REST port (0: no REST)")
     p.add_argument("--refit-interval", type=positive_float, default=2.0, help="seconds between refit passes")
     p.add_argument(
-        "--band-horizon",
-        type=non_negative_int,
-        help="newest windows per temperature band that refits use, so they follow aging "
-        "(0: all; default: the service's)",
+        "--band-horizon-h",
+        type=non_negative_float,
+        help="drive hours of windows each temperature band's sum remembers, so refits follow aging "
+        "(0: all history; default: the service's, a week)",
     )
     add_security_options(p, "service.crt/.key, ca.crt, signing.key and the device certificates (the registry)")
     p.add_argument(

@@ -29,7 +29,7 @@ from service.trial import judge as default_judge
 
 log = logging.getLogger("service")
 MAX_BATCH = 500  # messages per ingest transaction
-BAND_HORIZON = 1440  # newest windows per band in the refit's sums (a day of one-minute windows in one band)
+BAND_HORIZON_H = 168.0  # drive hours a band's sum remembers: a week, enough samples at 0.5 Hz in a rare band
 
 
 @dataclass
@@ -467,7 +467,7 @@ def run_service(
     http_host: str = "127.0.0.1",
     http_port: int | None,
     refit_interval_s: float,
-    band_horizon: int | None = BAND_HORIZON,
+    band_horizon_h: float | None = BAND_HORIZON_H,
     pki=None,
     admin_token_file=None,
     rest_auth: bool = True,
@@ -486,7 +486,8 @@ def run_service(
             Path(db).parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
-        store = Store.open(db, band_horizon=band_horizon or None, check_integrity=True)
+        horizon_s = band_horizon_h * 3600.0 if band_horizon_h else None
+        store = Store.open(db, band_horizon_s=horizon_s, check_integrity=True)
         running.callback(store.close)
         session = open_session(listen=listen, connect=connect, pki=pki)
         running.callback(session.close)

@@ -80,7 +80,7 @@ class _Batch:
     now: float
     rows: list = field(default_factory=list)  # window rows for executemany
     staged: dict = field(default_factory=dict)  # (device, seq) -> (window_start, window_end, stats blob)
-    by_band: dict = field(default_factory=dict)  # (device, band) -> [(seq, samples, WindowStats)] staged
+    by_band: dict = field(default_factory=dict)  # (device, band) -> [(seq, samples, WindowStats, window_end)]
     newest: dict = field(default_factory=dict)  # device -> (seq, coefficients_version) of its newest staged window
     dirty: set = field(default_factory=set)  # (device, band) whose sum changed
 
@@ -112,14 +112,14 @@ def _statements(sql: str) -> Iterator[str]:
 
 
 class Store:
-    def __init__(self, conn: sqlite3.Connection, path: str, band_horizon: int | None = None):
+    def __init__(self, conn: sqlite3.Connection, path: str, band_horizon_s: float | None = None):
         self._conn = conn
         self._lock = threading.RLock()
         self._depth = 0  # open transactions: 0 none, 1 a transaction, more are savepoints inside it
         self.path = path
-        # a band's sum covers at most this many of its newest windows, so refits follow a drive as it
-        # ages; None keeps all history in the sum (every window is stored either way)
-        self.band_horizon = band_horizon
+        # a band's sum covers the windows that ended within this much drive time (s) of the band's newest,
+        # so refits follow a drive as it ages; None keeps all history in the sum (every window is stored)
+        self.band_horizon_s = band_horizon_s
         # device -> band -> [WindowStats, windows, samples, first_seq]: band_stats, kept in memory once read and
         # written behind in the transaction that changes them; dropped whenever a transaction rolls back
         self._bands: dict[str, dict[int, list]] = {}
@@ -127,7 +127,12 @@ class Store:
 
     @classmethod
     def open(
-        cls, path, *, migrations_dir=MIGRATIONS_DIR, band_horizon: int | None = None, check_integrity: bool = False
+        cls,
+        path,
+        *,
+        migrations_dir=MIGRATIONS_DIR,
+        band_horizon_s: float | None = None,
+        check_integrity: bool = False,
     ) -> Store:
         """Open (or create) the database and apply the migrations it lacks. A database that cannot be
         opened raises StoreError('unavailable') with one line that says which file and why; with
@@ -147,7 +152,7 @@ class Store:
             raise StoreError(
                 "unavailable", f"database {path} is corrupt ({' '.join(' '.join(problems).split())}); restore a backup"
             )
-        store = cls(conn, str(path), band_horizon)
+        store = cls(conn, str(path), band_horizon_s)
         try:
             store._migrate(migrations)
         except BaseException:
@@ -335,8 +340,9 @@ class Store:
             except InputError as exc:
                 raise StoreError("normalisation_mismatch", f"window {device}#{seq}, band {band}: {exc}") from None
             entry = [total, entry[1] + 1, entry[2] + win.samples, entry[3]]
-            if self.band_horizon and entry[1] > self.band_horizon:
-                entry = self._forget_oldest(device, band, entry, pending + [(seq, win.samples, stats)])
+            if self.band_horizon_s:
+                cutoff = win.window_end - self.band_horizon_s
+                entry = self._forget_before(device, band, entry, pending, cutoff)
         else:
             entry = None
         # nothing can fail from here on: the window is staged and its band's sum replaced
@@ -349,7 +355,7 @@ class Store:
                 None if win.rejected_by_reason is msgspec.UNSET else _json(msgspec.to_builtins(win.rejected_by_reason)),
             ]
         )
-        pending.append((seq, win.samples, stats))
+        pending.append((seq, win.samples, stats, win.window_end))
         self._max_seq[device] = max(self._max_seq[device], seq)
         if seq > batch.newest.get(device, (0, 0))[0]:
             batch.newest[device] = (seq, win.coefficients_version)
@@ -394,22 +400,22 @@ class Store:
             self._bands.pop(device, None)  # the kept sums are read again, from what was just written
         return changed
 
-    def _forget_oldest(self, device, band, entry, pending):
-        """Subtract the band's oldest summed windows (stored or staged) until it holds band_horizon of them."""
+    def _forget_before(self, device, band, entry, pending, cutoff: float):
+        """Subtract from the band's sum the windows (stored or staged) that ended before `cutoff` (drive clock):
+        memory is drive time, so a band follows the drive however many windows it gets."""
         total, windows, samples, first_seq = entry
-        k = windows - self.band_horizon
         rows = self._conn.execute(
-            "SELECT seq, samples, stats, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ?"
-            " ORDER BY seq LIMIT ?",
-            (device, band, first_seq, k),
+            "SELECT seq, samples, stats, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ? "
+            "AND window_end < ? ORDER BY seq",
+            (device, band, first_seq, cutoff),
         ).fetchall()
-        old = sorted(
-            [(r["seq"], r["samples"], self._stats_of(r).window_stats()) for r in rows]
-            + [p for p in pending if p[0] >= first_seq]
-        )[:k]
+        old = [(r["seq"], r["samples"], self._stats_of(r).window_stats()) for r in rows]
+        old += [p[:3] for p in pending if p[0] >= first_seq and p[3] < cutoff]
+        if not old:
+            return entry
         for _, _, stats in old:
             total = total.subtract(stats)
-        return [total, windows - len(old), samples - sum(o[1] for o in old), old[-1][0] + 1]
+        return [total, windows - len(old), samples - sum(o[1] for o in old), max(o[0] for o in old) + 1]
 
     def _flush(self, batch: _Batch, *, bands: bool = False) -> None:
         """Write what is staged: devices, windows (executemany), current versions; with bands, the changed sums."""
