@@ -90,7 +90,12 @@ def _extensions():
     import importlib
 
     found = []
-    for name in ("encoder_fleet.diagnose_cli", "encoder_fleet.fleet_cli"):
+    for name in (
+        "encoder_fleet.diagnose_cli",
+        "encoder_fleet.fleet_cli",
+        "encoder_fleet.calibrate",
+        "encoder_fleet.fleet_accuracy",
+    ):
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:

@@ -2,10 +2,15 @@
 
 No I/O here: the service hands in the statistics and the sets, and gets back a decision.
 
+With a factory set that carries its bench locus (`encoder-fleet calibrate`), a band's candidate is the
+factory's correction after the drift since the bench (encoder_core/differential.py): offsets, gain
+ratio and axis come from the field where the band's statistics support them, one by one; the zero and
+the harmonics stay the factory's, measured against its reference. Without a bench locus (older factory
+sets) the band is fitted as before: a direct ellipse plus harmonics from the sample density.
+
 A candidate band replaces what the device runs at that temperature only when the two differ by
-clearly more than the candidate's own uncertainty (harmonic noise from the sample density, ellipse
-scatter): then the running set is measurably wrong and the candidate is the better estimate.
-Zero offsets of reference-free fits are anchored to the factory calibration, the only fit that ever saw a reference.
+clearly more than the candidate's own uncertainty: then the running set is measurably wrong and the
+candidate is the better estimate. Bands the refit has nothing new for keep what the device runs.
 """
 
 from __future__ import annotations
@@ -15,13 +20,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from encoder_core.correction import BandedCorrection, Correction, zero_shift
+from encoder_core.differential import TERMS, BenchLocus, Drift, anchor_zero, compose, fit_drift, gate
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
 from encoder_core.physics import REFERENCE_TEMP_C, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 from encoder_fleet import wire
 
-MIN_BAND_SAMPLES = 20000
+MIN_BAND_SAMPLES = 2000  # a drift fit's own standard errors decide what it may change; below this, nothing
+LEGACY_MIN_SAMPLES = 20000  # without a bench locus the density harmonics need many more
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
 MIN_GAIN_DEG = 0.01  # … and by at least this much
 
@@ -70,6 +77,101 @@ def refit_device(
     factory: BandedCorrection | None = None,
     *,
     min_samples: int = MIN_BAND_SAMPLES,
+) -> RefitResult:
+    """The device's next set (or the reasons for none) from its band statistics."""
+    anchors = bench_anchors(factory)
+    if anchors:
+        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples)
+    return refit_legacy(band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES))
+
+
+def bench_anchors(factory: BandedCorrection | None) -> list[tuple[Correction, BenchLocus]]:
+    """The factory's bands that carry the bench locus they were measured on."""
+    if factory is None:
+        return []
+    return [(b, BenchLocus.from_dict(b.bench_locus)) for b in factory.bands if b.bench_locus is not None]
+
+
+def refit_from_bench(
+    band_stats: dict[int, WindowStats],
+    running: BandedCorrection,
+    anchors: list[tuple[Correction, BenchLocus]],
+    *,
+    min_samples: int = MIN_BAND_SAMPLES,
+) -> RefitResult:
+    result = RefitResult(bands=[])
+    chosen: dict[int, dict] = {}
+    for band, stats in sorted(band_stats.items()):
+        if stats.n < min_samples:
+            continue
+        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean))
+        candidate = drift_candidate(stats, factory, locus)
+        if candidate is None:
+            continue  # the band's statistics do not pin the drift down (too few angles seen)
+        corr, quality, err_new = candidate
+        now = running.at(corr.temp_c)
+        err_now = difference_deg(now, corr)
+        adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
+        entry = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
+        chosen[band] = entry if adopt else band_entry(band, now, {**quality, "estimated_error_deg": err_now})
+        result.decisions.append(
+            BandDecision(
+                band=band,
+                temp_c=corr.temp_c,
+                samples=stats.n,
+                running_error_deg=err_now,
+                candidate_error_deg=err_new,
+                adopted=adopt,
+                quality=chosen[band]["quality"],
+                candidate=entry,
+            )
+        )
+    if not result.decisions:
+        return result
+    for corr in running.bands:  # what the refit says nothing about stays as the device runs it
+        band = band_index(corr)
+        if band not in chosen:
+            kept = Correction.from_dict({**corr.to_dict(), "bench_locus": None})
+            chosen[band] = band_entry(band, kept, {"samples": 0})
+    result.bands = [chosen[b] for b in sorted(chosen)]
+    return result
+
+
+def band_index(corr: Correction) -> int:
+    return int(np.floor((corr.temp_c if corr.temp_c is not None else REFERENCE_TEMP_C) / 10.0))
+
+
+def drift_candidate(
+    stats: WindowStats, factory: Correction, locus: BenchLocus
+) -> tuple[Correction, dict, float] | None:
+    """The factory's correction after the band's supported drift terms, with its quality and uncertainty (deg)."""
+    try:
+        fit = fit_drift(stats, locus)
+    except InputError:
+        return None
+    radius = locus.radius
+    terms = fit.drift.terms(radius)
+    kept = gate(terms, fit.errors)
+    drift = Drift.from_terms(kept, fit.drift.bench_center, radius)
+    corr = anchor_zero(compose(factory, drift), factory, locus, drift)
+    corr.temp_c = stats.temp_mean
+    adopted = [t for t in TERMS if kept[t] != 0.0]
+    err = float(np.degrees(np.sqrt(sum(fit.errors[t] ** 2 for t in adopted)))) if adopted else 0.0
+    quality = {
+        "samples": stats.n,
+        "drift_terms": {t: kept[t] for t in TERMS},
+        "drift_errors": {t: fit.errors[t] if np.isfinite(fit.errors[t]) else None for t in TERMS},
+        "chi2_dof": fit.chi2_dof,
+    }
+    return corr, quality, err
+
+
+def refit_legacy(
+    band_stats: dict[int, WindowStats],
+    running: BandedCorrection,
+    factory: BandedCorrection | None = None,
+    *,
+    min_samples: int = LEGACY_MIN_SAMPLES,
 ) -> RefitResult:
     candidates: dict[int, tuple[Correction, dict, WindowStats]] = {}
     estimates = []
@@ -125,5 +227,5 @@ def refit_device(
 
 
 def band_entry(band: int, corr: Correction, quality: dict) -> dict:
-    keys = ("samples", "residual_rms_rad", "radius_ripple_rad", "estimated_error_deg")
+    keys = ("samples", "residual_rms_rad", "radius_ripple_rad", "estimated_error_deg", "drift_terms", "drift_errors")
     return wire.band_entry(band, corr.to_dict(), {k: quality[k] for k in keys if k in quality})
