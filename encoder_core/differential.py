@@ -22,6 +22,7 @@ field: the lower-triangular S fixes the d axis, as the factory's correction form
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -157,6 +158,7 @@ class BinPoints:
     points: np.ndarray  # (k, 2)
     counts: np.ndarray  # (k,)
     sigma: float  # radial scatter of one sample, raw units
+    index: np.ndarray  # (k,) the angle bin of each point
 
 
 def bin_points(stats: WindowStats, center, min_count: int = 2) -> BinPoints:
@@ -176,7 +178,7 @@ def bin_points(stats: WindowStats, center, min_count: int = 2) -> BinPoints:
     var_r = (nx * nx * cxx + 2 * nx * ny * cxy + ny * ny * cyy) * stats.scale**2
     points = raw + (np.maximum(var_t, 0.0) / (2 * radius))[:, None] * np.column_stack([nx, ny])
     sigma = float(np.sqrt(max(np.average(np.maximum(var_r, 0.0), weights=n), 1e-12)))
-    return BinPoints(points=points, counts=n, sigma=sigma)
+    return BinPoints(points=points, counts=n, sigma=sigma, index=np.flatnonzero(ok))
 
 
 class PolarLocus:
@@ -216,17 +218,27 @@ class DriftFit:
     bins: int
 
 
-def fit_drift(field: WindowStats, locus: BenchLocus, *, min_bins: int = 16, iterations: int = 8) -> DriftFit:
+def fit_drift(
+    field: WindowStats,
+    locus: BenchLocus,
+    *,
+    adjust: Callable[[BinPoints], np.ndarray] | None = None,
+    min_bins: int = 16,
+    iterations: int = 8,
+) -> DriftFit:
     """Δ by weighted least squares: the field's bin points, taken back through Δ, on the bench locus.
 
     Five parameters (field centre, lower-triangular shape); weights are the bins' counts over the
     sample scatter; the standard errors are scaled up by the misfit when the model fits worse than
-    the scatter says (a drive that changed within the band, a locus that is not the bench's)."""
+    the scatter says (a drive that changed within the band, a locus that is not the bench's).
+    `adjust` may move the bin points first (to the band's mean temperature, see `temperature_adjust`)."""
     polar = PolarLocus(locus)
     x = np.array([polar.center[0], polar.center[1], 0.0, 0.0, 0.0])
     radius = locus.radius
     for _ in range(iterations):
         pts = bin_points(field, x[:2])
+        if adjust is not None:
+            pts.points = adjust(pts)
         if pts.counts.size < min_bins:
             raise InputError(f"too few angle bins with samples for a drift fit: {pts.counts.size}, need {min_bins}")
         # a bin's weight: its mean's variance plus the bench curve's own; counts capped at the median so
@@ -315,3 +327,37 @@ def anchor_zero(candidate: Correction, factory: Correction, locus: BenchLocus, d
     shift = np.angle(np.mean(np.exp(1j * diff)))
     out.zero_offset_rad = float(np.angle(np.exp(1j * (candidate.zero_offset_rad + shift))))
     return out
+
+
+def temperature_adjust(
+    bin_temp_sum: np.ndarray, counts: np.ndarray, temp_c: float, slope: Callable[[np.ndarray], np.ndarray]
+) -> Callable[[BinPoints], np.ndarray]:
+    """Move each bin's mean point to the band's mean temperature.
+
+    A drive that turns evenly visits every angle at every temperature of the band, but one that reverses
+    over an arc or dwells visits some angles only when the band is warm and others only when it is cool:
+    its bins then show the locus at different temperatures. With each bin's mean temperature (from the
+    windows' temperatures and bin counts) and the drift's slope from the neighbouring bands, every point is
+    taken to the band's mean temperature first. slope(points) -> d(point)/dT in raw units per K."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bin_temp = np.where(counts > 0, bin_temp_sum / counts, temp_c)
+
+    def adjust(pts: BinPoints) -> np.ndarray:
+        delta = bin_temp[pts.index] - temp_c
+        return pts.points - delta[:, None] * slope(pts.points)
+
+    return adjust
+
+
+def drift_slope(here: Drift, temp_here: float, lo: tuple[Drift, float], hi: tuple[Drift, float]):
+    """d(field point)/dT at field points of this band, from the drifts of two other temperatures: a point is
+    taken to the bench through this band's drift and back out through the others'."""
+
+    def slope(points: np.ndarray) -> np.ndarray:
+        bench = np.column_stack(here.apply(points[:, 0], points[:, 1]))
+        (d_lo, t_lo), (d_hi, t_hi) = lo, hi
+        p_lo = np.column_stack(d_lo.inverse(bench[:, 0], bench[:, 1]))
+        p_hi = np.column_stack(d_hi.inverse(bench[:, 0], bench[:, 1]))
+        return (p_hi - p_lo) / (t_hi - t_lo)
+
+    return slope

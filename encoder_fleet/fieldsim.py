@@ -152,7 +152,8 @@ def draw_drive(rng: np.random.Generator, *, event: str | None = None, days: floa
 
     Sizes are typical of hall encoders: a 3rd field harmonic of 0.2-1.2 % (the largest), a
     differential gain tempco of ~1.5e-4/K, offset tempco of ~0.05 counts/K on a 1500-count signal,
-    an axis tempco of ~5e-5 rad/K, slow aging. event: None, 'offset_step', 'gain_step', 'axis_step'.
+    an axis tempco of ~1.5e-5 rad/K per axis, slow aging (~10 counts of offset a year).
+    event: None, 'offset_step', 'gain_step', 'axis_step'.
     """
     pos = {3: _complex(rng, rng.uniform(0.002, 0.012)), 2: _complex(rng, rng.uniform(0.0005, 0.004))}
     for n in (4, 5, 6, 7):
@@ -173,12 +174,12 @@ def draw_drive(rng: np.random.Generator, *, event: str | None = None, days: floa
         offset_tc=(float(rng.normal(0, 0.05)), float(rng.normal(0, 0.05))),
         offset_tc2=(float(rng.normal(0, 3e-4)), float(rng.normal(0, 3e-4))),
         axis=(float(rng.normal(0, 0.003)), float(rng.normal(0, 0.01))),
-        axis_tc=(float(rng.normal(0, 1e-5)), float(rng.normal(0, 5e-5))),
+        axis_tc=(float(rng.normal(0, 1.5e-5)), float(rng.normal(0, 1.5e-5))),  # no axis is privileged
         zero_rad=float(rng.uniform(-np.pi, np.pi)),
         die_lag_s=float(rng.uniform(30, 600)),
-        offset_aging=(float(rng.normal(0, 0.3)), float(rng.normal(0, 0.3))),
-        gain_aging=(float(rng.normal(-1e-4, 2e-5)), float(rng.normal(-1e-4, 2e-5))),
-        walk_counts=0.2,
+        offset_aging=(float(rng.normal(0, 0.03)), float(rng.normal(0, 0.03))),  # ~10 counts a year
+        gain_aging=(float(rng.normal(-1e-5, 3e-6)), float(rng.normal(-1e-5, 3e-6))),  # the magnet: -0.4 %/year
+        walk_counts=0.05,
         walk_seed=int(rng.integers(2**31)),
         noise_counts=float(rng.uniform(1.0, 2.5)),
     )

@@ -20,7 +20,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from encoder_core.correction import BandedCorrection, Correction, zero_shift
-from encoder_core.differential import TERMS, BenchLocus, Drift, anchor_zero, compose, fit_drift, gate
+from encoder_core.differential import (
+    TERMS,
+    BenchLocus,
+    Drift,
+    DriftFit,
+    anchor_zero,
+    compose,
+    drift_slope,
+    fit_drift,
+    gate,
+    temperature_adjust,
+)
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
 from encoder_core.physics import REFERENCE_TEMP_C, circular_mean, wrap_rad
 from encoder_core.samples import InputError
@@ -77,11 +88,12 @@ def refit_device(
     factory: BandedCorrection | None = None,
     *,
     min_samples: int = MIN_BAND_SAMPLES,
+    bin_temps: dict[int, np.ndarray] | None = None,
 ) -> RefitResult:
-    """The device's next set (or the reasons for none) from its band statistics."""
+    """The device's next set (or the reasons for none) from its band statistics (bin_temps: see refit_from_bench)."""
     anchors = bench_anchors(factory)
     if anchors:
-        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples)
+        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples, bin_temps=bin_temps)
     return refit_legacy(band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES))
 
 
@@ -98,17 +110,15 @@ def refit_from_bench(
     anchors: list[tuple[Correction, BenchLocus]],
     *,
     min_samples: int = MIN_BAND_SAMPLES,
+    bin_temps: dict[int, np.ndarray] | None = None,
 ) -> RefitResult:
+    """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
+    count in each angle bin; with it each band's bins are first taken to the band's mean temperature."""
+    fits = band_fits(band_stats, anchors, min_samples, bin_temps)
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
-    for band, stats in sorted(band_stats.items()):
-        if stats.n < min_samples:
-            continue
-        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean))
-        candidate = drift_candidate(stats, factory, locus)
-        if candidate is None:
-            continue  # the band's statistics do not pin the drift down (too few angles seen)
-        corr, quality, err_new = candidate
+    for band, (fit, stats, factory, locus) in sorted(fits.items()):
+        corr, quality, err_new = drift_candidate(fit, stats, factory, locus)
         now = running.at(corr.temp_c)
         err_now = difference_deg(now, corr)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
@@ -137,18 +147,58 @@ def refit_from_bench(
     return result
 
 
+def band_fits(
+    band_stats, anchors, min_samples, bin_temps
+) -> dict[int, tuple[DriftFit, WindowStats, Correction, BenchLocus]]:
+    """Each band's drift fit (bands whose statistics do not pin it down are left out); a second pass takes
+    the bins to the band's temperature when their temperatures are known."""
+    fits = {}
+    for band, stats in sorted(band_stats.items()):
+        if stats.n < min_samples:
+            continue
+        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean))
+        try:
+            fits[band] = (fit_drift(stats, locus), stats, factory, locus)
+        except InputError:
+            continue  # too few angles seen in this band yet
+    if not bin_temps:
+        return fits
+    first = {band: (f.drift, stats.temp_mean) for band, (f, stats, _, _) in fits.items()}
+    for band, (fit, stats, factory, locus) in list(fits.items()):
+        if band not in bin_temps:
+            continue
+        lo, hi = neighbours(band, first, locus)
+        slope = drift_slope(fit.drift, stats.temp_mean, lo, hi)
+        adjust = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
+        try:
+            fits[band] = (fit_drift(stats, locus, adjust=adjust), stats, factory, locus)
+        except InputError:
+            continue
+    return fits
+
+
+def neighbours(band: int, first: dict[int, tuple[Drift, float]], locus: BenchLocus):
+    """The drifts at two other temperatures that bracket this band where they can: fitted bands, or the
+    bench itself (no drift at its temperature)."""
+    bench = (Drift(np.array([locus.d[0], locus.q[0]]), np.array([locus.d[0], locus.q[0]]), np.eye(2)), locus.temp_c)
+    here = first[band]
+    below = [first[b] for b in sorted(first) if b < band]
+    above = [first[b] for b in sorted(first) if b > band]
+    lo = below[-1] if below else (bench if bench[1] < here[1] else here)
+    hi = above[0] if above else (bench if bench[1] > here[1] else here)
+    if lo is hi or abs(hi[1] - lo[1]) < 1.0:
+        lo, hi = (here, bench) if bench[1] > here[1] else (bench, here)
+    return lo, hi
+
+
 def band_index(corr: Correction) -> int:
     return int(np.floor((corr.temp_c if corr.temp_c is not None else REFERENCE_TEMP_C) / 10.0))
 
 
 def drift_candidate(
-    stats: WindowStats, factory: Correction, locus: BenchLocus
-) -> tuple[Correction, dict, float] | None:
+    fit: DriftFit, stats: WindowStats, factory: Correction, locus: BenchLocus
+) -> tuple[Correction, dict, float]:
     """The factory's correction after the band's supported drift terms, with its quality and uncertainty (deg)."""
-    try:
-        fit = fit_drift(stats, locus)
-    except InputError:
-        return None
     radius = locus.radius
     terms = fit.drift.terms(radius)
     kept = gate(terms, fit.errors)
