@@ -25,17 +25,19 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from edge_agent.agent import EdgeAgent, check_plausible
+from edge_agent.agent import EdgeAgent, check_plausible, temp_rate
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import REFERENCE_TEMP_C
 from encoder_core.samples import InputError, Samples
 from encoder_core.stats import WindowStats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from service.refit import refit_device
+from service.refit import estimate_lag, refit_device
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
-REFIT_EVERY_S = 3600.0  # the service refits about once per drive-hour at the issue's replay speed
+REFIT_EVERY_S = 3600.0
+# the service refits about once per drive-hour at the issue's replay speed
+LAG_EVERY_S = 6 * 3600.0  # thermal lag re-estimated every 6 drive-hours
 BAND_HORIZON = 1440  # newest windows per band in the refit's sums (service.runtime.BAND_HORIZON)
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
 WORSE_MARGIN = 0.01  # an hour is worse than the factory's when its RMS error is over 1 % higher
@@ -109,22 +111,21 @@ class BandSums:
         self.horizon = horizon
         self.windows: dict[int, deque] = {}
         self.sums: dict[int, WindowStats] = {}
-        self.bin_temps: dict[int, np.ndarray] = {}  # Σ window temperature × window bin counts (a store addition)
+        # store additions: Σ window temperature × window bin counts, Σ window temperature rate × counts
+        self.bin_temps: dict[int, np.ndarray] = {}
+        self.bin_rates: dict[int, np.ndarray] = {}
 
-    def add(self, band: int, stats: WindowStats) -> None:
+    def add(self, band: int, stats: WindowStats, rate: float = 0.0) -> None:
         kept = self.windows.setdefault(band, deque())
-        kept.append(stats)
+        kept.append((stats, rate))
         self.sums[band] = self.sums[band].merge(stats) if band in self.sums else stats
-        self.bin_temps[band] = self.bin_temps.get(band, 0.0) + bin_temp_sum(stats)
+        self.bin_temps[band] = self.bin_temps.get(band, 0.0) + stats.temp_mean * stats.bins[:, 0]
+        self.bin_rates[band] = self.bin_rates.get(band, 0.0) + rate * stats.bins[:, 0]
         if self.horizon and len(kept) > self.horizon:
-            old = kept.popleft()
+            old, old_rate = kept.popleft()
             self.sums[band] = self.sums[band].subtract(old)
-            self.bin_temps[band] = self.bin_temps[band] - bin_temp_sum(old)
-
-
-def bin_temp_sum(stats: WindowStats) -> np.ndarray:
-    """A window's contribution to its band's per-bin temperature sum: its mean temperature times its counts."""
-    return stats.temp_mean * stats.bins[:, 0]
+            self.bin_temps[band] = self.bin_temps[band] - old.temp_mean * old.bins[:, 0]
+            self.bin_rates[band] = self.bin_rates[band] - old_rate * old.bins[:, 0]
 
 
 def run_drive(spec: DriveSpec) -> DriveResult:
@@ -161,6 +162,7 @@ def fleet_loop(
     running = factory
     timeline = [(float(samples.t[0]), factory)]
     next_refit = float(samples.t[0]) + refit_every_s
+    next_lag, lag = float(samples.t[0]) + LAG_EVERY_S, 0.0
     pending: BandedCorrection | None = None
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
@@ -171,10 +173,20 @@ def fleet_loop(
         stats = EdgeAgent.window_stats(agent, block, usable)
         if stats.temp_n == 0:
             continue
-        sums.add(int(np.floor(stats.temp_mean / 10)), stats)
+        sums.add(int(np.floor(stats.temp_mean / 10)), stats, temp_rate(block))
         if block.t[-1] >= next_refit:
             next_refit += refit_every_s
-            result = refit_device(sums.sums, running, factory, bin_temps=sums.bin_temps if bin_temps else None)
+            if bin_temps and block.t[-1] >= next_lag:  # a device constant: estimated now and then, then cached
+                next_lag += LAG_EVERY_S
+                lag, _ = estimate_lag(sums.sums, factory, sums.bin_temps, sums.bin_rates)
+            result = refit_device(
+                sums.sums,
+                running,
+                factory,
+                bin_temps=sums.bin_temps if bin_temps else None,
+                bin_rates=sums.bin_rates,
+                lag_s=lag,
+            )
             if result.changed:
                 candidate = BandedCorrection.from_dict({"bands": result.bands})
                 try:
