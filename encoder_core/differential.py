@@ -29,7 +29,7 @@ import numpy as np
 
 from .correction import Correction
 from .samples import InputError
-from .stats import WindowStats, plausible_mask
+from .stats import N_BINS, WindowStats, plausible_mask
 
 LOCUS_ORDER = 12  # Fourier orders of the bench locus: field harmonics to 7 in either sense, with room
 SYNTHETIC_POINTS = 64 * 32  # bench-locus points per re-weighted fit (32 per angle bin)
@@ -225,17 +225,19 @@ def fit_drift(
     adjust: Callable[[BinPoints], np.ndarray] | None = None,
     min_bins: int = 16,
     iterations: int = 8,
+    jackknife: bool = True,
 ) -> DriftFit:
     """Δ by weighted least squares: the field's bin points, taken back through Δ, on the bench locus.
 
     Five parameters (field centre, lower-triangular shape); weights are the bins' counts over the
-    sample scatter; the standard errors are scaled up by the misfit when the model fits worse than
-    the scatter says (a drive that changed within the band, a locus that is not the bench's).
-    `adjust` may move the bin points first (to the band's mean temperature, see `temperature_adjust`)."""
+    sample scatter. A term's standard error is the larger of two: the scatter's (scaled up by the misfit
+    when the model fits worse than the scatter says) and a jackknife over the circle's quarters, which
+    sees what the scatter cannot: bins seen at different times disagreeing (a drive that reverses over
+    arcs while the band warms). `adjust` may move the bin points first (see `temperature_adjust`)."""
     polar = PolarLocus(locus)
-    x = np.array([polar.center[0], polar.center[1], 0.0, 0.0, 0.0])
     radius = locus.radius
-    for _ in range(iterations):
+    x = np.array([polar.center[0], polar.center[1], 0.0, 0.0, 0.0])
+    for _ in range(2):  # the bin points' outward shift depends on the centre: settle it once
         pts = bin_points(field, x[:2])
         if adjust is not None:
             pts.points = adjust(pts)
@@ -245,13 +247,30 @@ def fit_drift(
         # that a few positions a servo holds for hours do not outvote the rest of the circle
         capped = np.minimum(pts.counts, np.median(pts.counts))
         weights = radius**2 / (pts.sigma**2 / capped + locus.precision**2)
+        x, info, r = _solve(polar, pts.points, weights, x, iterations)
+    dof = max(pts.counts.size - 5, 1)
+    chi2_dof = float(np.sum(weights * r * r) / dof)
+    errors = _term_errors(x, info, max(chi2_dof, 1.0), polar.center, radius)
+    if jackknife:
+        spread = _jackknife(polar, pts, weights, x, radius, min_bins // 2)
+        errors = {t: max(errors[t], spread[t]) for t in TERMS}
+    return DriftFit(_drift_of(x, polar.center), errors, chi2_dof, pts.counts.size)
 
-        def residual(xv, pts=pts):
-            d, q = _drift_of(xv, polar.center).apply(pts.points[:, 0], pts.points[:, 1])
-            return polar.residual(d, q)
 
+STEPS = np.array([1e-3, 1e-3, 1e-5, 1e-5, 1e-5])  # finite-difference steps: centre (× radius), shape
+
+
+def _solve(polar: PolarLocus, points, weights, x, iterations: int):
+    """Gauss-Newton on the radial residuals; returns the parameters, their information matrix, the residuals."""
+    radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
+    steps = STEPS * np.array([radius, radius, 1, 1, 1])
+
+    def residual(xv):
+        d, q = _drift_of(xv, polar.center).apply(points[:, 0], points[:, 1])
+        return polar.residual(d, q)
+
+    for _ in range(iterations):
         r0 = residual(x)
-        steps = np.array([1e-3 * radius, 1e-3 * radius, 1e-5, 1e-5, 1e-5])
         jac = np.column_stack([(residual(x + np.eye(5)[k] * steps[k]) - r0) / steps[k] for k in range(5)])
         info = jac.T @ (jac * weights[:, None])
         try:
@@ -261,11 +280,25 @@ def fit_drift(
         x = x + step
         if np.all(np.abs(step) < steps * 1e-3):
             break
-    r = residual(x)
-    dof = max(pts.counts.size - 5, 1)
-    chi2_dof = float(np.sum(weights * r * r) / dof)
-    drift = _drift_of(x, polar.center)
-    return DriftFit(drift, _term_errors(x, info, max(chi2_dof, 1.0), polar.center, radius), chi2_dof, pts.counts.size)
+    return x, info, residual(x)
+
+
+def _jackknife(polar: PolarLocus, pts: BinPoints, weights, x, radius: float, min_bins: int) -> dict[str, float]:
+    """Standard error of each term from the four fits that each leave one quarter of the circle out."""
+    quarter = pts.index * 4 // N_BINS
+    estimates = []
+    for k in range(4):
+        keep = quarter != k
+        if keep.sum() < max(min_bins, 6):
+            return {t: float("inf") for t in TERMS}
+        try:
+            xk, _, _ = _solve(polar, pts.points[keep], weights[keep], x.copy(), 4)
+        except InputError:
+            return {t: float("inf") for t in TERMS}
+        estimates.append(_drift_of(xk, polar.center).terms(radius))
+    values = np.array([[e[t] for t in TERMS] for e in estimates])
+    spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
+    return {t: float(v) for t, v in zip(TERMS, spread)}
 
 
 def _term_errors(x, info, inflate: float, bench_center, radius: float) -> dict[str, float]:

@@ -40,7 +40,9 @@ REFIT_EVERY_S = 3600.0
 LAG_EVERY_S = 6 * 3600.0  # thermal lag re-estimated every 6 drive-hours
 BAND_HORIZON = 1440  # newest windows per band in the refit's sums (service.runtime.BAND_HORIZON)
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
-WORSE_MARGIN = 0.01  # an hour is worse than the factory's when its RMS error is over 1 % higher
+# an hour is worse than the factory's when its RMS error is higher by over 1 % and over a millidegree
+WORSE_MARGIN = 0.01
+WORSE_MIN_DEG = 0.001
 
 
 @dataclass
@@ -79,7 +81,8 @@ class DriveResult:
 
     @property
     def worse_hours(self) -> int:
-        return int(np.sum(np.array(self.fleet_hour_deg) > np.array(self.factory_hour_deg) * (1 + WORSE_MARGIN)))
+        fleet, factory = np.array(self.fleet_hour_deg), np.array(self.factory_hour_deg)
+        return int(np.sum((fleet > factory * (1 + WORSE_MARGIN)) & (fleet > factory + WORSE_MIN_DEG)))
 
 
 def fleet_specs(

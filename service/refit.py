@@ -123,7 +123,7 @@ def estimate_lag(
     anchors = bench_anchors(factory)
     scores = {}
     for lag in lags_s:
-        fits = band_fits(band_stats, anchors, min_samples, die_temps(bin_temps, bin_rates, lag))
+        fits = band_fits(band_stats, anchors, min_samples, die_temps(bin_temps, bin_rates, lag), errors=False)
         if fits:
             scores[float(lag)] = float(np.mean([f.chi2_dof for f, *_ in fits.values()]))
     if not scores:
@@ -202,32 +202,33 @@ def refit_from_bench(
 
 
 def band_fits(
-    band_stats, anchors, min_samples, bin_temps
+    band_stats, anchors, min_samples, bin_temps, *, errors: bool = True
 ) -> dict[int, tuple[DriftFit, WindowStats, Correction, BenchLocus]]:
     """Each band's drift fit (bands whose statistics do not pin it down are left out); a second pass takes
     the bins to the band's temperature when their temperatures are known."""
     fits = {}
+    final = not bin_temps  # a first pass only feeds the second: its errors are not needed
     for band, stats in sorted(band_stats.items()):
         if stats.n < min_samples:
             continue
         factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean))
         try:
-            fits[band] = (fit_drift(stats, locus), stats, factory, locus)
+            fits[band] = (fit_drift(stats, locus, jackknife=errors and final), stats, factory, locus)
         except InputError:
             continue  # too few angles seen in this band yet
-    if not bin_temps:
+    if final:
         return fits
     first = {band: (f.drift, stats.temp_mean) for band, (f, stats, _, _) in fits.items()}
     for band, (fit, stats, factory, locus) in list(fits.items()):
-        if band not in bin_temps:
-            continue
-        lo, hi = neighbours(band, first, locus)
-        slope = drift_slope(fit.drift, stats.temp_mean, lo, hi)
-        adjust = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
+        adjust = None
+        if band in bin_temps:
+            lo, hi = neighbours(band, first, locus)
+            slope = drift_slope(fit.drift, stats.temp_mean, lo, hi)
+            adjust = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
         try:
-            fits[band] = (fit_drift(stats, locus, adjust=adjust), stats, factory, locus)
+            fits[band] = (fit_drift(stats, locus, adjust=adjust, jackknife=errors), stats, factory, locus)
         except InputError:
-            continue
+            del fits[band]
     return fits
 
 
@@ -331,5 +332,6 @@ def refit_legacy(
 
 
 def band_entry(band: int, corr: Correction, quality: dict) -> dict:
-    keys = ("samples", "residual_rms_rad", "radius_ripple_rad", "estimated_error_deg", "drift_terms", "drift_errors")
+    keys = ("samples", "residual_rms_rad", "radius_ripple_rad", "estimated_error_deg")
+    keys += ("drift_terms", "drift_errors", "chi2_dof")
     return wire.band_entry(band, corr.to_dict(), {k: quality[k] for k in keys if k in quality})
