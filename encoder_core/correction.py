@@ -29,6 +29,9 @@ class Correction:
     zero_offset_rad: float = 0.0
     harmonics: dict[int, tuple[float, float]] = field(default_factory=dict)  # m -> (a_m, b_m), rad
     temp_c: float | None = None  # temperature this correction was fitted at (band mean)
+    # a factory band only: the bench locus it was measured on (encoder_core.differential.BenchLocus.to_dict()),
+    # which reference-free refits use to tell drift since the bench from the field's own harmonics
+    bench_locus: dict | None = None
 
     def angle(self, d, q) -> np.ndarray:
         d = np.asarray(d, dtype=float)
@@ -39,13 +42,16 @@ class Correction:
         return wrap_rad(theta0 + self.zero_offset_rad + harmonic_sum(theta0, self.harmonics))
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "w": [self.w1, self.w2, self.w3, self.w4],
             "w5": self.w5,
             "zero_offset_rad": self.zero_offset_rad,
             "harmonics": [[m, a, b] for m, (a, b) in sorted(self.harmonics.items())],
             "temp_c": self.temp_c,
         }
+        if self.bench_locus is not None:
+            out["bench_locus"] = self.bench_locus
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> Correction:
@@ -59,6 +65,7 @@ class Correction:
             zero_offset_rad=data.get("zero_offset_rad", 0.0),
             harmonics={int(m): (float(a), float(b)) for m, a, b in data.get("harmonics", [])},
             temp_c=data.get("temp_c"),
+            bench_locus=data.get("bench_locus"),
         )
 
     def locus(self, n: int = 360) -> tuple[np.ndarray, np.ndarray]:

@@ -297,6 +297,7 @@ def register(sub) -> None:
     p.add_argument("--sample-hz", type=positive_float, default=2.0, help="samples per second in each window")
     p.add_argument("--json", metavar="FILE", help="also write the figures, every planted event and every alarm")
     p.set_defaults(func=cmd_bench_monitor)
+    register_fleet_accuracy(sub)
 
 
 def add_security_options(p, holds: str) -> None:
@@ -306,3 +307,46 @@ def add_security_options(p, holds: str) -> None:
         action="store_true",
         help="plain TCP, no certificates, no access control, no signature checks (local tinkering only)",
     )
+
+
+def cmd_bench_fleet_accuracy(args) -> int:
+    import json
+
+    from encoder_fleet.fleet_accuracy import format_report, run_bench
+
+    rates = [float(r) for r in args.rates.split(",")]
+    seeds = [int(s) for s in args.seeds.split(",")]
+    windows = {}
+    if args.window_s:
+        windows = {rate: args.window_s for rate in rates}
+    report = run_bench(
+        drives=args.drives,
+        days=args.days,
+        seeds=seeds,
+        rates=rates,
+        windows=windows,
+        events=not args.no_events,
+        processes=args.processes,
+    )
+    print(format_report(report))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def register_fleet_accuracy(sub) -> None:
+    """`bench-fleet-accuracy`: registered here so the harness (and the service it imports) loads only when run."""
+    p = sub.add_parser(
+        "bench-fleet-accuracy", help="fleet against factory on independently simulated drives (true angle error)"
+    )
+    p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    p.add_argument("--drives", type=positive_int, default=12, help="drives per fleet")
+    p.add_argument("--days", type=positive_float, default=3.0, help="simulated days per drive")
+    p.add_argument("--seeds", default="1,2,3", help="fleet seeds, comma-separated")
+    p.add_argument("--rates", default="0.5,20", help="sample rates in Hz, comma-separated")
+    p.add_argument("--window-s", type=positive_float, help="window length (default: 300 s below 2 Hz, else 60 s)")
+    p.add_argument("--no-events", action="store_true", help="clean drives only (aging and noise, no planted step)")
+    p.add_argument("--processes", type=positive_int, default=2, help="worker processes (one fleet regime each)")
+    p.set_defaults(func=cmd_bench_fleet_accuracy)

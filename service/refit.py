@@ -2,10 +2,15 @@
 
 No I/O here: the service hands in the statistics and the sets, and gets back a decision.
 
+With a factory set that carries its bench locus (`encoder-fleet calibrate`), a band's candidate is the
+factory's correction after the drift since the bench (encoder_core/differential.py): offsets, gain
+ratio and axis come from the field where the band's statistics support them, one by one; the zero and
+the harmonics stay the factory's, measured against its reference. Without a bench locus (older factory
+sets) the band is fitted as before: a direct ellipse plus harmonics from the sample density.
+
 A candidate band replaces what the device runs at that temperature only when the two differ by
-clearly more than the candidate's own uncertainty (harmonic noise from the sample density, ellipse
-scatter): then the running set is measurably wrong and the candidate is the better estimate.
-Zero offsets of reference-free fits are anchored to the factory calibration, the only fit that ever saw a reference.
+clearly more than the candidate's own uncertainty: then the running set is measurably wrong and the
+candidate is the better estimate. Bands the refit has nothing new for keep what the device runs.
 """
 
 from __future__ import annotations
@@ -15,13 +20,26 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from encoder_core.correction import BandedCorrection, Correction, zero_shift
+from encoder_core.differential import (
+    TERMS,
+    BenchLocus,
+    Drift,
+    DriftFit,
+    anchor_zero,
+    compose,
+    drift_slope,
+    fit_drift,
+    gate,
+    temperature_adjust,
+)
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
 from encoder_core.physics import REFERENCE_TEMP_C, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 from fleet_wire import messages as wire
 
-MIN_BAND_SAMPLES = 20000
+MIN_BAND_SAMPLES = 2000  # a drift fit's own standard errors decide what it may change; below this, nothing
+LEGACY_MIN_SAMPLES = 20000  # without a bench locus the density harmonics need many more
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
 MIN_GAIN_DEG = 0.01  # … and by at least this much
 
@@ -70,6 +88,195 @@ def refit_device(
     factory: BandedCorrection | None = None,
     *,
     min_samples: int = MIN_BAND_SAMPLES,
+    bin_temps: dict[int, np.ndarray] | None = None,
+    bin_rates: dict[int, np.ndarray] | None = None,
+    lag_s: float = 0.0,
+) -> RefitResult:
+    """The device's next set (or the reasons for none) from its band statistics.
+
+    bin_temps, bin_rates (optional, per band, additive over its windows): Σ window mean temperature ×
+    window count per angle bin, and Σ window temperature rate (°C/s) × count; lag_s: how far the hall
+    die lags the reported temperature. With them each band's bins are taken to the band's temperature
+    first (see encoder_core.differential.temperature_adjust)."""
+    anchors = bench_anchors(factory)
+    if anchors:
+        temps = die_temps(bin_temps, bin_rates, lag_s)
+        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples, bin_temps=temps)
+    return refit_legacy(band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES))
+
+
+LAGS_S = (0.0, 60.0, 120.0, 240.0, 360.0, 480.0, 600.0, 900.0, 1200.0)  # hall die behind the reported temperature
+
+
+def estimate_lag(
+    band_stats: dict[int, WindowStats],
+    factory: BandedCorrection,
+    bin_temps: dict[int, np.ndarray],
+    bin_rates: dict[int, np.ndarray],
+    *,
+    min_samples: int = MIN_BAND_SAMPLES,
+    lags_s=LAGS_S,
+) -> tuple[float, dict[float, float]]:
+    """The die's thermal lag (s) that makes the bands' drift fits most consistent, by scanning: with the wrong
+    lag a drive that visits angles unevenly shows its locus at mixed die temperatures and fits badly.
+    Returns the lag and the mean χ²/dof at each lag tried (a device constant: the service may cache it)."""
+    anchors = bench_anchors(factory)
+    scores = {}
+    for lag in lags_s:
+        fits = band_fits(band_stats, anchors, min_samples, die_temps(bin_temps, bin_rates, lag), errors=False)
+        if fits:
+            scores[float(lag)] = float(np.mean([f.chi2_dof for f, *_ in fits.values()]))
+    if not scores:
+        return 0.0, {}
+    return refine_minimum(scores), scores
+
+
+def refine_minimum(scores: dict[float, float]) -> float:
+    """The scan's best lag, refined by a parabola through it and its neighbours."""
+    lags = sorted(scores)
+    k = min(range(len(lags)), key=lambda i: scores[lags[i]])
+    if k == 0 or k == len(lags) - 1:
+        return lags[k]
+    x = np.array(lags[k - 1 : k + 2])
+    a, b, _ = np.polyfit(x, [scores[v] for v in x], 2)
+    return float(np.clip(-b / (2 * a), x[0], x[2])) if a > 0 else lags[k]
+
+
+def die_temps(bin_temps, bin_rates, lag_s: float) -> dict[int, np.ndarray] | None:
+    """Per-bin sums of the die's temperature: the reported one less lag × its rate (a first-order lag)."""
+    if not bin_temps:
+        return None
+    if not bin_rates or not lag_s:
+        return bin_temps
+    return {b: s - lag_s * bin_rates.get(b, 0.0) for b, s in bin_temps.items()}
+
+
+def bench_anchors(factory: BandedCorrection | None) -> list[tuple[Correction, BenchLocus]]:
+    """The factory's bands that carry the bench locus they were measured on."""
+    if factory is None:
+        return []
+    return [(b, BenchLocus.from_dict(b.bench_locus)) for b in factory.bands if b.bench_locus is not None]
+
+
+def refit_from_bench(
+    band_stats: dict[int, WindowStats],
+    running: BandedCorrection,
+    anchors: list[tuple[Correction, BenchLocus]],
+    *,
+    min_samples: int = MIN_BAND_SAMPLES,
+    bin_temps: dict[int, np.ndarray] | None = None,
+) -> RefitResult:
+    """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
+    count in each angle bin; with it each band's bins are first taken to the band's mean temperature."""
+    fits = band_fits(band_stats, anchors, min_samples, bin_temps)
+    result = RefitResult(bands=[])
+    chosen: dict[int, dict] = {}
+    for band, (fit, stats, factory, locus) in sorted(fits.items()):
+        corr, quality, err_new = drift_candidate(fit, stats, factory, locus)
+        now = running.at(corr.temp_c)
+        err_now = difference_deg(now, corr)
+        adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
+        entry = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
+        chosen[band] = entry if adopt else band_entry(band, now, {**quality, "estimated_error_deg": err_now})
+        result.decisions.append(
+            BandDecision(
+                band=band,
+                temp_c=corr.temp_c,
+                samples=stats.n,
+                running_error_deg=err_now,
+                candidate_error_deg=err_new,
+                adopted=adopt,
+                quality=chosen[band]["quality"],
+                candidate=entry,
+            )
+        )
+    if not result.decisions:
+        return result
+    for corr in running.bands:  # what the refit says nothing about stays as the device runs it
+        band = band_index(corr)
+        if band not in chosen:
+            kept = Correction.from_dict({**corr.to_dict(), "bench_locus": None})
+            chosen[band] = band_entry(band, kept, {"samples": 0})
+    result.bands = [chosen[b] for b in sorted(chosen)]
+    return result
+
+
+def band_fits(
+    band_stats, anchors, min_samples, bin_temps, *, errors: bool = True
+) -> dict[int, tuple[DriftFit, WindowStats, Correction, BenchLocus]]:
+    """Each band's drift fit (bands whose statistics do not pin it down are left out); a second pass takes
+    the bins to the band's temperature when their temperatures are known."""
+    fits = {}
+    final = not bin_temps  # a first pass only feeds the second: its errors are not needed
+    for band, stats in sorted(band_stats.items()):
+        if stats.n < min_samples:
+            continue
+        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean))
+        try:
+            fits[band] = (fit_drift(stats, locus, jackknife=errors and final), stats, factory, locus)
+        except InputError:
+            continue  # too few angles seen in this band yet
+    if final:
+        return fits
+    first = {band: (f.drift, stats.temp_mean) for band, (f, stats, _, _) in fits.items()}
+    for band, (fit, stats, factory, locus) in list(fits.items()):
+        adjust = None
+        if band in bin_temps:
+            lo, hi = neighbours(band, first, locus)
+            slope = drift_slope(fit.drift, stats.temp_mean, lo, hi)
+            adjust = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
+        try:
+            fits[band] = (fit_drift(stats, locus, adjust=adjust, jackknife=errors), stats, factory, locus)
+        except InputError:
+            del fits[band]
+    return fits
+
+
+def neighbours(band: int, first: dict[int, tuple[Drift, float]], locus: BenchLocus):
+    """The drifts at two other temperatures that bracket this band where they can: fitted bands, or the
+    bench itself (no drift at its temperature)."""
+    bench = (Drift(np.array([locus.d[0], locus.q[0]]), np.array([locus.d[0], locus.q[0]]), np.eye(2)), locus.temp_c)
+    here = first[band]
+    below = [first[b] for b in sorted(first) if b < band]
+    above = [first[b] for b in sorted(first) if b > band]
+    lo = below[-1] if below else (bench if bench[1] < here[1] else here)
+    hi = above[0] if above else (bench if bench[1] > here[1] else here)
+    if lo is hi or abs(hi[1] - lo[1]) < 1.0:
+        lo, hi = (here, bench) if bench[1] > here[1] else (bench, here)
+    return lo, hi
+
+
+def band_index(corr: Correction) -> int:
+    return int(np.floor((corr.temp_c if corr.temp_c is not None else REFERENCE_TEMP_C) / 10.0))
+
+
+def drift_candidate(
+    fit: DriftFit, stats: WindowStats, factory: Correction, locus: BenchLocus
+) -> tuple[Correction, dict, float]:
+    """The factory's correction after the band's supported drift terms, with its quality and uncertainty (deg)."""
+    radius = locus.radius
+    terms = fit.drift.terms(radius)
+    kept = gate(terms, fit.errors)
+    drift = Drift.from_terms(kept, fit.drift.bench_center, radius)
+    corr = anchor_zero(compose(factory, drift), factory, locus, drift)
+    corr.temp_c = stats.temp_mean
+    adopted = [t for t in TERMS if kept[t] != 0.0]
+    err = float(np.degrees(np.sqrt(sum(fit.errors[t] ** 2 for t in adopted)))) if adopted else 0.0
+    quality = {
+        "samples": stats.n,
+        "drift_terms": {t: kept[t] for t in TERMS},
+        "drift_errors": {t: fit.errors[t] if np.isfinite(fit.errors[t]) else None for t in TERMS},
+        "chi2_dof": fit.chi2_dof,
+    }
+    return corr, quality, err
+
+
+def refit_legacy(
+    band_stats: dict[int, WindowStats],
+    running: BandedCorrection,
+    factory: BandedCorrection | None = None,
+    *,
+    min_samples: int = LEGACY_MIN_SAMPLES,
 ) -> RefitResult:
     candidates: dict[int, tuple[Correction, dict, WindowStats]] = {}
     estimates = []
@@ -126,4 +333,5 @@ def refit_device(
 
 def band_entry(band: int, corr: Correction, quality: dict) -> dict:
     keys = ("samples", "residual_rms_rad", "radius_ripple_rad", "estimated_error_deg")
+    keys += ("drift_terms", "drift_errors", "chi2_dof")
     return wire.band_entry(band, corr.to_dict(), {k: quality[k] for k in keys if k in quality})

@@ -1,0 +1,396 @@
+"""Drift since the bench, from window statistics, without taking the field's harmonics for drift.
+
+The factory measured the drive against a reference at the bench: its correction holds the zero and
+the angle harmonics, and the bench locus (d, q against the reference angle) is the shape of the
+drive's own field. In the field, temperature and age change each channel's gain and offset and its
+axis (seed 000 eq. 4-5): an affine map of the channels, which leaves the field's harmonics where
+they are. So the field locus at temperature T is the bench locus moved by an affine map, and the
+correction at T is the factory's applied after the map that takes the field back to the bench:
+
+    angle_T(p) = factory.angle(Δ_T(p)),   Δ_T(p) = c_bench + S·(p - c_field),  S lower triangular
+
+A direct ellipse fit of a locus with field harmonics is biased (a 3rd harmonic's radius ripple
+reads as amplitude imbalance: seed 001's trap), but the fit is affine-equivariant, so the same fit
+of the bench locus, weighted as the field visited its angles, is biased in the same way: Δ_T from
+the two fits cancels the bias. The bench locus is re-weighted bin by bin to the field's angle
+histogram, so a drive that dwells or reverses is compared like with like.
+
+Each term of Δ (two offsets, the gain ratio, the axis) is kept only when it stands clear of its own
+uncertainty; otherwise it keeps the factory's value (no drift). The zero is never taken from the
+field: the lower-triangular S fixes the d axis, as the factory's correction form does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .correction import Correction
+from .samples import InputError
+from .stats import N_BINS, WindowStats, plausible_mask
+
+LOCUS_ORDER = 12  # Fourier orders of the bench locus: field harmonics to 7 in either sense, with room
+SYNTHETIC_POINTS = 64 * 32  # bench-locus points per re-weighted fit (32 per angle bin)
+TERM_SIGMAS = 3.0  # a drift term is kept when it is this many standard errors from zero
+TERMS = ("offset_d", "offset_q", "imbalance", "axis")
+
+
+@dataclass
+class BenchLocus:
+    """d(θ) and q(θ) at the bench as Fourier series in the reference angle: [c0, a1, b1, ..., aK, bK]."""
+
+    temp_c: float
+    d: np.ndarray
+    q: np.ndarray
+    samples: int
+    residual_rms: float = 0.0  # radial scatter of the bench samples about the series, raw units
+
+    @property
+    def order(self) -> int:
+        return (len(self.d) - 1) // 2
+
+    def points(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        design = fourier_design(np.asarray(theta, float), self.order)
+        return design @ self.d, design @ self.q
+
+    @property
+    def radius(self) -> float:
+        """Mean radius of the locus about its centre, raw units."""
+        return float(np.hypot(self.d[1], self.d[2]) + np.hypot(self.q[1], self.q[2])) / 2
+
+    @property
+    def precision(self) -> float:
+        """Standard error of the fitted curve at a point (raw units): the bench's noise over its samples."""
+        return self.residual_rms * float(np.sqrt(len(self.d) / max(self.samples, 1)))
+
+    def to_dict(self) -> dict:
+        return {
+            "temp_c": self.temp_c,
+            "d": self.d.tolist(),
+            "q": self.q.tolist(),
+            "samples": self.samples,
+            "residual_rms": self.residual_rms,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> BenchLocus:
+        d, q = np.asarray(data["d"], float), np.asarray(data["q"], float)
+        if d.shape != q.shape or d.ndim != 1 or d.size % 2 != 1 or d.size < 3 or not np.all(np.isfinite([*d, *q])):
+            raise InputError("bench locus: d and q must be finite Fourier series of the same odd length >= 3")
+        return cls(
+            temp_c=float(data["temp_c"]),
+            d=d,
+            q=q,
+            samples=int(data.get("samples", 0)),
+            residual_rms=float(data.get("residual_rms", 0.0)),
+        )
+
+    @classmethod
+    def fit(cls, theta_ref, d, q, temp_c: float, order: int = LOCUS_ORDER) -> BenchLocus:
+        """Least squares of d and q on the reference angle (samples far off the circle left out)."""
+        theta_ref, d, q = (np.asarray(a, float) for a in (theta_ref, d, q))
+        keep = plausible_mask(d, q, center=(np.median(d), np.median(q)))
+        if keep.sum() < 4 * order + 2:
+            raise InputError(f"bench locus: {int(keep.sum())} usable samples, need at least {4 * order + 2}")
+        design = fourier_design(theta_ref[keep], order)
+        coef, *_ = np.linalg.lstsq(design, np.column_stack([d[keep], q[keep]]), rcond=None)
+        resid = np.column_stack([d[keep], q[keep]]) - design @ coef
+        rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1)) / 2))  # per axis ≈ radial, for isotropic noise
+        return cls(temp_c=float(temp_c), d=coef[:, 0], q=coef[:, 1], samples=int(keep.sum()), residual_rms=rms)
+
+
+def fourier_design(theta: np.ndarray, order: int) -> np.ndarray:
+    cols = [np.ones_like(theta)]
+    for k in range(1, order + 1):
+        cols += [np.cos(k * theta), np.sin(k * theta)]
+    return np.column_stack(cols)
+
+
+@dataclass
+class Drift:
+    """Field point p -> where the bench saw it: bench_center + shape·(p - field_center), raw units."""
+
+    field_center: np.ndarray
+    bench_center: np.ndarray
+    shape: np.ndarray  # lower triangular, positive diagonal
+
+    def apply(self, d, q) -> tuple[np.ndarray, np.ndarray]:
+        p = np.vstack([np.asarray(d, float) - self.field_center[0], np.asarray(q, float) - self.field_center[1]])
+        out = self.shape @ p
+        return out[0] + self.bench_center[0], out[1] + self.bench_center[1]
+
+    def inverse(self, d, q) -> tuple[np.ndarray, np.ndarray]:
+        p = np.vstack([np.asarray(d, float) - self.bench_center[0], np.asarray(q, float) - self.bench_center[1]])
+        out = np.linalg.solve(self.shape, p)
+        return out[0] + self.field_center[0], out[1] + self.field_center[1]
+
+    def terms(self, radius: float) -> dict[str, float]:
+        """The drift as angle-sized numbers (rad): offsets over the radius, the gain ratio's log and the
+        axis shear (each the size of the angle error it makes, to first order, times 1 or 2)."""
+        s = self.shape
+        off = (self.field_center - self.bench_center) / radius
+        return {
+            "offset_d": float(off[0]),
+            "offset_q": float(off[1]),
+            "imbalance": float(np.log(s[1, 1] / s[0, 0]) / 2),
+            "axis": float(s[1, 0] / s[1, 1] / 2),
+            "common": float(np.log(s[0, 0] * s[1, 1]) / 2),
+        }
+
+    @classmethod
+    def from_terms(cls, terms: dict[str, float], bench_center, radius: float) -> Drift:
+        common, g = terms.get("common", 0.0), terms["imbalance"]
+        s11, s22 = np.exp(common - g), np.exp(common + g)
+        shape = np.array([[s11, 0.0], [2 * terms["axis"] * s22, s22]])
+        bench_center = np.asarray(bench_center, float)
+        field_center = bench_center + radius * np.array([terms["offset_d"], terms["offset_q"]])
+        return cls(field_center=field_center, bench_center=bench_center, shape=shape)
+
+
+@dataclass
+class BinPoints:
+    """What the angle bins of a band's statistics say about the locus: each bin's mean point (raw units),
+    moved outward by the bin's spread along the circle (points spread over an arc average inside it), its
+    count, and the pooled radial scatter of single samples."""
+
+    points: np.ndarray  # (k, 2)
+    counts: np.ndarray  # (k,)
+    sigma: float  # radial scatter of one sample, raw units
+    index: np.ndarray  # (k,) the angle bin of each point
+
+
+def bin_points(stats: WindowStats, center, min_count: int = 2) -> BinPoints:
+    counts = stats.bins[:, 0]
+    ok = counts >= min_count
+    n = counts[ok]
+    mean = stats.bins[ok, 1:3] / n[:, None]
+    second = stats.bins[ok, 3:6] / n[:, None]
+    cxx = second[:, 0] - mean[:, 0] ** 2
+    cxy = second[:, 1] - mean[:, 0] * mean[:, 1]
+    cyy = second[:, 2] - mean[:, 1] ** 2
+    raw = np.column_stack([stats.center_d, stats.center_q]) + stats.scale * mean
+    rel = raw - np.asarray(center, float)
+    radius = np.hypot(rel[:, 0], rel[:, 1])
+    nx, ny = rel[:, 0] / radius, rel[:, 1] / radius
+    var_t = (ny * ny * cxx - 2 * nx * ny * cxy + nx * nx * cyy) * stats.scale**2
+    var_r = (nx * nx * cxx + 2 * nx * ny * cxy + ny * ny * cyy) * stats.scale**2
+    points = raw + (np.maximum(var_t, 0.0) / (2 * radius))[:, None] * np.column_stack([nx, ny])
+    sigma = float(np.sqrt(max(np.average(np.maximum(var_r, 0.0), weights=n), 1e-12)))
+    return BinPoints(points=points, counts=n, sigma=sigma, index=np.flatnonzero(ok))
+
+
+class PolarLocus:
+    """The bench locus in its own fundamental's frame, as radius against polar angle: the curve a field
+    point must lie on once the drift is taken back out."""
+
+    def __init__(self, locus: BenchLocus):
+        self.center = np.array([locus.d[0], locus.q[0]])
+        fundamental = np.array([[locus.d[1], locus.d[2]], [locus.q[1], locus.q[2]]])
+        self.to_unit = np.linalg.inv(fundamental)
+        theta = np.arange(SYNTHETIC_POINTS) * (2 * np.pi / SYNTHETIC_POINTS)
+        u = self.unit(*locus.points(theta))
+        psi = np.arctan2(u[1], u[0])
+        order = np.argsort(psi)
+        self.psi, self.rho = psi[order], np.hypot(u[0], u[1])[order]
+
+    def unit(self, d, q) -> np.ndarray:
+        return self.to_unit @ np.vstack([np.asarray(d, float) - self.center[0], np.asarray(q, float) - self.center[1]])
+
+    def residual(self, d, q) -> np.ndarray:
+        """Radial distance of points from the curve, in units of the locus radius."""
+        u = self.unit(d, q)
+        rho = np.interp(np.arctan2(u[1], u[0]), self.psi, self.rho, period=2 * np.pi)
+        return np.hypot(u[0], u[1]) - rho
+
+
+def _drift_of(x: np.ndarray, bench_center: np.ndarray) -> Drift:
+    shape = np.array([[np.exp(x[2]), 0.0], [x[3], np.exp(x[4])]])
+    return Drift(field_center=x[:2].copy(), bench_center=bench_center, shape=shape)
+
+
+@dataclass
+class DriftFit:
+    drift: Drift
+    errors: dict[str, float]  # standard error of each term (rad), misfit included
+    chi2_dof: float
+    bins: int
+
+
+def fit_drift(
+    field: WindowStats,
+    locus: BenchLocus,
+    *,
+    adjust: Callable[[BinPoints], np.ndarray] | None = None,
+    min_bins: int = 16,
+    iterations: int = 8,
+    jackknife: bool = True,
+) -> DriftFit:
+    """Δ by weighted least squares: the field's bin points, taken back through Δ, on the bench locus.
+
+    Five parameters (field centre, lower-triangular shape); weights are the bins' counts over the
+    sample scatter. A term's standard error is the larger of two: the scatter's (scaled up by the misfit
+    when the model fits worse than the scatter says) and a jackknife over the circle's quarters, which
+    sees what the scatter cannot: bins seen at different times disagreeing (a drive that reverses over
+    arcs while the band warms). `adjust` may move the bin points first (see `temperature_adjust`)."""
+    polar = PolarLocus(locus)
+    radius = locus.radius
+    x = np.array([polar.center[0], polar.center[1], 0.0, 0.0, 0.0])
+    for _ in range(2):  # the bin points' outward shift depends on the centre: settle it once
+        pts = bin_points(field, x[:2])
+        if adjust is not None:
+            pts.points = adjust(pts)
+        if pts.counts.size < min_bins:
+            raise InputError(f"too few angle bins with samples for a drift fit: {pts.counts.size}, need {min_bins}")
+        # a bin's weight: its mean's variance plus the bench curve's own; counts capped at the median so
+        # that a few positions a servo holds for hours do not outvote the rest of the circle
+        capped = np.minimum(pts.counts, np.median(pts.counts))
+        weights = radius**2 / (pts.sigma**2 / capped + locus.precision**2)
+        x, info, r = _solve(polar, pts.points, weights, x, iterations)
+    dof = max(pts.counts.size - 5, 1)
+    chi2_dof = float(np.sum(weights * r * r) / dof)
+    errors = _term_errors(x, info, max(chi2_dof, 1.0), polar.center, radius)
+    if jackknife:
+        spread = _jackknife(polar, pts, weights, x, radius, min_bins // 2)
+        errors = {t: max(errors[t], spread[t]) for t in TERMS}
+    return DriftFit(_drift_of(x, polar.center), errors, chi2_dof, pts.counts.size)
+
+
+STEPS = np.array([1e-3, 1e-3, 1e-5, 1e-5, 1e-5])  # finite-difference steps: centre (× radius), shape
+
+
+def _solve(polar: PolarLocus, points, weights, x, iterations: int):
+    """Gauss-Newton on the radial residuals; returns the parameters, their information matrix, the residuals."""
+    radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
+    steps = STEPS * np.array([radius, radius, 1, 1, 1])
+
+    def residual(xv):
+        d, q = _drift_of(xv, polar.center).apply(points[:, 0], points[:, 1])
+        return polar.residual(d, q)
+
+    for _ in range(iterations):
+        r0 = residual(x)
+        jac = np.column_stack([(residual(x + np.eye(5)[k] * steps[k]) - r0) / steps[k] for k in range(5)])
+        info = jac.T @ (jac * weights[:, None])
+        try:
+            step = np.linalg.solve(info, -jac.T @ (weights * r0))
+        except np.linalg.LinAlgError as exc:
+            raise InputError("drift fit: the bins do not constrain the drift") from exc
+        x = x + step
+        if np.all(np.abs(step) < steps * 1e-3):
+            break
+    return x, info, residual(x)
+
+
+def _jackknife(polar: PolarLocus, pts: BinPoints, weights, x, radius: float, min_bins: int) -> dict[str, float]:
+    """Standard error of each term from the four fits that each leave one quarter of the circle out."""
+    quarter = pts.index * 4 // N_BINS
+    estimates = []
+    for k in range(4):
+        keep = quarter != k
+        if keep.sum() < max(min_bins, 6):
+            return {t: float("inf") for t in TERMS}
+        try:
+            xk, _, _ = _solve(polar, pts.points[keep], weights[keep], x.copy(), 4)
+        except InputError:
+            return {t: float("inf") for t in TERMS}
+        estimates.append(_drift_of(xk, polar.center).terms(radius))
+    values = np.array([[e[t] for t in TERMS] for e in estimates])
+    spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
+    return {t: float(v) for t, v in zip(TERMS, spread)}
+
+
+def _term_errors(x, info, inflate: float, bench_center, radius: float) -> dict[str, float]:
+    """Standard errors of the drift terms by the delta method from the parameters' covariance."""
+    try:
+        cov = np.linalg.inv(info) * inflate
+    except np.linalg.LinAlgError:
+        return {t: float("inf") for t in TERMS}
+    if not np.all(np.isfinite(cov)) or np.linalg.cond(info) > 1e14:
+        return {t: float("inf") for t in TERMS}
+    base = _drift_of(x, bench_center).terms(radius)
+    steps = np.array([1e-3 * radius, 1e-3 * radius, 1e-6, 1e-6, 1e-6])
+    jac = np.zeros((len(TERMS), 5))
+    for k in range(5):
+        moved = _drift_of(x + np.eye(5)[k] * steps[k], bench_center).terms(radius)
+        jac[:, k] = [(moved[t] - base[t]) / steps[k] for t in TERMS]
+    var = np.einsum("ik,kl,il->i", jac, cov, jac)
+    return {t: float(np.sqrt(max(v, 0.0))) for t, v in zip(TERMS, var)}
+
+
+def gate(terms: dict[str, float], errors: dict[str, float], sigmas: float = TERM_SIGMAS) -> dict[str, float]:
+    """Terms that do not stand `sigmas` standard errors clear of zero keep the factory's value (no drift)."""
+    out = dict(terms)
+    for name in TERMS:
+        if not abs(terms[name]) > sigmas * errors[name]:
+            out[name] = 0.0
+    return out
+
+
+def compose(factory: Correction, drift: Drift) -> Correction:
+    """factory.angle(drift.apply(p)) in the correction form, exactly: the factory's zero and harmonics kept."""
+    lf = np.array([[factory.w1, 0.0], [factory.w5 * factory.w1, factory.w3]])
+    tf = np.array([factory.w2, factory.w4 + factory.w5 * factory.w2])
+    k = lf @ drift.shape
+    s = lf @ (drift.bench_center - drift.shape @ drift.field_center) + tf
+    w5 = k[1, 0] / k[0, 0]
+    return Correction(
+        w1=float(k[0, 0]),
+        w2=float(s[0]),
+        w3=float(k[1, 1]),
+        w4=float(s[1] - w5 * s[0]),
+        w5=float(w5),
+        zero_offset_rad=factory.zero_offset_rad,
+        harmonics=dict(factory.harmonics),
+        temp_c=factory.temp_c,
+    )
+
+
+def anchor_zero(candidate: Correction, factory: Correction, locus: BenchLocus, drift: Drift) -> Correction:
+    """Give the candidate the factory's zero: no rotation between them on average around the field's locus.
+
+    The field cannot see a rotation of both axes together; whatever part of it the drift map carries is a
+    convention (S lower triangular keeps the d axis). Anchored, the candidate's mean angle error is the
+    factory's at the same temperature, whatever the axes did."""
+    theta = np.arange(360) * (2 * np.pi / 360)
+    d, q = drift.inverse(*locus.points(theta))
+    diff = factory.angle(d, q) - candidate.angle(d, q)
+    out = Correction(**{**candidate.__dict__, "harmonics": dict(candidate.harmonics)})
+    shift = np.angle(np.mean(np.exp(1j * diff)))
+    out.zero_offset_rad = float(np.angle(np.exp(1j * (candidate.zero_offset_rad + shift))))
+    return out
+
+
+def temperature_adjust(
+    bin_temp_sum: np.ndarray, counts: np.ndarray, temp_c: float, slope: Callable[[np.ndarray], np.ndarray]
+) -> Callable[[BinPoints], np.ndarray]:
+    """Move each bin's mean point to the band's mean temperature.
+
+    A drive that turns evenly visits every angle at every temperature of the band, but one that reverses
+    over an arc or dwells visits some angles only when the band is warm and others only when it is cool:
+    its bins then show the locus at different temperatures. With each bin's mean temperature (from the
+    windows' temperatures and bin counts) and the drift's slope from the neighbouring bands, every point is
+    taken to the band's mean temperature first. slope(points) -> d(point)/dT in raw units per K."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bin_temp = np.where(counts > 0, bin_temp_sum / counts, temp_c)
+
+    def adjust(pts: BinPoints) -> np.ndarray:
+        delta = bin_temp[pts.index] - temp_c
+        return pts.points - delta[:, None] * slope(pts.points)
+
+    return adjust
+
+
+def drift_slope(here: Drift, temp_here: float, lo: tuple[Drift, float], hi: tuple[Drift, float]):
+    """d(field point)/dT at field points of this band, from the drifts of two other temperatures: a point is
+    taken to the bench through this band's drift and back out through the others'."""
+
+    def slope(points: np.ndarray) -> np.ndarray:
+        bench = np.column_stack(here.apply(points[:, 0], points[:, 1]))
+        (d_lo, t_lo), (d_hi, t_hi) = lo, hi
+        p_lo = np.column_stack(d_lo.inverse(bench[:, 0], bench[:, 1]))
+        p_hi = np.column_stack(d_hi.inverse(bench[:, 0], bench[:, 1]))
+        return (p_hi - p_lo) / (t_hi - t_lo)
+
+    return slope

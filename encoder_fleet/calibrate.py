@@ -1,0 +1,88 @@
+"""`encoder-fleet calibrate BENCH.csv --out FACTORY.json`: the end-of-line calibration.
+
+A bench recording with a reference angle (columns t, d, q, temp_c, theta_ref_deg) is fitted per
+temperature plateau by `OursLsRef`: the full channel map, the zero and the angle harmonics, all
+measured against the reference. Each band also carries its bench locus (d and q as Fourier series
+of the reference angle, `encoder_core.differential.BenchLocus`): the shape of the drive's own field,
+which the fleet's reference-free refits need to tell drift from field harmonics. The output is the
+coefficient set (version 0, basis factory) that `encoder-fleet agent --factory FACTORY.json` reads.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from encoder_core.correction import BandedCorrection, Correction
+from encoder_core.differential import BenchLocus
+from encoder_core.methods import OursLsRef
+from encoder_core.physics import REFERENCE_TEMP_C
+from encoder_core.samples import InputError, Samples, check_angle_coverage
+
+PLATEAU_GAP_C = 2.0  # a bench's temperature plateaus are separated by more than this
+
+
+def plateaus(temp_c: np.ndarray) -> np.ndarray:
+    """Plateau index of each sample: temperatures sorted, split where they jump by more than PLATEAU_GAP_C."""
+    order = np.argsort(temp_c)
+    jumps = np.concatenate(([0], np.cumsum(np.diff(temp_c[order]) > PLATEAU_GAP_C)))
+    out = np.empty(temp_c.size, int)
+    out[order] = jumps
+    return out
+
+
+def calibrate_band(samples: Samples) -> Correction:
+    """One plateau: OursLsRef's correction with the bench locus attached."""
+    check_angle_coverage(samples.theta_ref, min_sectors=12, what="reference angle")
+    method = OursLsRef()
+    corr, _ = method.fit_band(samples, None)
+    temp = float(np.mean(samples.temp_c)) if samples.temp_c is not None else REFERENCE_TEMP_C
+    corr.temp_c = temp
+    corr.bench_locus = BenchLocus.fit(samples.theta_ref, samples.d, samples.q, temp).to_dict()
+    return corr
+
+
+def calibrate(samples: Samples) -> BandedCorrection:
+    """The factory set of a bench recording: one band per temperature plateau."""
+    if samples.theta_ref is None:
+        raise InputError("calibration needs the reference angle column theta_ref_deg")
+    if len(samples) < 64:
+        raise InputError(f"calibration needs at least 64 bench samples, got {len(samples)}")
+    if samples.temp_c is None:
+        return BandedCorrection([calibrate_band(samples)])
+    groups = plateaus(samples.temp_c)
+    bands = [calibrate_band(samples.subset(groups == g)) for g in np.unique(groups)]
+    return BandedCorrection(bands)
+
+
+def factory_set(device: str, factory: BandedCorrection) -> dict:
+    from edge_agent.agent import factory_message
+
+    return factory_message(device, factory)
+
+
+def cmd_calibrate(args) -> int:
+    from encoder_fleet.recording import read_recording
+
+    samples = read_recording(args.bench)
+    factory = calibrate(samples)
+    msg = factory_set(args.device, factory)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(msg, indent=1))
+    for band in factory.bands:
+        harmonics = ", ".join(f"{m}: {np.degrees(np.hypot(a, b)):.3f}°" for m, (a, b) in sorted(band.harmonics.items()))
+        print(
+            f"band at {band.temp_c:.1f} °C: zero {np.degrees(band.zero_offset_rad):.3f}°, harmonics {harmonics}",
+        )
+    print(f"wrote {args.out}")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("calibrate", help="the factory coefficient set from a bench recording with a reference angle")
+    p.add_argument("bench", help="bench CSV: t, d, q, temp_c, theta_ref_deg")
+    p.add_argument("--out", required=True, help="the coefficient set (JSON) that `agent --factory` reads")
+    p.add_argument("--device", default="factory", help="device id written into the set")
+    p.set_defaults(func=cmd_calibrate)

@@ -1,0 +1,51 @@
+"""Never worse than the factory (issue 8), on drives from the independent simulator (encoder_fleet/fieldsim.py,
+written from the physics, not from encoder_core/simulator.py): the end-of-line calibration from a bench
+recording, and a small seeded fleet whose true angle error is scored against the factory set's."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from encoder_core.correction import BandedCorrection
+from encoder_fleet import fieldsim
+from encoder_fleet.calibrate import calibrate
+from encoder_fleet.fleet_accuracy import run_bench
+from encoder_fleet.recording import write_recording
+
+
+def test_calibrate_writes_the_factory_set_an_agent_reads(tmp_path):
+    rng = np.random.default_rng(11)
+    phys = fieldsim.draw_drive(rng)
+    bench = fieldsim.bench_sweep(phys, rng)
+    write_recording(bench, tmp_path / "bench.csv")
+    out = tmp_path / "factory.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "calibrate", str(tmp_path / "bench.csv"), "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    msg = json.loads(out.read_text())
+    assert msg["version"] == 0 and msg["basis"] == "factory" and all("bench_locus" in b for b in msg["bands"])
+    factory = BandedCorrection.from_dict({"bands": msg["bands"]})
+    assert factory.bands[0].harmonics  # the field harmonics the reference reveals are kept
+
+    # on the bench itself, against the reference: the factory set leaves almost nothing
+    def rms_deg(theta):
+        return float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * (theta - bench.theta_ref))) ** 2))))
+
+    raw = rms_deg(np.arctan2(bench.q, bench.d))
+    assert rms_deg(factory.angle(bench.d, bench.q, bench.temp_c)) < 0.2 * raw  # what is left is the noise
+    assert calibrate(bench).bands[0].harmonics.keys() == factory.bands[0].harmonics.keys()
+
+
+def test_a_small_fleet_of_independent_drives_is_never_worse_and_gains():
+    report = run_bench(drives=4, days=1.0, seeds=[5], rates=[20.0], windows={}, processes=2)
+    fleet = report["regimes"]["20 Hz, 60 s windows"]
+    assert fleet["drives"] == 4
+    assert fleet["worse_hours_pct"] <= 2.0, fleet  # hours where what the drive ran was worse than the factory's
+    assert fleet["worst_gain"] >= 0.95 and fleet["median_gain"] >= 1.5, fleet
