@@ -342,7 +342,8 @@ class FleetService:
             )
             return None
         bands = changed_bands(trial["message"], before)
-        evidence = TrialEvidence(trial["message"], before, self.store.stats_run_on(device, trial["version"], bands))
+        soak = self.store.stats_run_on(device, trial["version"], bands)
+        evidence = TrialEvidence(trial["message"], before, soak, factory=self.store.coefficient_set(device, 0))
         verdict = self.judge(evidence)
         if verdict.action == "wait":
             return None

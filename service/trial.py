@@ -14,10 +14,11 @@ import numpy as np
 
 from encoder_core.correction import BandedCorrection
 from encoder_core.ellipse import ellipse_correction, fit_ellipse
+from encoder_core.outcome import compare_sets, guard_decision
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 
-from .refit import difference_deg
+from .refit import bench_anchors, difference_deg
 
 MIN_SOAK_SAMPLES = 20000  # samples run on the trial set, summed over the bands it changed
 MAX_SOAK_SAMPLES = 200000  # past this, a set whose outcome cannot be measured is kept (and says so)
@@ -30,6 +31,7 @@ class TrialEvidence:
     trial: dict  # the set on trial (wire message)
     before: dict  # the confirmed set it replaced (wire message)
     soak: dict[int, WindowStats]  # band -> windows run on the trial set, in the bands it changed
+    factory: dict | None = None  # the factory set (wire message); its bench locus, when it has one, is the ruler
 
     @property
     def soak_samples(self) -> int:
@@ -49,6 +51,30 @@ def changed_bands(trial: dict, before: dict) -> set[int]:
 
 
 def judge(evidence: TrialEvidence) -> Verdict:
+    """With a factory set that carries its bench locus (`encoder-fleet calibrate`), both sets are measured
+    against the drift the soak shows since the bench (encoder_core/outcome.py: the field's harmonics cancel,
+    and the difference is known better than either error); otherwise by a fresh ellipse fit per band."""
+    anchors = (
+        bench_anchors(BandedCorrection.from_dict({"bands": evidence.factory["bands"]})) if evidence.factory else []
+    )
+    if anchors:
+        return judge_against_bench(evidence, anchors)
+    return judge_by_ellipse(evidence)
+
+
+def judge_against_bench(evidence: TrialEvidence, anchors) -> Verdict:
+    trial = BandedCorrection.from_dict({"bands": evidence.trial["bands"]})
+    before = BandedCorrection.from_dict({"bands": evidence.before["bands"]})
+    comparisons = []
+    for _, stats in sorted(evidence.soak.items()):
+        temp = stats.temp_mean
+        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp))
+        comparisons.append(compare_sets(stats, trial.at(temp), before.at(temp), factory, locus))
+    decision = guard_decision(comparisons, soak_samples=evidence.soak_samples)
+    return Verdict(decision.action, decision.reason)
+
+
+def judge_by_ellipse(evidence: TrialEvidence) -> Verdict:
     """Each band of the soak is fitted afresh (reference-free); the set whose angles stay closer to that
     fit is the better one there. Worse than the set before by more than SIGMAS times the fit's own
     scatter (and TOLERANCE_DEG) in any band: rollback."""

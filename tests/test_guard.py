@@ -120,3 +120,47 @@ def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
     assert set(after) == kept and sum(after.values()) < sum(before.values())
     assert sum(after.values()) == len([w for w in store.windows(DEVICE) if w["window_end"] > step_at])
     assert DEVICE in service._changed  # refitted on the next pass
+
+
+@pytest.mark.parametrize("offset_error", [0.0, 0.03])
+def test_the_guard_measures_against_the_bench_locus_on_an_independent_drive(fleet, offset_error):
+    """A drive from encoder_fleet/fieldsim.py, calibrated on its bench (the factory set carries the bench
+    locus): the trial is judged by the drift since the bench, not by a fresh ellipse."""
+    import numpy as np
+
+    from encoder_fleet import fieldsim
+    from encoder_fleet.calibrate import calibrate, factory_set
+
+    store, service = fleet
+    rng = np.random.default_rng(21)
+    phys = fieldsim.draw_drive(rng)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    msg = factory_set(DEVICE, factory)
+    store.insert_coefficient_set(msg)
+    store.mark_published(DEVICE, 0)
+    bands = [dict(b) for b in msg["bands"]]
+    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + offset_error, *bands[0]["w"][2:]]}
+    bands[0]["zero_offset_rad"] = bands[0]["zero_offset_rad"] + 1e-6
+    publish_trial(store, service, bands)
+    run = fieldsim.field_run(phys, days=0.1, rate_hz=20.0, regime="random", rng=rng, low_c=21.0, high_c=29.0)
+    scale = normalisation_scale(factory)
+    t = run.samples.t
+    for seq, start in enumerate(np.arange(t[0], t[-1], 60.0), start=1):
+        block = run.samples.subset((t >= start) & (t < start + 60.0))
+        stats = window_stats(block, scale)
+        if stats.temp_n == 0:
+            continue
+        store.insert_window(
+            wire.window_message(
+                DEVICE, seq, stats, window_start=float(block.t[0]), window_end=float(block.t[-1]),
+                temp_rate_c_per_s=0.0, coefficients_version=1, angle_quality_deg=0.1,
+            )
+        )  # fmt: skip
+    published = service.refit(DEVICE)
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    if offset_error == 0.0:
+        assert published is None and history[1]["state"] == "confirmed", history[1]["state_reason"]
+    else:
+        assert published == 2 and history[1]["state"] == "rolled_back", history[1]["state_reason"]
+        assert history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
+        assert "worse than the set before" in history[1]["state_reason"]
