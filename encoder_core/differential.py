@@ -394,3 +394,92 @@ def drift_slope(here: Drift, temp_here: float, lo: tuple[Drift, float], hi: tupl
         return (p_hi - p_lo) / (t_hi - t_lo)
 
     return slope
+
+
+MODEL_DEGREE = 2  # drift terms as polynomials in temperature: the tempcos are linear with a small square
+BENCH_PRIOR = 1e-4  # how far (rad) a term may have moved at the bench temperature since the bench (aging)
+MODEL_REACH_C = 10.0  # a band this far beyond the fitted ones still gets the model's prediction
+
+
+@dataclass
+class TermModel:
+    """One drift term against temperature: value and standard error anywhere, from a weighted fit."""
+
+    coef: np.ndarray  # polynomial in (T - bench), highest power first
+    cov: np.ndarray
+    bench_c: float
+
+    def at(self, temp_c: float) -> tuple[float, float]:
+        x = float(temp_c) - self.bench_c
+        basis = x ** np.arange(self.coef.size - 1, -1, -1)
+        return float(basis @ self.coef), float(np.sqrt(max(basis @ self.cov @ basis, 0.0)))
+
+
+@dataclass
+class DriftModel:
+    """The drift since the bench as a smooth function of temperature, from every band's fit at once.
+
+    The physics (seed 000 eq. 4-5): each channel's gain and offset and each axis move with temperature as a
+    line plus a small square, so every drift term does. One fit through all bands, with the bench as a soft
+    point (no drift at its temperature, give or take aging), pools their samples: a term too small for one
+    band's own error stands clear in the fit, and a band not yet visited (the first day, a new extreme) gets
+    its terms from the bands on either side, or the slope, instead of no correction at all. Where the bands
+    disagree with the curve more than their errors allow, the errors are scaled up by the misfit."""
+
+    terms: dict[str, TermModel]
+    temps: np.ndarray  # the fitted bands' temperatures
+
+    @classmethod
+    def fit(cls, fits: list[tuple[float, DriftFit]], bench_c: float, radius: float) -> DriftModel | None:
+        """fits: (band temperature, drift fit) of the bands that have one; None with fewer than two. The bench
+        point is left out when the bands say it no longer holds (a step since the bench)."""
+        if len(fits) < 2:
+            return None
+        with_bench = cls._fit(fits, bench_c, radius, bench=True)
+        if with_bench is not None and with_bench._bench_consistent(fits, bench_c, radius):
+            return with_bench
+        return cls._fit(fits, bench_c, radius, bench=False)
+
+    def _bench_consistent(self, fits, bench_c: float, radius: float) -> bool:
+        without = self._fit(fits, bench_c, radius, bench=False)
+        if without is None:
+            return True
+        for m in without.terms.values():
+            value, err = m.at(bench_c)
+            if abs(value) > 3.0 * np.hypot(err, BENCH_PRIOR):
+                return False
+        return True
+
+    @classmethod
+    def _fit(cls, fits, bench_c: float, radius: float, *, bench: bool) -> DriftModel | None:
+        temps = np.array([t for t, _ in fits] + ([bench_c] if bench else [])) - bench_c
+        degree = min(MODEL_DEGREE, max(len(temps) - 2, 1))  # a degree of freedom left to see misfit
+        design = np.vander(temps, degree + 1)
+        models = {}
+        for name in TERMS:
+            values = np.array([f.drift.terms(radius)[name] for _, f in fits] + ([0.0] if bench else []))
+            errors = np.array([f.errors[name] for _, f in fits] + ([BENCH_PRIOR] if bench else []))
+            ok = np.isfinite(errors) & (errors > 0)
+            rows, values, errors = design[ok], values[ok], errors[ok]
+            if rows.shape[0] < rows.shape[1]:
+                return None
+            w = 1.0 / errors
+            coef, *_ = np.linalg.lstsq(rows * w[:, None], values * w, rcond=None)
+            try:
+                cov = np.linalg.inv((rows * (w * w)[:, None]).T @ rows)
+            except np.linalg.LinAlgError:
+                return None
+            dof = rows.shape[0] - rows.shape[1]
+            if dof > 0:  # bands that disagree with the curve more than their errors allow: trust it less
+                chi2 = float(np.sum(((rows @ coef - values) * w) ** 2) / dof)
+                cov = cov * max(chi2, 1.0)
+            models[name] = TermModel(coef=coef, cov=cov, bench_c=bench_c)
+        return cls(terms=models, temps=np.array([t for t, _ in fits]))
+
+    def reaches(self, temp_c: float) -> bool:
+        return self.temps.min() - MODEL_REACH_C <= temp_c <= self.temps.max() + MODEL_REACH_C
+
+    def at(self, temp_c: float) -> tuple[dict[str, float], dict[str, float]]:
+        """Each term's value and standard error at a temperature."""
+        out = {name: m.at(temp_c) for name, m in self.terms.items()}
+        return {k: v for k, (v, _) in out.items()}, {k: e for k, (_, e) in out.items()}

@@ -4,14 +4,17 @@ Fleets of drives from the independent field simulator (encoder_fleet/fieldsim.py
 the end of the line by `encoder-fleet calibrate` on its own +20 °C bench sweep, then run for days in
 the field. The fleet loop runs in this process through the same code as the real parts: the agent's
 usable-sample mask and window statistics (edge_agent.agent.EdgeAgent), the window's band as the wire
-message computes it, band sums with the store's horizon, `service.refit.refit_device` on a refit
-cadence, the agent's plausibility check before applying a set, and the set applied from the next
-window on. Only the transport (Zenoh, SQLite) is left out, so that a fleet of drives × days × rates
-runs in minutes.
+message computes it, band sums with the store's drive-time horizon, the drift monitor restarting every
+band's memory after an offset step (as service.runtime does), `service.refit.refit_device` on a refit
+cadence with what the service passes it, the agent's plausibility check before applying a set, and the
+set applied from the next window on. The service's guard (trial and rollback) is not in this loop.
+Only the transport (Zenoh, SQLite) is left out, so that a fleet of drives × days × rates runs in
+minutes.
 
 Scoring uses the simulator's truth, which the loop never sees: the true angle error of what each drive
 ran (the factory set, then every applied set from the window after its refit), on noise-free signals
-at the samples' true angles and die temperatures, as an RMS per drive-hour.
+at the samples' true angles and die temperatures, as an RMS per drive-hour. Beside it, the
+reference-free floor (`floor_set`): the best any refit without a reference could have done.
 """
 
 from __future__ import annotations
@@ -25,18 +28,21 @@ import numpy as np
 
 from edge_agent.agent import check_plausible, temp_rate
 from encoder_core.correction import BandedCorrection
-from encoder_core.physics import band_of
+from encoder_core.methods import OursLsRef
+from encoder_core.monitor import DeviceMonitor, window_features
+from encoder_core.physics import BAND_WIDTH_C, band_of
 from encoder_core.samples import InputError, Samples
 from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from service.refit import estimate_lag, refit_device
+from service.runtime import BAND_HORIZON_H
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
 REFIT_EVERY_S = 3600.0
 # the service refits about once per drive-hour at the issue's replay speed
 LAG_EVERY_S = 6 * 3600.0  # thermal lag re-estimated every 6 drive-hours
-BAND_HORIZON = 1440  # newest windows per band in the refit's sums (service.runtime.BAND_HORIZON)
+BAND_HORIZON_S = BAND_HORIZON_H * 3600.0  # drive time a band's sum remembers, as the service's store
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
 # an hour is worse than the factory's when its RMS error is higher by over 1 % and over a millidegree
 WORSE_MARGIN = 0.01
@@ -64,6 +70,7 @@ class DriveResult:
     versions_applied: int
     factory_hour_deg: list[float] = field(default_factory=list)
     fleet_hour_deg: list[float] = field(default_factory=list)
+    floor_hour_deg: list[float] = field(default_factory=list)
 
     @property
     def factory_deg(self) -> float:
@@ -72,6 +79,15 @@ class DriveResult:
     @property
     def fleet_deg(self) -> float:
         return float(np.mean(self.fleet_hour_deg))
+
+    @property
+    def floor_deg(self) -> float:
+        return float(np.mean(self.floor_hour_deg))
+
+    @property
+    def floor_gain(self) -> float:
+        """The best gain any reference-free refit could reach on this drive (see `floor_set`)."""
+        return self.factory_deg / self.floor_deg if self.floor_deg > 0 else float("inf")
 
     @property
     def gain(self) -> float:
@@ -106,27 +122,42 @@ def windows_of(t: np.ndarray, window_s: float) -> list[tuple[int, int]]:
 
 
 class BandSums:
-    """Each band's sum of its newest `horizon` windows (what service/store.py keeps for the refit)."""
+    """Each band's sum of the windows that ended within `horizon_s` of its newest (what service/store.py keeps
+    for the refit), and the store's restart of every band's memory after a detected step."""
 
-    def __init__(self, horizon: int | None = BAND_HORIZON):
-        self.horizon = horizon
+    def __init__(self, horizon_s: float | None = BAND_HORIZON_S):
+        self.horizon_s = horizon_s
         self.windows: dict[int, deque] = {}
         self.sums: dict[int, WindowStats] = {}
-        # store additions: Σ window temperature × window bin counts, Σ window temperature rate × counts
+        # Σ window temperature × window bin counts, Σ window temperature rate × counts (per angle bin)
         self.bin_temps: dict[int, np.ndarray] = {}
         self.bin_rates: dict[int, np.ndarray] = {}
 
-    def add(self, band: int, stats: WindowStats, rate: float = 0.0) -> None:
+    def add(self, band: int, stats: WindowStats, end_s: float, rate: float = 0.0) -> None:
         kept = self.windows.setdefault(band, deque())
-        kept.append((stats, rate))
+        kept.append((end_s, stats, rate))
         self.sums[band] = self.sums[band].merge(stats) if band in self.sums else stats
         self.bin_temps[band] = self.bin_temps.get(band, 0.0) + stats.temp_mean * stats.bins[:, 0]
         self.bin_rates[band] = self.bin_rates.get(band, 0.0) + rate * stats.bins[:, 0]
-        if self.horizon and len(kept) > self.horizon:
-            old, old_rate = kept.popleft()
-            self.sums[band] = self.sums[band].subtract(old)
-            self.bin_temps[band] = self.bin_temps[band] - old.temp_mean * old.bins[:, 0]
-            self.bin_rates[band] = self.bin_rates[band] - old_rate * old.bins[:, 0]
+        if self.horizon_s:
+            self._forget(band, lambda end: end < end_s - self.horizon_s)
+
+    def restart(self, after_s: float) -> None:
+        """Forget the windows that ended at or before `after_s` in every band (Store.restart_band_memory)."""
+        for band in list(self.windows):
+            self._forget(band, lambda end: end <= after_s)
+
+    def _forget(self, band: int, old) -> None:
+        kept = self.windows[band]
+        while kept and old(kept[0][0]):
+            _, stats, rate = kept.popleft()
+            if not kept:
+                for table in (self.windows, self.sums, self.bin_temps, self.bin_rates):
+                    table.pop(band, None)
+                return
+            self.sums[band] = self.sums[band].subtract(stats)
+            self.bin_temps[band] = self.bin_temps[band] - stats.temp_mean * stats.bins[:, 0]
+            self.bin_rates[band] = self.bin_rates[band] - rate * stats.bins[:, 0]
 
 
 def run_drive(spec: DriveSpec) -> DriveResult:
@@ -136,6 +167,7 @@ def run_drive(spec: DriveSpec) -> DriveResult:
     run = fieldsim.field_run(phys, days=spec.days, rate_hz=spec.rate_hz, regime=spec.motion, rng=rng)
     timeline = fleet_loop(run.samples, factory, window_s=spec.window_s)
     factory_hours, fleet_hours = score(run, factory, timeline)
+    floor_hours = score_floor(run, factory)
     return DriveResult(
         name=spec.name,
         motion=spec.motion,
@@ -144,6 +176,7 @@ def run_drive(spec: DriveSpec) -> DriveResult:
         versions_applied=len(timeline) - 1,
         factory_hour_deg=factory_hours,
         fleet_hour_deg=fleet_hours,
+        floor_hour_deg=floor_hours,
     )
 
 
@@ -153,12 +186,16 @@ def fleet_loop(
     *,
     window_s: float,
     refit_every_s: float = REFIT_EVERY_S,
-    bin_temps: bool = True,
+    bin_temps: bool = False,  # the per-bin temperatures are not kept by the service's store yet
+    horizon_s: float | None = BAND_HORIZON_S,
+    monitor: bool = True,
 ) -> list[tuple[float, BandedCorrection]]:
-    """The agent's windows, the service's band sums and refits, the agent applying sets: returns the
-    timeline of what the drive ran, as (from drive time, set)."""
+    """The agent's windows, the service's band sums and refits, the drift monitor restarting band memory
+    after a step (service.runtime), the agent applying sets: returns the timeline of what the drive ran,
+    as (from drive time, set)."""
     scale = normalisation_scale(factory)  # the agent's normalisation
-    sums = BandSums()
+    sums = BandSums(horizon_s)
+    watch = DeviceMonitor("drive") if monitor else None
     running = factory
     timeline = [(float(samples.t[0]), factory)]
     next_refit = float(samples.t[0]) + refit_every_s
@@ -172,7 +209,12 @@ def fleet_loop(
         stats = window_stats(block, scale)  # the agent's own code path
         if stats.temp_n == 0:
             continue
-        sums.add(band_of(stats.temp_mean), stats, temp_rate(block))
+        band, end_s = band_of(stats.temp_mean), float(block.t[-1])
+        sums.add(band, stats, end_s, temp_rate(block))
+        if watch is not None:
+            for event in watch.update(window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band)):
+                if event.cause == "offset_step" and event.kind == "raise":
+                    sums.restart(after_s=event.at)
         if block.t[-1] >= next_refit:
             next_refit += refit_every_s
             if bin_temps and block.t[-1] >= next_lag:  # a device constant: estimated now and then, then cached
@@ -222,6 +264,39 @@ def score(run: fieldsim.FieldRun, factory: BandedCorrection, timeline) -> tuple[
     return [f for f, _ in per_hour], [g for _, g in per_hour]
 
 
+FLOOR_TEMPS_C = np.arange(-35.0, 95.0, BAND_WIDTH_C)  # the floor set's bands: one per band, across the range
+
+
+def floor_set(phys: fieldsim.DrivePhysics, factory: BandedCorrection, t_s: float) -> BandedCorrection:
+    """What a perfect reference-free refit would send at drive time t_s: each band fitted against the truth
+    (noise-free channels at 3600 true angles, the band's temperature at the die), then its zero turned to the
+    factory's on average around the locus (as the refit's anchor_zero does). The windows cannot see a rotation
+    of both sensor axes together (it is a shift of the zero), so no refit without a reference beats this."""
+    theta = np.arange(3600) * (2 * np.pi / 3600)
+    bands = []
+    for temp in FLOOR_TEMPS_C:
+        d, q = phys.channels(theta, np.full(theta.size, temp), np.full(theta.size, t_s))
+        corr, _ = OursLsRef().fit_band(
+            Samples(t=theta, d=d, q=q, temp_c=np.full(theta.size, temp), theta_ref=theta), None
+        )
+        ld, lq = corr.locus()
+        shift = np.angle(np.mean(np.exp(1j * (factory.at(temp).angle(ld, lq) - corr.angle(ld, lq)))))
+        corr.zero_offset_rad = float(corr.zero_offset_rad + shift)
+        corr.temp_c = float(temp)
+        bands.append(corr)
+    return BandedCorrection(bands)
+
+
+def score_floor(run: fieldsim.FieldRun, factory: BandedCorrection) -> list[float]:
+    """RMS true angle error per drive-hour of the reference-free floor, its set refreshed every 6 hours (aging,
+    planted steps: the floor knows them at once)."""
+    t = run.samples.t
+    timeline = [
+        (float(start), floor_set(run.physics, factory, float(start))) for start in np.arange(t[0], t[-1], 6 * 3600.0)
+    ]
+    return score(run, factory, timeline)[1]
+
+
 def summarise(results: list[DriveResult]) -> dict:
     gains = np.array([r.gain for r in results])
     hours = sum(len(r.fleet_hour_deg) for r in results)
@@ -233,6 +308,7 @@ def summarise(results: list[DriveResult]) -> dict:
         "factory_deg": float(np.median([r.factory_deg for r in results])),
         "fleet_deg": float(np.median([r.fleet_deg for r in results])),
         "median_gain": float(np.median(gains)),
+        "floor_median_gain": float(np.median([r.floor_gain for r in results])),
         "worst_gain": float(gains.min()),
         "worst_drive": worst.name,
         "worse_hours": worse,
@@ -272,6 +348,7 @@ def run_bench(
     for r in results:
         row = {k: v for k, v in asdict(r).items() if not k.endswith("hour_deg")}
         row.update(factory_deg=r.factory_deg, fleet_deg=r.fleet_deg, gain=r.gain, worse_hours=r.worse_hours)
+        row.update(floor_deg=r.floor_deg, floor_gain=r.floor_gain)
         report["drives"].append(row)
     return report
 
@@ -283,13 +360,15 @@ def default_window(rate_hz: float) -> float:
 
 def format_report(report: dict) -> str:
     lines = [
-        "| regime | drives | drive-hours | factory ° | fleet ° | median gain | worst drive gain | worse hours |",
-        "|---|---|---|---|---|---|---|---|",
+        "| regime | drives | drive-hours | factory ° | fleet ° | median gain | reference-free floor | worst drive gain "
+        "| worse hours |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, s in report["regimes"].items():
         lines.append(
             f"| {name} | {s['drives']} | {s['drive_hours']} | {s['factory_deg']:.4f} | {s['fleet_deg']:.4f} | "
-            f"{s['median_gain']:.1f}× | {s['worst_gain']:.2f}× | {s['worse_hours']} ({s['worse_hours_pct']:.1f} %, "
+            f"{s['median_gain']:.1f}× | {s['floor_median_gain']:.1f}× | {s['worst_gain']:.2f}× | "
+            f"{s['worse_hours']} ({s['worse_hours_pct']:.1f} %, "
             f"worst drive {s['max_drive_worse_hours_pct']:.1f} %) |"
         )
     lines.append(f"\n{len(report['drives'])} drives in {report['elapsed_s']:.0f} s")

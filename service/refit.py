@@ -25,6 +25,7 @@ from encoder_core.differential import (
     BenchLocus,
     Drift,
     DriftFit,
+    DriftModel,
     anchor_zero,
     compose,
     drift_slope,
@@ -33,7 +34,7 @@ from encoder_core.differential import (
     temperature_adjust,
 )
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
-from encoder_core.physics import REFERENCE_TEMP_C, circular_mean, wrap_rad
+from encoder_core.physics import BAND_WIDTH_C, REFERENCE_TEMP_C, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 from fleet_wire import messages as wire
@@ -169,10 +170,19 @@ def refit_from_bench(
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
     count in each angle bin; with it each band's bins are first taken to the band's mean temperature."""
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
+    model = drift_model(fits)
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
-    for band, (fit, stats, factory, locus) in sorted(fits.items()):
-        corr, quality, err_new = drift_candidate(fit, stats, factory, locus)
+    for band, temp_c, stats in model_bands(fits, model):
+        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp_c))
+        if model is not None:
+            terms, errors = model.at(temp_c)
+            chi2 = fits[band][0].chi2_dof if band in fits else None
+        else:
+            fit = fits[band][0]
+            terms, errors, chi2 = fit.drift.terms(locus.radius), fit.errors, fit.chi2_dof
+        corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus)
+        quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
         now = running.at(corr.temp_c)
         err_now = difference_deg(now, corr)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
@@ -182,7 +192,7 @@ def refit_from_bench(
             BandDecision(
                 band=band,
                 temp_c=corr.temp_c,
-                samples=stats.n,
+                samples=quality["samples"],
                 running_error_deg=err_now,
                 candidate_error_deg=err_new,
                 adopted=adopt,
@@ -250,23 +260,41 @@ def band_index(corr: Correction) -> int:
     return int(np.floor((corr.temp_c if corr.temp_c is not None else REFERENCE_TEMP_C) / 10.0))
 
 
+def drift_model(fits) -> DriftModel | None:
+    """All bands' drift fits as one smooth function of temperature (None with fewer than two bands)."""
+    if not fits:
+        return None
+    locus = next(iter(fits.values()))[3]
+    return DriftModel.fit([(stats.temp_mean, fit) for fit, stats, _, _ in fits.values()], locus.temp_c, locus.radius)
+
+
+def model_bands(fits, model: DriftModel | None):
+    """(band, temperature, statistics or None) of every band the refit speaks for: the fitted ones at their
+    mean temperature, and with a model, the unvisited bands within its reach at their centre."""
+    out = {band: (band, stats.temp_mean, stats) for band, (_, stats, _, _) in fits.items()}
+    if model is not None:
+        lo, hi = min(fits), max(fits)
+        for band in range(lo - 1, hi + 2):
+            centre = (band + 0.5) * BAND_WIDTH_C
+            if band not in out and model.reaches(centre):
+                out[band] = (band, centre, None)
+    return [out[b] for b in sorted(out)]
+
+
 def drift_candidate(
-    fit: DriftFit, stats: WindowStats, factory: Correction, locus: BenchLocus
+    terms: dict[str, float], errors: dict[str, float], temp_c: float, factory: Correction, locus: BenchLocus
 ) -> tuple[Correction, dict, float]:
-    """The factory's correction after the band's supported drift terms, with its quality and uncertainty (deg)."""
+    """The factory's correction after the supported drift terms, with its quality and uncertainty (deg)."""
     radius = locus.radius
-    terms = fit.drift.terms(radius)
-    kept = gate(terms, fit.errors)
-    drift = Drift.from_terms(kept, fit.drift.bench_center, radius)
+    kept = gate(terms, errors)
+    drift = Drift.from_terms(kept, np.array([locus.d[0], locus.q[0]]), radius)
     corr = anchor_zero(compose(factory, drift), factory, locus, drift)
-    corr.temp_c = stats.temp_mean
+    corr.temp_c = float(temp_c)
     adopted = [t for t in TERMS if kept[t] != 0.0]
-    err = float(np.degrees(np.sqrt(sum(fit.errors[t] ** 2 for t in adopted)))) if adopted else 0.0
+    err = float(np.degrees(np.sqrt(sum(errors[t] ** 2 for t in adopted)))) if adopted else 0.0
     quality = {
-        "samples": stats.n,
         "drift_terms": {t: kept[t] for t in TERMS},
-        "drift_errors": {t: fit.errors[t] if np.isfinite(fit.errors[t]) else None for t in TERMS},
-        "chi2_dof": fit.chi2_dof,
+        "drift_errors": {t: errors[t] if np.isfinite(errors[t]) else None for t in TERMS},
     }
     return corr, quality, err
 
