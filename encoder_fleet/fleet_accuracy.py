@@ -289,11 +289,11 @@ def floor_set(phys: fieldsim.DrivePhysics, factory: BandedCorrection, t_s: float
 
 def score_floor(run: fieldsim.FieldRun, factory: BandedCorrection) -> list[float]:
     """RMS true angle error per drive-hour of the reference-free floor, its set refreshed every 6 hours (aging,
-    planted steps: the floor knows them at once)."""
+    planted steps: the floor knows them the moment they happen)."""
     t = run.samples.t
-    timeline = [
-        (float(start), floor_set(run.physics, factory, float(start))) for start in np.arange(t[0], t[-1], 6 * 3600.0)
-    ]
+    events = [e.t_s for e in run.physics.events if t[0] < e.t_s < t[-1]]
+    starts = sorted({*np.arange(t[0], t[-1], 6 * 3600.0).tolist(), *events})
+    timeline = [(float(start), floor_set(run.physics, factory, float(start))) for start in starts]
     return score(run, factory, timeline)[1]
 
 
