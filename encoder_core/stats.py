@@ -39,6 +39,10 @@ class WindowStats:
     temp_min: float = float("inf")
     temp_max: float = float("-inf")
     rejected: int = 0  # samples kept out: clipped, non-finite or implausible radius
+    # Σ over merged windows of the window's mean temperature × its count in each angle bin: when in a band each
+    # angle was seen (a drive that reverses or dwells sees some angles only while the band is warm). None for
+    # one window, where it follows from temp_mean and the counts; not on the wire, kept by the store's sums.
+    bin_temp: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -47,6 +51,12 @@ class WindowStats:
     @property
     def temp_mean(self) -> float:
         return self.temp_sum / self.temp_n if self.temp_n else float("nan")
+
+    def bin_temps(self) -> np.ndarray:
+        """Σ window mean temperature × count per angle bin (see bin_temp)."""
+        if self.bin_temp is not None:
+            return self.bin_temp
+        return (self.temp_mean if self.temp_n else 0.0) * self.bins[:, 0]
 
     def normalise(self, d, q) -> tuple[np.ndarray, np.ndarray]:
         return (np.asarray(d, float) - self.center_d) / self.scale, (np.asarray(q, float) - self.center_q) / self.scale
@@ -92,6 +102,7 @@ class WindowStats:
             temp_min=min(self.temp_min, other.temp_min),
             temp_max=max(self.temp_max, other.temp_max),
             rejected=self.rejected + other.rejected,
+            bin_temp=self.bin_temps() + other.bin_temps(),
         )
 
     def subtract(self, other: WindowStats) -> WindowStats:
@@ -110,6 +121,7 @@ class WindowStats:
             temp_min=self.temp_min,
             temp_max=self.temp_max,
             rejected=self.rejected - other.rejected,
+            bin_temp=self.bin_temps() - other.bin_temps(),
         )
 
     def moment(self, i: int, j: int) -> float:

@@ -26,7 +26,7 @@ from multiprocessing import Pool
 
 import numpy as np
 
-from edge_agent.agent import check_plausible, temp_rate
+from edge_agent.agent import check_plausible
 from encoder_core.correction import BandedCorrection
 from encoder_core.methods import OursLsRef
 from encoder_core.monitor import DeviceMonitor, window_features
@@ -35,13 +35,12 @@ from encoder_core.samples import InputError, Samples
 from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from service.refit import estimate_lag, refit_device
+from service.refit import refit_device
 from service.runtime import BAND_HORIZON_H
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
 REFIT_EVERY_S = 3600.0
 # the service refits about once per drive-hour at the replay speed
-LAG_EVERY_S = 6 * 3600.0  # thermal lag re-estimated every 6 drive-hours
 BAND_HORIZON_S = BAND_HORIZON_H * 3600.0  # drive time a band's sum remembers, as the service's store
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
 # an hour is worse than the factory's when its RMS error is higher by over 1 % and over a millidegree
@@ -129,16 +128,11 @@ class BandSums:
         self.horizon_s = horizon_s
         self.windows: dict[int, deque] = {}
         self.sums: dict[int, WindowStats] = {}
-        # Σ window temperature × window bin counts, Σ window temperature rate × counts (per angle bin)
-        self.bin_temps: dict[int, np.ndarray] = {}
-        self.bin_rates: dict[int, np.ndarray] = {}
 
-    def add(self, band: int, stats: WindowStats, end_s: float, rate: float = 0.0) -> None:
+    def add(self, band: int, stats: WindowStats, end_s: float) -> None:
         kept = self.windows.setdefault(band, deque())
-        kept.append((end_s, stats, rate))
+        kept.append((end_s, stats))
         self.sums[band] = self.sums[band].merge(stats) if band in self.sums else stats
-        self.bin_temps[band] = self.bin_temps.get(band, 0.0) + stats.temp_mean * stats.bins[:, 0]
-        self.bin_rates[band] = self.bin_rates.get(band, 0.0) + rate * stats.bins[:, 0]
         if self.horizon_s:
             self._forget(band, lambda end: end < end_s - self.horizon_s)
 
@@ -150,14 +144,11 @@ class BandSums:
     def _forget(self, band: int, old) -> None:
         kept = self.windows[band]
         while kept and old(kept[0][0]):
-            _, stats, rate = kept.popleft()
+            _, stats = kept.popleft()
             if not kept:
-                for table in (self.windows, self.sums, self.bin_temps, self.bin_rates):
-                    table.pop(band, None)
+                del self.windows[band], self.sums[band]
                 return
             self.sums[band] = self.sums[band].subtract(stats)
-            self.bin_temps[band] = self.bin_temps[band] - stats.temp_mean * stats.bins[:, 0]
-            self.bin_rates[band] = self.bin_rates[band] - rate * stats.bins[:, 0]
 
 
 def run_drive(spec: DriveSpec) -> DriveResult:
@@ -186,7 +177,6 @@ def fleet_loop(
     *,
     window_s: float,
     refit_every_s: float = REFIT_EVERY_S,
-    bin_temps: bool = False,  # the per-bin temperatures are not kept by the service's store yet
     horizon_s: float | None = BAND_HORIZON_S,
     monitor: bool = True,
 ) -> list[tuple[float, BandedCorrection]]:
@@ -199,7 +189,6 @@ def fleet_loop(
     running = factory
     timeline = [(float(samples.t[0]), factory)]
     next_refit = float(samples.t[0]) + refit_every_s
-    next_lag, lag = float(samples.t[0]) + LAG_EVERY_S, 0.0
     pending: BandedCorrection | None = None
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
@@ -210,24 +199,15 @@ def fleet_loop(
         if stats.temp_n == 0:
             continue
         band, end_s = band_of(stats.temp_mean), float(block.t[-1])
-        sums.add(band, stats, end_s, temp_rate(block))
+        sums.add(band, stats, end_s)
         if watch is not None:
             for event in watch.update(window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band)):
                 if event.cause == "offset_step" and event.kind == "raise":
                     sums.restart(after_s=event.at)
-        if block.t[-1] >= next_refit:
+        if end_s >= next_refit:
             next_refit += refit_every_s
-            if bin_temps and block.t[-1] >= next_lag:  # a device constant: estimated now and then, then cached
-                next_lag += LAG_EVERY_S
-                lag, _ = estimate_lag(sums.sums, factory, sums.bin_temps, sums.bin_rates)
-            result = refit_device(
-                sums.sums,
-                running,
-                factory,
-                bin_temps=sums.bin_temps if bin_temps else None,
-                bin_rates=sums.bin_rates,
-                lag_s=lag,
-            )
+            bin_temps = {b: s.bin_temps() for b, s in sums.sums.items()}  # what service.runtime passes
+            result = refit_device(sums.sums, running, factory, bin_temps=bin_temps)
             if result.changed:
                 candidate = BandedCorrection.from_dict({"bands": result.bands})
                 try:

@@ -90,66 +90,16 @@ def refit_device(
     *,
     min_samples: int = MIN_BAND_SAMPLES,
     bin_temps: dict[int, np.ndarray] | None = None,
-    bin_rates: dict[int, np.ndarray] | None = None,
-    lag_s: float = 0.0,
 ) -> RefitResult:
     """The device's next set (or the reasons for none) from its band statistics.
 
-    bin_temps, bin_rates (optional, per band, additive over its windows): Σ window mean temperature ×
-    window count per angle bin, and Σ window temperature rate (°C/s) × count; lag_s: how far the hall
-    die lags the reported temperature. With them each band's bins are taken to the band's temperature
+    bin_temps (optional, per band, additive over its windows: WindowStats.bin_temps): Σ window mean
+    temperature × window count per angle bin. With them each band's bins are taken to the band's temperature
     first (see encoder_core.differential.temperature_adjust)."""
     anchors = bench_anchors(factory)
     if anchors:
-        temps = die_temps(bin_temps, bin_rates, lag_s)
-        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples, bin_temps=temps)
+        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples, bin_temps=bin_temps)
     return refit_legacy(band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES))
-
-
-LAGS_S = (0.0, 60.0, 120.0, 240.0, 360.0, 480.0, 600.0, 900.0, 1200.0)  # hall die behind the reported temperature
-
-
-def estimate_lag(
-    band_stats: dict[int, WindowStats],
-    factory: BandedCorrection,
-    bin_temps: dict[int, np.ndarray],
-    bin_rates: dict[int, np.ndarray],
-    *,
-    min_samples: int = MIN_BAND_SAMPLES,
-    lags_s=LAGS_S,
-) -> tuple[float, dict[float, float]]:
-    """The die's thermal lag (s) that makes the bands' drift fits most consistent, by scanning: with the wrong
-    lag a drive that visits angles unevenly shows its locus at mixed die temperatures and fits badly.
-    Returns the lag and the mean χ²/dof at each lag tried (a device constant: the service may cache it)."""
-    anchors = bench_anchors(factory)
-    scores = {}
-    for lag in lags_s:
-        fits = band_fits(band_stats, anchors, min_samples, die_temps(bin_temps, bin_rates, lag), errors=False)
-        if fits:
-            scores[float(lag)] = float(np.mean([f.chi2_dof for f, *_ in fits.values()]))
-    if not scores:
-        return 0.0, {}
-    return refine_minimum(scores), scores
-
-
-def refine_minimum(scores: dict[float, float]) -> float:
-    """The scan's best lag, refined by a parabola through it and its neighbours."""
-    lags = sorted(scores)
-    k = min(range(len(lags)), key=lambda i: scores[lags[i]])
-    if k == 0 or k == len(lags) - 1:
-        return lags[k]
-    x = np.array(lags[k - 1 : k + 2])
-    a, b, _ = np.polyfit(x, [scores[v] for v in x], 2)
-    return float(np.clip(-b / (2 * a), x[0], x[2])) if a > 0 else lags[k]
-
-
-def die_temps(bin_temps, bin_rates, lag_s: float) -> dict[int, np.ndarray] | None:
-    """Per-bin sums of the die's temperature: the reported one less lag × its rate (a first-order lag)."""
-    if not bin_temps:
-        return None
-    if not bin_rates or not lag_s:
-        return bin_temps
-    return {b: s - lag_s * bin_rates.get(b, 0.0) for b, s in bin_temps.items()}
 
 
 def bench_anchors(factory: BandedCorrection | None) -> list[tuple[Correction, BenchLocus]]:

@@ -29,7 +29,9 @@ from service.trial import judge as default_judge
 
 log = logging.getLogger("service")
 MAX_BATCH = 500  # messages per ingest transaction
-BAND_HORIZON_H = 168.0  # drive hours a band's sum remembers: a week, enough samples at 0.5 Hz in a rare band
+# drive hours a band's sum remembers: short enough to follow a step within half a day, long enough for the
+# drift model that pools all bands (bench-fleet-accuracy: 12 h beat 24 h and a week at 0.5 and 20 Hz)
+BAND_HORIZON_H = 12.0
 
 
 @dataclass
@@ -301,7 +303,8 @@ class FleetService:
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
-        result = refit_device(band_stats, running, factory, min_samples=self.min_band_samples)
+        bin_temps = {band: stats.bin_temps() for band, stats in band_stats.items()}
+        result = refit_device(band_stats, running, factory, min_samples=self.min_band_samples, bin_temps=bin_temps)
         with self._lock:
             self.counters.refits += 1
         if not result.changed:

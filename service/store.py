@@ -25,6 +25,7 @@ from importlib import resources
 from importlib.resources.abc import Traversable
 
 import msgspec
+import numpy as np
 
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -71,6 +72,18 @@ def _json(value) -> str:
 
 def _pack(stats: WindowStats) -> bytes:
     return wire.pack_stats(wire.packed_stats(stats))
+
+
+def _pack_bin_temp(stats: WindowStats) -> bytes:
+    return np.ascontiguousarray(stats.bin_temps(), "<f8").tobytes()
+
+
+def _band_sum(row: sqlite3.Row) -> WindowStats:
+    """A stored band sum with its per-bin temperatures (migration 055; older sums fall back to the mean)."""
+    stats = Store._stats_of(row).window_stats()
+    if row["bin_temp"] is not None:
+        stats.bin_temp = np.frombuffer(row["bin_temp"], "<f8").copy()
+    return stats
 
 
 @dataclass
@@ -287,9 +300,10 @@ class Store:
         bands = self._bands.get(device)
         if bands is None:
             bands = self._bands[device] = {
-                r["band"]: [self._stats_of(r).window_stats(), r["windows"], r["samples"], r["first_seq"]]
+                r["band"]: [_band_sum(r), r["windows"], r["samples"], r["first_seq"]]
                 for r in self._conn.execute(
-                    "SELECT band, stats, stats_json, windows, samples, first_seq FROM band_stats WHERE device = ?",
+                    "SELECT band, stats, stats_json, bin_temp, windows, samples, first_seq FROM band_stats "
+                    "WHERE device = ?",
                     (device,),
                 )
             }
@@ -385,10 +399,11 @@ class Store:
                 for r in kept[1:]:
                     total = total.merge(self._stats_of(r).window_stats())
                 c.execute(
-                    "UPDATE band_stats SET stats_json = '', stats = ?, windows = ?, samples = ?, first_seq = ?, "
-                    "updated_at = ? WHERE device = ? AND band = ?",
+                    "UPDATE band_stats SET stats_json = '', stats = ?, bin_temp = ?, windows = ?, samples = ?, "
+                    "first_seq = ?, updated_at = ? WHERE device = ? AND band = ?",
                     (
                         _pack(total),
+                        _pack_bin_temp(total),
                         len(kept),
                         sum(r["samples"] for r in kept),
                         kept[0]["seq"],
@@ -441,11 +456,14 @@ class Store:
         if bands and batch.dirty:
             sums = [(device, band, self._bands[device][band]) for device, band in batch.dirty]
             c.executemany(
-                "INSERT INTO band_stats (device, band, stats_json, stats, windows, samples, updated_at, first_seq) "
-                "VALUES (?, ?, '', ?, ?, ?, ?, ?) ON CONFLICT(device, band) DO UPDATE SET stats_json = '', "
-                "stats = excluded.stats, windows = excluded.windows, samples = excluded.samples, "
-                "updated_at = excluded.updated_at, first_seq = excluded.first_seq",
-                [(device, band, _pack(e[0]), e[1], e[2], batch.now, e[3]) for device, band, e in sums],
+                "INSERT INTO band_stats (device, band, stats_json, stats, bin_temp, windows, samples, updated_at, "
+                "first_seq) VALUES (?, ?, '', ?, ?, ?, ?, ?, ?) ON CONFLICT(device, band) DO UPDATE SET "
+                "stats_json = '', stats = excluded.stats, bin_temp = excluded.bin_temp, windows = excluded.windows, "
+                "samples = excluded.samples, updated_at = excluded.updated_at, first_seq = excluded.first_seq",
+                [
+                    (device, band, _pack(e[0]), _pack_bin_temp(e[0]), e[1], e[2], batch.now, e[3])
+                    for device, band, e in sums
+                ],
             )
             batch.dirty = set()
 
