@@ -150,6 +150,17 @@ class BandedCorrection:
             raise InputError("every band of a banded correction needs its temperature")
         self.bands = sorted(self.bands, key=lambda b: b.temp_c if b.temp_c is not None else 0.0)
 
+    def offsets_moved(self, delta_d: float, delta_q: float) -> BandedCorrection:
+        """The same set for channels whose offsets moved by (delta_d, delta_q) raw units at every temperature:
+        what an offset step does (a knocked magnet, a shifted sensor), the rest of each band as it was."""
+        moved = []
+        for b in self.bands:
+            out = Correction(**{**b.__dict__, "harmonics": dict(b.harmonics)})
+            out.w2 = b.w2 - b.w1 * delta_d  # u1 = w1·(d - Δd) + w2
+            out.w4 = b.w4 - b.w3 * delta_q  # u2 = w3·(q - Δq) + w4 + w5·u1
+            moved.append(out)
+        return BandedCorrection(moved)
+
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
         orders, p = self._interpolated(np.array([float(temp_c)]))

@@ -35,7 +35,7 @@ from encoder_core.samples import InputError, Samples
 from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from service.refit import refit_device
+from service.refit import STEP_OPEN_S, refit_device
 from service.runtime import BAND_HORIZON_H
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
@@ -179,6 +179,7 @@ def fleet_loop(
     refit_every_s: float = REFIT_EVERY_S,
     horizon_s: float | None = BAND_HORIZON_S,
     monitor: bool = True,
+    step_shift: bool = False,
 ) -> list[tuple[float, BandedCorrection]]:
     """The agent's windows, the service's band sums and refits, the drift monitor restarting band memory
     after a step (service.runtime), the agent applying sets: returns the timeline of what the drive ran,
@@ -190,6 +191,7 @@ def fleet_loop(
     timeline = [(float(samples.t[0]), factory)]
     next_refit = float(samples.t[0]) + refit_every_s
     pending: BandedCorrection | None = None
+    step_at = None
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
         if pending is not None:  # the agent applies what arrived before this window
@@ -204,10 +206,15 @@ def fleet_loop(
             for event in watch.update(window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band)):
                 if event.cause == "offset_step" and event.kind == "raise":
                     sums.restart(after_s=event.at)
+                    step_at = event.at
+                    if step_shift:
+                        p = event.parameters
+                        pending = (pending or running).offsets_moved(p["delta_d"] * scale, p["delta_q"] * scale)
         if end_s >= next_refit:
             next_refit += refit_every_s
             bin_temps = {b: s.bin_temps() for b, s in sums.sums.items()}  # what service.runtime passes
-            result = refit_device(sums.sums, running, factory, bin_temps=bin_temps)
+            after_step = step_at is not None and end_s - step_at < STEP_OPEN_S
+            result = refit_device(sums.sums, running, factory, bin_temps=bin_temps, after_step=after_step)
             if result.changed:
                 candidate = BandedCorrection.from_dict({"bands": result.bands})
                 try:

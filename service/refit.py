@@ -43,6 +43,7 @@ MIN_BAND_SAMPLES = 2000  # a drift fit's own standard errors decide what it may 
 LEGACY_MIN_SAMPLES = 20000  # without a bench locus the density harmonics need many more
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
 MIN_GAIN_DEG = 0.01  # … and by at least this much
+STEP_OPEN_S = 86400.0  # drive time after an offset step in which bands with no data since may be moved
 
 
 @dataclass
@@ -61,10 +62,11 @@ class BandDecision:
 class RefitResult:
     bands: list[dict]  # the coefficient set's band entries (docs/wire.md)
     decisions: list[BandDecision] = field(default_factory=list)
+    moved_bands: list[int] = field(default_factory=list)  # running bands moved by an offset change (offset_move)
 
     @property
     def changed(self) -> bool:
-        return any(d.adopted for d in self.decisions)
+        return any(d.adopted for d in self.decisions) or bool(self.moved_bands)
 
 
 def difference_deg(running: Correction, candidate: Correction) -> float:
@@ -90,15 +92,21 @@ def refit_device(
     *,
     min_samples: int = MIN_BAND_SAMPLES,
     bin_temps: dict[int, np.ndarray] | None = None,
+    after_step: bool = False,
 ) -> RefitResult:
     """The device's next set (or the reasons for none) from its band statistics.
+
+    after_step: the monitor saw the channel offsets step (an open offset_step alarm): bands with no data since
+    keep the running set moved by the offset change the fitted bands agree on (offset_move).
 
     bin_temps (optional, per band, additive over its windows: WindowStats.bin_temps): Σ window mean
     temperature × window count per angle bin. With them each band's bins are taken to the band's temperature
     first (see encoder_core.differential.temperature_adjust)."""
     anchors = bench_anchors(factory)
     if anchors:
-        return refit_from_bench(band_stats, running, anchors, min_samples=min_samples, bin_temps=bin_temps)
+        return refit_from_bench(
+            band_stats, running, anchors, min_samples=min_samples, bin_temps=bin_temps, after_step=after_step
+        )
     return refit_legacy(band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES))
 
 
@@ -116,6 +124,7 @@ def refit_from_bench(
     *,
     min_samples: int = MIN_BAND_SAMPLES,
     bin_temps: dict[int, np.ndarray] | None = None,
+    after_step: bool = False,
 ) -> RefitResult:
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
     count in each angle bin; with it each band's bins are first taken to the band's mean temperature."""
@@ -123,6 +132,7 @@ def refit_from_bench(
     model = drift_model(fits)
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
+    moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
     for band, temp_c, stats in model_bands(fits, model):
         factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp_c))
         if model is not None:
@@ -134,6 +144,10 @@ def refit_from_bench(
         corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus)
         quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
         now = running.at(corr.temp_c)
+        if stats is not None:
+            moves.append(
+                (centre(corr) - centre(now), locus.radius * np.array([errors["offset_d"], errors["offset_q"]]))
+            )
         err_now = difference_deg(now, corr)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         entry = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
@@ -152,13 +166,44 @@ def refit_from_bench(
         )
     if not result.decisions:
         return result
-    for corr in running.bands:  # what the refit says nothing about stays as the device runs it
+    # what the refit says nothing about stays as the device runs it, moved by an offset change every fitted band
+    # agrees on (a step the monitor saw restarts band memory: the first band fitted after it moves the rest)
+    moved = offset_move(moves, anchors[0][1].radius) if after_step else None
+    rest = running if moved is None else running.offsets_moved(*moved)
+    for corr in rest.bands:
         band = band_index(corr)
         if band not in chosen:
             kept = Correction.from_dict({**corr.to_dict(), "bench_locus": None})
-            chosen[band] = band_entry(band, kept, {"samples": 0})
+            chosen[band] = band_entry(band, kept, {"samples": 0, "offsets_moved": moved is not None})
+            if moved is not None:
+                result.moved_bands.append(band)
     result.bands = [chosen[b] for b in sorted(chosen)]
     return result
+
+
+def centre(corr: Correction) -> np.ndarray:
+    """The raw (d, q) point a correction takes to the circle's centre."""
+    return np.array([-corr.w2 / corr.w1, -corr.w4 / corr.w3])
+
+
+def offset_move(moves: list[tuple[np.ndarray, np.ndarray]], radius: float) -> tuple[float, float] | None:
+    """The channels' offset change (raw units) since the running set was fitted, when every fitted band sees
+    it: the bands' weighted mean clear of CONFIDENCE times the smallest band error (the model's errors are
+    correlated across bands: no credit for their number), each band within CONFIDENCE of the mean, and the
+    angle it would leave over MIN_GAIN_DEG. None when the data do not support a move."""
+    if not moves:
+        return None
+    deltas = np.array([m for m, _ in moves])
+    errors = np.maximum(np.array([e for _, e in moves]), 1e-12)
+    if not np.all(np.isfinite(errors)):
+        return None
+    mean = np.sum(deltas / errors**2, axis=0) / np.sum(1 / errors**2, axis=0)
+    floor = errors.min(axis=0)
+    if np.any(np.abs(deltas - mean) > CONFIDENCE * np.hypot(errors, floor)):
+        return None  # the bands disagree: not one offset change
+    if not np.any(np.abs(mean) > CONFIDENCE * floor) or np.degrees(np.hypot(*mean) / radius) < MIN_GAIN_DEG:
+        return None
+    return float(mean[0]), float(mean[1])
 
 
 def band_fits(

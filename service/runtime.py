@@ -22,7 +22,7 @@ from encoder_core.samples import InputError
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from service.monitor import Monitor
-from service.refit import MIN_BAND_SAMPLES, refit_device
+from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, refit_device
 from service.store import Store
 from service.trial import TrialEvidence, Verdict, changed_bands
 from service.trial import judge as default_judge
@@ -304,7 +304,14 @@ class FleetService:
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
         bin_temps = {band: stats.bin_temps() for band, stats in band_stats.items()}
-        result = refit_device(band_stats, running, factory, min_samples=self.min_band_samples, bin_temps=bin_temps)
+        result = refit_device(
+            band_stats,
+            running,
+            factory,
+            min_samples=self.min_band_samples,
+            bin_temps=bin_temps,
+            after_step=self._stepped_recently(device),
+        )
         with self._lock:
             self.counters.refits += 1
         if not result.changed:
@@ -391,6 +398,11 @@ class FleetService:
         self.store.mark_published(msg["device"], msg["version"])
         with self._lock:
             self.counters.rollouts += 1
+
+    def _stepped_recently(self, device: str) -> bool:
+        """An offset step raised within STEP_OPEN_S of drive time: the refit may move bands it has no data for."""
+        steps = self.store.alarms(device, cause="offset_step", limit=1)
+        return bool(steps) and self._drive_now(device) - steps[0]["raised_at"] < STEP_OPEN_S
 
     def _drive_now(self, device: str) -> float:
         """The device's newest window end: message times are on the drive's clock."""
