@@ -131,6 +131,11 @@ class Drift:
         axis shear (each the size of the angle error it makes, to first order, times 1 or 2)."""
         s = self.shape
         off = (self.field_center - self.bench_center) / radius
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a run-away fit reads as inf/nan
+            return self._terms(s, off)
+
+    @staticmethod
+    def _terms(s: np.ndarray, off: np.ndarray) -> dict[str, float]:
         return {
             "offset_d": float(off[0]),
             "offset_q": float(off[1]),
@@ -297,6 +302,8 @@ def _jackknife(polar: PolarLocus, pts: BinPoints, weights, x, radius: float, min
             return {t: float("inf") for t in TERMS}
         estimates.append(_drift_of(xk, polar.center).terms(radius))
     values = np.array([[e[t] for t in TERMS] for e in estimates])
+    if not np.all(np.isfinite(values)):  # a quarter left out and the fit ran away: the circle does not pin it
+        return {t: float("inf") for t in TERMS}
     spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
     return {t: float(v) for t, v in zip(TERMS, spread)}
 
@@ -459,7 +466,7 @@ class DriftModel:
         for name in TERMS:
             values = np.array([f.drift.terms(radius)[name] for _, f in fits] + ([0.0] if bench else []))
             errors = np.array([f.errors[name] for _, f in fits] + ([BENCH_PRIOR] if bench else []))
-            ok = np.isfinite(errors) & (errors > 0)
+            ok = np.isfinite(errors) & (errors > 0) & np.isfinite(values)
             rows, values, errors = design[ok], values[ok], errors[ok]
             if rows.shape[0] < rows.shape[1]:
                 return None

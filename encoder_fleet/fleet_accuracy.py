@@ -26,7 +26,7 @@ from multiprocessing import Pool
 
 import numpy as np
 
-from edge_agent.agent import check_plausible
+from edge_agent.agent import check_plausible, factory_message
 from encoder_core.correction import BandedCorrection
 from encoder_core.methods import OursLsRef
 from encoder_core.monitor import DeviceMonitor, window_features
@@ -36,7 +36,8 @@ from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from service.refit import STEP_OPEN_S, refit_device
-from service.runtime import BAND_HORIZON_H
+from service.runtime import BAND_HORIZON_H, TRIAL_MAX_S
+from service.trial import TrialEvidence, changed_bands, judge
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
 REFIT_EVERY_S = 3600.0
@@ -179,49 +180,63 @@ def fleet_loop(
     refit_every_s: float = REFIT_EVERY_S,
     horizon_s: float | None = BAND_HORIZON_S,
     monitor: bool = True,
-    step_shift: bool = False,
+    guard: bool = True,
 ) -> list[tuple[float, BandedCorrection]]:
     """The agent's windows, the service's band sums and refits, the drift monitor restarting band memory
-    after a step (service.runtime), the agent applying sets: returns the timeline of what the drive ran,
-    as (from drive time, set)."""
+    after a step, the guard holding each new set on trial until the soak judges it (service.runtime), the
+    agent applying sets: returns the timeline of what the drive ran, as (from drive time, set)."""
     scale = normalisation_scale(factory)  # the agent's normalisation
     sums = BandSums(horizon_s)
     watch = DeviceMonitor("drive") if monitor else None
+    factory_msg = factory_message("drive", factory)
+    confirmed, trial = factory_msg, None  # trial: [set message, soak band -> stats, bands it changed]
     running = factory
     timeline = [(float(samples.t[0]), factory)]
     next_refit = float(samples.t[0]) + refit_every_s
-    pending: BandedCorrection | None = None
+    pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
         if pending is not None:  # the agent applies what arrived before this window
-            running, pending = pending, None
+            running = BandedCorrection.from_dict({"bands": pending["bands"]})
             timeline.append((float(block.t[0]), running))
+            if guard and pending["basis"] != "rollback":
+                trial = [pending, {}, changed_bands(pending, confirmed), float(block.t[0])]
+            pending = None
         stats = window_stats(block, scale)  # the agent's own code path
         if stats.temp_n == 0:
             continue
         band, end_s = band_of(stats.temp_mean), float(block.t[-1])
         sums.add(band, stats, end_s)
+        if trial is not None and band in trial[2]:  # the soak: what the drive ran on the trial set
+            trial[1][band] = trial[1][band].merge(stats) if band in trial[1] else stats
         if watch is not None:
             for event in watch.update(window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band)):
                 if event.cause == "offset_step" and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
-                    if step_shift:
-                        p = event.parameters
-                        pending = (pending or running).offsets_moved(p["delta_d"] * scale, p["delta_q"] * scale)
-        if end_s >= next_refit:
-            next_refit += refit_every_s
-            bin_temps = {b: s.bin_temps() for b, s in sums.sums.items()}  # what service.runtime passes
-            after_step = step_at is not None and end_s - step_at < STEP_OPEN_S
-            result = refit_device(sums.sums, running, factory, bin_temps=bin_temps, after_step=after_step)
-            if result.changed:
-                candidate = BandedCorrection.from_dict({"bands": result.bands})
-                try:
-                    check_plausible(candidate, factory)
-                except InputError:
-                    continue  # the agent refuses it and keeps running what it has
-                pending = candidate
+        if end_s < next_refit:
+            continue
+        next_refit += refit_every_s
+        if trial is not None:  # no new set while one is on trial: judge it
+            verdict = judge(TrialEvidence(trial[0], confirmed, trial[1], factory=factory_msg))
+            if verdict.action == "wait" and end_s - trial[3] >= TRIAL_MAX_S:
+                verdict.action = "confirm"  # service.runtime: a trial not measured in time stays on the refit's word
+            if verdict.action == "confirm":
+                confirmed, trial = trial[0], None
+            elif verdict.action == "rollback":
+                pending, trial = {**confirmed, "basis": "rollback"}, None
+            continue
+        bin_temps = {b: s.bin_temps() for b, s in sums.sums.items()}  # what service.runtime passes
+        after_step = step_at is not None and end_s - step_at < STEP_OPEN_S
+        result = refit_device(sums.sums, running, factory, bin_temps=bin_temps, after_step=after_step)
+        if result.changed:
+            candidate = BandedCorrection.from_dict({"bands": result.bands})
+            try:
+                check_plausible(candidate, factory)
+            except InputError:
+                continue  # the agent refuses it and keeps running what it has
+            pending = {"bands": result.bands, "basis": "fit", "version": len(timeline)}
     return timeline
 
 
