@@ -35,7 +35,7 @@ def fleet(tmp_path):
     store.close()
 
 
-def run_on(store, version: int, hours: float = 2.0) -> None:
+def run_on(store, version: int, hours: float = 2.0, after_s: float = 0.0) -> None:
     """Windows of the simulated drive as an agent running set `version` would send them."""
     factory = factory_calibration(drive_model(SEED), SEED)
     scale = normalisation_scale(factory)
@@ -47,8 +47,8 @@ def run_on(store, version: int, hours: float = 2.0) -> None:
             DEVICE,
             seq,
             window_stats(block, scale),
-            window_start=float(block.t[0]) + 10_000 * version,
-            window_end=float(block.t[-1]) + 10_000 * version,
+            window_start=float(block.t[0]) + 10_000 * version + after_s,
+            window_end=float(block.t[-1]) + 10_000 * version + after_s,
             temp_rate_c_per_s=0.0,
             coefficients_version=version,
             angle_quality_deg=0.1,
@@ -102,6 +102,23 @@ def test_a_worse_set_on_trial_is_rolled_back_and_a_good_one_confirmed(fleet, off
         if c.topic.endswith("/log")
     ]
     assert any("v1 rolled back" in line for line in log) and any("basis rollback" in line for line in log)
+
+
+def test_a_trial_the_drive_gives_no_evidence_for_is_kept_after_an_hour_not_held_forever(fleet):
+    """The set on trial changes only a hot band the drive does not visit: after TRIAL_MAX_S of drive time it is
+    confirmed on the refit's word (and says so), so the device's refits are not frozen until summer."""
+    store, service = fleet
+    factory = factory_set(store)
+    hot = {**factory["bands"][0], "band": 7, "temp_c": 75.0}
+    msg = wire.coefficients_message(DEVICE, 1, 10_000.0, "fit", [*factory["bands"], hot])  # v1's windows start here
+    store.insert_coefficient_set(msg, state="trial")
+    service._publish(msg)
+    run_on(store, 1, hours=0.5)  # 30 drive minutes at 15-35 °C: nothing in band 7, too soon to give up
+    assert service.refit(DEVICE) is None and store.set_on_trial(DEVICE) is not None
+    run_on(store, 1, hours=2.0, after_s=1800.0)  # its clock goes on: well past an hour since the set was made
+    assert service.refit(DEVICE) is None and store.set_on_trial(DEVICE) is None
+    state = {h["version"]: h for h in store.coefficient_history(DEVICE)}[1]
+    assert state["state"] == "confirmed" and "not measured within 1 drive hours" in state["state_reason"]
 
 
 def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
