@@ -245,7 +245,7 @@ def register(sub) -> None:
         "--band-horizon-h",
         type=non_negative_float,
         help="drive hours of windows each temperature band's sum remembers, so refits follow aging "
-        "(0: all history; default: the service's, a week)",
+        "(0: all history; default: the service's, 12 h)",
     )
     add_security_options(p, "service.crt/.key, ca.crt, signing.key and the device certificates (the registry)")
     p.add_argument(
