@@ -28,7 +28,7 @@ from .store import Store
 if TYPE_CHECKING:
     from .runtime import FleetService
 
-LIVENESS = ("process", "database", "router")  # /healthz; /readyz asks every check
+LIVENESS = ("process", "database", "router", "storage")  # /healthz; /readyz asks every check
 
 # --- dependencies -------------------------------------------------------------------------------
 

@@ -67,6 +67,17 @@ class FleetCollector(Collector):
         rollouts.add_metric(["published"], counters["rollouts"])
         rollouts.add_metric(["rolled_back"], counters["rollbacks"])
         yield rollouts
+        yield CounterMetricFamily(
+            "encoder_fleet_storage_failures",
+            "Ingest batches the database refused (disk full, read-only, I/O); the agents resend them.",
+            value=counters["storage_failures"],
+        )
+        yield from self.service.counters.ingest_latency.collect()
+        yield from self.service.counters.refit_latency.collect()
+        alarms = GaugeMetricFamily("encoder_fleet_open_alarms", "Open drift alarms, by cause.", labels=["cause"])
+        for cause, count in self.store.open_alarm_counts().items():
+            alarms.add_metric([cause], count)
+        yield alarms
 
 
 def metrics_registry(store: Store, service: FleetService | None) -> CollectorRegistry:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import zenoh
+from prometheus_client import Histogram
 
 from encoder_core.correction import BandedCorrection
 from encoder_core.samples import InputError
@@ -44,6 +45,25 @@ class ServiceCounters:
     refits: int = 0
     rollouts: int = 0  # sets published: fits and rollbacks
     rollbacks: int = 0
+    storage_failures: int = 0  # batches the database refused (disk full, read-only, I/O): agents resend them
+    storage_error: str | None = None  # the last refusal, until a batch is stored again (/healthz fails meanwhile)
+    # seconds from a message's arrival to its commit, and of one device's refit (read by service.observability)
+    ingest_latency: Histogram = field(
+        default_factory=lambda: Histogram(
+            "encoder_fleet_ingest_latency_seconds",
+            "Seconds from a message's arrival to the commit of its batch.",
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0),
+            registry=None,
+        )
+    )
+    refit_latency: Histogram = field(
+        default_factory=lambda: Histogram(
+            "encoder_fleet_refit_latency_seconds",
+            "Seconds one device's refit (or trial judgement) took.",
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5),
+            registry=None,
+        )
+    )
 
     def count(self, status: str) -> None:
         self.ingested[status] = self.ingested.get(status, 0) + 1
@@ -54,6 +74,7 @@ class ServiceCounters:
             "refits": self.refits,
             "rollouts": self.rollouts,
             "rollbacks": self.rollbacks,
+            "storage_failures": self.storage_failures,
         }
 
 
@@ -135,6 +156,7 @@ class FleetService:
             "router": "closed" if self.session.is_closed() else "ok",
             "ingest": "ok" if self._writer.is_alive() else "the ingest writer is not running",
             "refit": "ok" if self._thread is None or self._thread.is_alive() else "the refit loop is not running",
+            "storage": "ok" if self.counters.storage_error is None else self.counters.storage_error,
         }
 
     # --- ingest ------------------------------------------------------------------------------------
@@ -143,7 +165,7 @@ class FleetService:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
         if not self._admitted(key, payload):
             return
-        self._inbox.put((key, payload))
+        self._inbox.put((key, payload, time.monotonic()))
 
     def _admitted(self, key: str, payload: bytes) -> bool:
         """The guard's checks (service/guard.py); what it refuses is dead-lettered and counted."""
@@ -163,15 +185,23 @@ class FleetService:
             while len(batch) < MAX_BATCH and not self._inbox.empty():
                 batch.append(self._inbox.get_nowait())
             done = any(item is None for item in batch)
-            items = [item for item in batch if item is not None]
+            arrived = [item[2] for item in batch if item is not None]
+            items = [item[:2] for item in batch if item is not None]
             if not items:
                 continue
             try:
                 statuses = self.store.ingest_many(items)
-            except Exception:  # the disk, not the data: nothing of the batch was committed, so no watermark
+            except Exception as exc:  # the disk, not the data: nothing of the batch was committed, so no watermark
                 log.exception("storing %d messages failed; the agents will resend them", len(items))
+                with self._lock:  # seen in /healthz and /metrics until a batch is stored again
+                    self.counters.storage_failures += 1
+                    self.counters.storage_error = f"the database refused the last batch: {exc}"
                 continue  # moved past it, and the loop must keep serving what comes next
+            committed = time.monotonic()
+            for t in arrived:
+                self.counters.ingest_latency.observe(committed - t)
             with self._lock:
+                self.counters.storage_error = None
                 for (key, _), status in zip(items, statuses):
                     self.counters.count(status)
                     if status == "stored" and key.endswith("/stats"):
@@ -276,7 +306,8 @@ class FleetService:
         published = []
         for device in changed:
             try:
-                version = self.refit(device)
+                with self.counters.refit_latency.time():
+                    version = self.refit(device)
             except Exception:  # one bad device must not stop the others; the error is logged with its trace
                 log.exception("%s: refit failed", device)
                 continue

@@ -199,9 +199,12 @@ class Store:
                 if not depth:
                     self._max_seq.clear()
                     self._bands.clear()  # sums may hold what the rollback took back: read them again
-                self._conn.execute(f"ROLLBACK TO sp{depth}" if depth else "ROLLBACK")
-                if depth:
-                    self._conn.execute(f"RELEASE sp{depth}")
+                # SQLite ends the transaction itself on some errors (a full disk, an I/O error): then there is
+                # nothing to roll back, and trying would hide the real error behind "no transaction is active"
+                if self._conn.in_transaction:
+                    self._conn.execute(f"ROLLBACK TO sp{depth}" if depth else "ROLLBACK")
+                    if depth:
+                        self._conn.execute(f"RELEASE sp{depth}")
                 raise
             finally:
                 self._depth -= 1

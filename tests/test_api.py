@@ -190,7 +190,7 @@ def test_healthz_readyz_and_metrics_over_a_real_service(tmp_path):
     try:
         assert client.get("/healthz").json() == {
             "status": "ok",
-            "checks": {"process": "ok", "database": "ok", "router": "ok"},
+            "checks": {"process": "ok", "database": "ok", "router": "ok", "storage": "ok"},
         }
         assert client.get("/readyz").status_code == 200
         store.ingest("encoders/drive-001/stats", wire.encode("window", window()))
@@ -215,6 +215,67 @@ def test_healthz_readyz_and_metrics_over_a_real_service(tmp_path):
     assert samples[("encoder_fleet_devices", (("state", "offline"),))] == 1
     assert samples[("encoder_fleet_messages_ingested_total", (("outcome", "stored"),))] == 1
     assert samples[("encoder_fleet_ingest_rejections_total", (("reason", "not_json"),))] == 1
+    assert samples[("encoder_fleet_storage_failures_total", ())] == 0
+    assert families["encoder_fleet_ingest_latency_seconds"].type == "histogram"
+    assert families["encoder_fleet_refit_latency_seconds"].type == "histogram"
+    assert "encoder_fleet_open_alarms" in families
+
+
+def test_a_full_disk_shows_in_healthz_and_metrics_and_the_service_recovers_by_itself(tmp_path):
+    """The database refuses writes (SQLite's page limit: the disk is full for it): /healthz fails with the
+    reason, a counter rises, nothing crashes; when space returns the next batch is stored and all is well."""
+    import time
+
+    import zenoh
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from fleet_wire.session import loopback_endpoint, session_config
+    from service.runtime import FleetService, open_session
+
+    store = Store.open(tmp_path / "svc.db")
+    endpoint = loopback_endpoint()
+    session = open_session(listen=[endpoint])
+    service = FleetService(store, session, refit_interval_s=0).start()
+    agent = zenoh.open(session_config("client", connect=[endpoint]))
+    client = TestClient(create_app(store, service))
+
+    def send(seq):
+        agent.put("encoders/drive-001/stats", wire.encode("window", window(seq=seq, start=60.0 * seq)))
+
+    def wait_for(predicate, what):
+        deadline = time.monotonic() + 60
+        while not predicate():
+            assert time.monotonic() < deadline, what
+            time.sleep(0.05)
+
+    def failures():
+        text = client.get("/metrics").text
+        found = {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
+        return found["encoder_fleet_storage_failures_total"]
+
+    try:
+        send(1)
+        wait_for(lambda: store.max_seq("drive-001") == 1, "the first window stored")
+        with store._lock:  # the disk is full: not one page more
+            pages = store._conn.execute("PRAGMA page_count").fetchone()[0]
+            store._conn.execute(f"PRAGMA max_page_count = {pages}")
+        seq = 1
+        while failures() == 0:
+            seq += 1
+            send(seq)
+            wait_for(lambda n=seq: failures() > 0 or store.max_seq("drive-001") == n, "stored or refused")
+        health = client.get("/healthz")
+        assert health.status_code == 503 and "full" in health.json()["checks"]["storage"], health.json()
+        with store._lock:  # space is back
+            store._conn.execute("PRAGMA max_page_count = 1073741823")
+        send(seq + 1)
+        wait_for(lambda: store.max_seq("drive-001") == seq + 1, "stored again once space is back")
+        assert client.get("/healthz").status_code == 200 and failures() >= 1
+    finally:
+        agent.close()
+        service.stop()
+        session.close()
+        store.close()
 
 
 def test_docs_and_redoc_load_every_asset_from_the_service_itself(client):

@@ -87,6 +87,8 @@ def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_expor
     service = FleetService(store, session, refit_interval_s=0).start()
     try:
         service.counters.count("schema")  # so every family has a sample
+        step = {"kind": "raise", "cause": "offset_step", "at": 1.0, "parameters": {}, "evidence": "planted"}
+        store.save_monitor("drive-001", {}, 0, [step])
         text = TestClient(create_app(store, service)).get("/metrics").text
     finally:
         service.stop()

@@ -30,6 +30,9 @@ def served(tmp_path):
         store.insert_coefficient_set(coefficients(device, version=1, created_at=200.0))
         store.mark_published(device, 1)
         store.insert_ack(ack(device, version=1, at=210.0))
+    # a planted alarm: what the drift monitor writes when drive-002's offsets jump
+    step = {"kind": "raise", "cause": "offset_step", "at": 7200.0, "parameters": {"delta_d": 0.02, "delta_q": 0.0}}
+    store.save_monitor("drive-002", {}, 8, [{**step, "evidence": "the offsets jumped (planted by the test)"}])
     port = free_port()
     http = HttpServer(store, port).start()
     yield f"http://127.0.0.1:{port}"
@@ -58,6 +61,11 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         assert traces == [["factory set", 4], ["fleet sets", 4]]
         history = page.locator("#coefficients tbody tr").all_inner_texts()
         assert history[0].startswith("v1\t") and "applied" in history[0]
+        # the planted alarm: listed among the open ones, and on drive-002's timeline
+        open_alarms = page.locator("#open-alarms tbody tr").all_inner_texts()
+        assert [a.split("\t")[:3] for a in open_alarms] == [["drive-002", "offset_step", "2.00"]]
+        timeline = page.evaluate("document.getElementById('alarm-timeline').data.map(t => [t.name, t.x])")
+        assert timeline == [["offset_step (open)", [2.0, 3.0]]]
         browser.close()
     assert problems == []
 

@@ -57,14 +57,48 @@ async function showFleet() {
     cell(row, new Date(d.last_seen * 1000).toLocaleString());
     row.addEventListener("click", () => showDevice(d.id));
   }
+  await showOpenAlarms();
   if (devices.length) await showDevice(devices[0].id);
+}
+
+async function showOpenAlarms() {
+  const { alarms } = await getJson("/alarms?open=true");
+  document.getElementById("no-alarms").hidden = alarms.length > 0;
+  const body = document.querySelector("#open-alarms tbody");
+  body.replaceChildren();
+  for (const a of alarms) {
+    const row = body.insertRow();
+    row.dataset.device = a.device;
+    cell(row, a.device);
+    cell(row, a.cause, "state-alarm");
+    cell(row, (a.raised_at / 3600).toFixed(2));
+    cell(row, a.evidence);
+    row.addEventListener("click", () => showDevice(a.device));
+  }
+}
+
+// each alarm a bar on the drive's clock, one row per cause; an open one runs on to `now`
+function alarmTraces(alarms, now) {
+  return alarms.map((a) => {
+    const end = a.cleared_at === null ? Math.max(now, a.raised_at) : a.cleared_at;
+    return {
+      name: `${a.cause}${a.cleared_at === null ? " (open)" : ""}`,
+      x: [a.raised_at / 3600, end / 3600],
+      y: [a.cause, a.cause],
+      text: [a.evidence, a.cleared_at === null ? "open" : "cleared"],
+      mode: "lines+markers",
+      type: "scatter",
+      line: { width: 8 },
+    };
+  });
 }
 
 async function showDevice(id) {
   const name = encodeURIComponent(id);
-  const [errors, history] = await Promise.all([
+  const [errors, history, alarmList] = await Promise.all([
     getJson(`/devices/${name}/angle-error`),
     getJson(`/devices/${name}/coefficients`),
+    getJson(`/alarms?device=${name}`),
   ]);
   document.getElementById("device").hidden = false;
   document.getElementById("device-name").textContent = id;
@@ -85,12 +119,23 @@ async function showDevice(id) {
     yaxis: { title: { text: "angle error (°)" }, rangemode: "tozero" },
     margin: { t: 40, r: 10 },
   }, { displaylogo: false, responsive: true });
+  const times = alarmList.alarms.map((a) => a.cleared_at ?? a.raised_at);
+  const now = times.length ? Math.max(...times) + 3600 : 0; // open alarms drawn an hour past the newest event
+  Plotly.react("alarm-timeline", alarmTraces(alarmList.alarms, now), {
+    title: { text: alarmList.alarms.length ? "Alarms on the drive's clock" : "No alarms" },
+    xaxis: { title: { text: "drive time (h)" } },
+    yaxis: { type: "category" },
+    showlegend: false,
+    margin: { t: 40, r: 10, l: 130 },
+    height: 80 + 40 * new Set(alarmList.alarms.map((a) => a.cause)).size,
+  }, { displaylogo: false, responsive: true });
   const body = document.querySelector("#coefficients tbody");
   body.replaceChildren();
   for (const set of history.sets) {
     const row = body.insertRow();
     cell(row, `v${set.version}`);
     cell(row, set.basis);
+    cell(row, set.state || "–", set.state === "rolled_back" ? "state-alarm" : undefined);
     cell(row, set.created_at.toFixed(0));
     cell(row, set.published_at === null ? "no" : new Date(set.published_at * 1000).toLocaleString());
     cell(row, set.acks.map((a) => a.status).join(", ") || "–");
