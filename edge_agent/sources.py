@@ -7,6 +7,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from encoder_core.correction import BandedCorrection
+from encoder_core.differential import BenchLocus
 from encoder_core.methods import OursLsRef
 from encoder_core.samples import Samples
 from encoder_core.simulator import EncoderModel, bench_profile, cycle_profile, record, simulate, typical_drive
@@ -120,8 +121,10 @@ def factory_calibration(model: EncoderModel, seed: int) -> BandedCorrection:
     service learns better."""
     rng = np.random.default_rng([seed, 2])
     sweep = record(model, bench_profile((20.0,), soak_s=0.0), rng)
-    method = OursLsRef().fit(sweep)
-    return method.correction_
+    corr = OursLsRef().fit(sweep).correction_.bands[0]
+    # the bench locus, as `encoder-fleet calibrate` writes it: what the fleet's refits measure drift against
+    corr.bench_locus = BenchLocus.fit(sweep.theta_ref, sweep.d, sweep.q, corr.temp_c or 20.0).to_dict()
+    return BandedCorrection([corr])
 
 
 def evaluation_set(

@@ -43,6 +43,7 @@ MIN_BAND_SAMPLES = 2000  # a drift fit's own standard errors decide what it may 
 LEGACY_MIN_SAMPLES = 20000  # without a bench locus the density harmonics need many more
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
 MIN_GAIN_DEG = 0.01  # … and by at least this much
+ZERO_ANCHOR_REACH_C = 10.0  # the factory's zero is trusted this close to its bench temperature
 STEP_OPEN_S = 86400.0  # drive time after an offset step in which bands with no data since may be moved
 
 
@@ -107,7 +108,9 @@ def refit_device(
         return refit_from_bench(
             band_stats, running, anchors, min_samples=min_samples, bin_temps=bin_temps, after_step=after_step
         )
-    return refit_legacy(band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES))
+    return refit_legacy(
+        band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES), after_step=after_step
+    )
 
 
 def bench_anchors(factory: BandedCorrection | None) -> list[tuple[Correction, BenchLocus]]:
@@ -169,15 +172,9 @@ def refit_from_bench(
     # what the refit says nothing about stays as the device runs it, moved by an offset change every fitted band
     # agrees on (a step the monitor saw restarts band memory: the first band fitted after it moves the rest)
     moved = offset_move(moves, anchors[0][1].radius) if after_step else None
-    rest = running if moved is None else running.offsets_moved(*moved)
-    for corr in rest.bands:
-        band = band_index(corr)
-        if band not in chosen:
-            kept = Correction.from_dict({**corr.to_dict(), "bench_locus": None})
-            chosen[band] = band_entry(band, kept, {"samples": 0, "offsets_moved": moved is not None})
-            if moved is not None:
-                result.moved_bands.append(band)
-    result.bands = [chosen[b] for b in sorted(chosen)]
+    if moved is not None:
+        result.moved_bands = sorted({band_index(c) for c in running.bands} - set(chosen))
+    result.bands = with_running_bands(chosen, running if moved is None else running.offsets_moved(*moved))
     return result
 
 
@@ -300,6 +297,7 @@ def refit_legacy(
     factory: BandedCorrection | None = None,
     *,
     min_samples: int = LEGACY_MIN_SAMPLES,
+    after_step: bool = False,
 ) -> RefitResult:
     candidates: dict[int, tuple[Correction, dict, WindowStats]] = {}
     estimates = []
@@ -323,22 +321,30 @@ def refit_legacy(
     for corr, _, _ in candidates.values():
         corr.harmonics = dict(harmonics)
     if factory is not None:
-        # one rotation for the whole device, taken where the factory is right: near +20 °C
+        # one rotation for the whole device, taken where the factory is right: near +20 °C. When memory holds
+        # no band near it (a short horizon, a restart after a step in the cold), the running set is the ruler
+        # there: its zero was taken near +20 °C before, where the factory may be off by degrees at -30 °C
         anchor_band = min(candidates, key=lambda b: abs(candidates[b][0].temp_c - REFERENCE_TEMP_C))
         anchor_corr = candidates[anchor_band][0]
-        shift = zero_shift(factory.at(anchor_corr.temp_c), anchor_corr)
+        near = abs(anchor_corr.temp_c - REFERENCE_TEMP_C) <= ZERO_ANCHOR_REACH_C
+        ruler = factory if near else running
+        shift = zero_shift(ruler.at(anchor_corr.temp_c), anchor_corr)
         for corr, _, _ in candidates.values():
             corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad + shift))
     result = RefitResult(bands=[])
+    kept: dict[int, dict] = {}
+    moves = []
     for band, (corr, quality, stats) in candidates.items():
         now = running.at(corr.temp_c)
         err_now = difference_deg(now, corr)
         err_new = uncertainty_deg(pooled, harmonics, stats, quality["residual_rms_rad"])
+        radius = 1.0 / abs(corr.w1)
+        moves.append((centre(corr) - centre(now), np.full(2, radius * max(np.radians(err_new), 1e-6))))
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         chosen = corr if adopt else now
         candidate = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
         quality = {**quality, "estimated_error_deg": err_new if adopt else err_now}
-        result.bands.append(band_entry(band, chosen, quality))
+        kept[band] = band_entry(band, chosen, quality)
         result.decisions.append(
             BandDecision(
                 band=band,
@@ -351,7 +357,22 @@ def refit_legacy(
                 candidate=candidate,
             )
         )
+    moved = offset_move(moves, 1.0 / abs(running.bands[0].w1)) if after_step and moves else None
+    if moved is not None:
+        result.moved_bands = sorted({band_index(c) for c in running.bands} - set(kept))
+    result.bands = with_running_bands(kept, running if moved is None else running.offsets_moved(*moved))
     return result
+
+
+def with_running_bands(chosen: dict[int, dict], running: BandedCorrection) -> list[dict]:
+    """The set's band entries: the refit's, and the running set's bands it says nothing about, as the device
+    runs them (a set of one fitted band would otherwise hold that band's correction at every temperature)."""
+    out = dict(chosen)
+    for corr in running.bands:
+        band = band_index(corr)
+        if band not in out:
+            out[band] = band_entry(band, Correction.from_dict({**corr.to_dict(), "bench_locus": None}), {"samples": 0})
+    return [out[b] for b in sorted(out)]
 
 
 def band_entry(band: int, corr: Correction, quality: dict) -> dict:
