@@ -13,6 +13,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,6 +60,7 @@ class EdgeAgent:
         resend_after_s: float = 2.0,
         query_timeout_s: float = 1.0,
         verifier=None,
+        clock: Callable[[], float] = time.monotonic,
     ):
         self.device = device
         self.source = source
@@ -71,11 +73,14 @@ class EdgeAgent:
         self.resend_after_s = resend_after_s
         self.query_timeout_s = query_timeout_s
         self.verifier = verifier  # fleet_wire.security.SetVerifier: sets must carry the service's signature
+        self.clock = clock  # paces resends only: nothing the agent keeps depends on it
+        self.time_offset: float | None = None  # added to the drive clock so it never runs back (set at first block)
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
         self.counters = AgentCounters()
         self.inbox: queue.Queue[bytes] = queue.Queue()
         self.pending_ack: int | None = None
+        self.service_has_set = False  # until the service answers our question for a set (ask_for_set)
         # the statistics' normalisation stays fixed for the device's whole life: windows must merge
         self.scale = normalisation_scale(factory)
         self._declared: list = []
@@ -92,11 +97,17 @@ class EdgeAgent:
                 self.keys["coefficients"], lambda sample: self.inbox.put(sample.payload.to_bytes())
             )
         )
-        replies = self._get(self.keys["coefficients"])
-        if not any(self.trusted(payload) for payload in replies or []):
-            # the service has nothing for us yet (or is not there): tell it what the factory wrote
+        self.ask_for_set()
+
+    def ask_for_set(self) -> None:
+        """Ask the service for our set; when it has none (or is not there), tell it what the factory wrote.
+        Repeated at each sync until the service answers with a set: an agent that started with no router
+        still announces its factory set once one appears."""
+        replies = self._get(self.keys["coefficients"]) or []
+        self.service_has_set = any(self.trusted(payload) for payload in replies)
+        if not self.service_has_set:
             self.put(self.keys["factory"], wire.encode("coefficients", self.factory_message()))
-        for payload in replies or []:
+        for payload in replies:
             self.inbox.put(payload)
 
     def close(self) -> None:
@@ -128,6 +139,8 @@ class EdgeAgent:
             return False
         if len(block) == 0:
             return True
+        if self.time_offset is None:
+            self.time_offset = continued_clock(block.t, self.outbox.last_window_end())
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
         usable, by_reason = rejected_by_reason(block)  # spikes and clipping counted per reason, for the monitor
         quality = self.angle_quality_deg(block, usable)
@@ -139,8 +152,8 @@ class EdgeAgent:
         msg = wire.window_message(
             device=self.device,
             seq=self.seq,
-            window_start=float(block.t[0]),
-            window_end=float(block.t[-1]),
+            window_start=float(block.t[0]) + self.time_offset,
+            window_end=float(block.t[-1]) + self.time_offset,
             stats=stats,
             coefficients_version=self.version,
             angle_quality_deg=quality,
@@ -148,9 +161,9 @@ class EdgeAgent:
             rejected_by_reason=by_reason,
         )
         payload = wire.encode("window", msg)
-        self.outbox.add(self.seq, payload)
+        self.outbox.add(self.seq, payload, window_end=msg["window_end"])
         self.put(self.keys["stats"], payload)
-        self.outbox.mark_sent([self.seq], time.monotonic())
+        self.outbox.mark_sent([("window", self.seq)], self.clock())
         self.counters.windows += 1
         self.sync()
         return True
@@ -170,36 +183,36 @@ class EdgeAgent:
     # --- delivery ----------------------------------------------------------------------------------
 
     def sync(self) -> bool:
-        """Ask the service how far it has stored us; forget what it has, resend what it lacks."""
+        """Ask the service how far it has stored us; forget what it has, resend what it lacks (windows and
+        acks alike)."""
         replies = self._get(self.keys["received"])
         if not replies:
             self.counters.offline_syncs += 1
             return False
         try:
-            watermark = wire.parse_watermark(replies[0], self.device)
+            watermark, acked = wire.parse_watermark_reply(replies[0], self.device)
         except wire.WireError as exc:
             log.warning("%s: %s", self.device, exc)
             return False
-        self.outbox.confirm_through(watermark)
-        stale = self.outbox.pending(sent_before=time.monotonic() - self.resend_after_s)
-        for _, payload in stale:
-            self.put(self.keys["stats"], payload)
-        if stale:
-            self.outbox.mark_sent([s for s, _ in stale], time.monotonic())
-            self.counters.resent += len(stale)
+        if not self.service_has_set:
+            self.ask_for_set()
+        self.outbox.confirm_through(watermark, acked)
+        due = self.outbox.due(self.clock(), self.resend_after_s)
+        for kind, _, payload in due:
+            self.put(self.keys["ack" if kind == "ack" else "stats"], payload)
+        if due:
+            self.outbox.mark_sent([(kind, ident) for kind, ident, _ in due], self.clock())
+            self.counters.resent += len(due)
         return True
 
     def drain(self, timeout_s: float = 20.0) -> bool:
         """At the end: keep syncing until the service has every window (or time runs out)."""
         deadline = time.monotonic() + timeout_s
-        while len(self.outbox) and time.monotonic() < deadline:
+        while (len(self.outbox) or self.outbox.pending_acks()) and time.monotonic() < deadline:
             self.apply_inbox()
-            if not self.sync():
-                time.sleep(0.2)
-            elif len(self.outbox):
-                time.sleep(0.1)
+            time.sleep(0.1 if self.sync() else 0.2)
         self.apply_inbox()
-        return len(self.outbox) == 0
+        return len(self.outbox) == 0 and not self.outbox.pending_acks()
 
     def put(self, key: str, payload: bytes) -> None:
         # windows are few and must arrive: wait for room rather than drop (Zenoh's default for put)
@@ -234,6 +247,7 @@ class EdgeAgent:
         return True
 
     def on_coefficients(self, payload: bytes, *, acknowledge: bool = True) -> None:
+        signed = True
         try:
             msg = wire.decode("coefficients", payload, key_device=self.device)
             if self.verifier is not None and msg["version"] > 0:
@@ -241,6 +255,7 @@ class EdgeAgent:
                     self.verifier.verify(msg)  # before anything else: an unsigned set is not even compared
                 except wire.WireError:
                     self.counters.bad_signatures += 1
+                    signed = False
                     raise
             if msg["version"] <= self.version:
                 return  # an old or repeated set: nothing to do, nothing to say
@@ -252,7 +267,9 @@ class EdgeAgent:
             log.warning("%s: refused coefficient set %s: %s", self.device, version, exc)
             if acknowledge and version is not None and version > self.version:
                 self.counters.refused.append((version, str(exc)))
-                self.send_ack(version, "rejected", None, reason=str(exc))
+                # a set the service signed is answered durably; one it did not sign is not its set, and the
+                # service will refuse the answer (forged_ack): said once, not resent forever
+                self.send_ack(version, "rejected", None, reason=str(exc), durable=signed)
             return
         self.correction, self.version = candidate, int(msg["version"])
         self.outbox.save_coefficients(payload)
@@ -260,16 +277,22 @@ class EdgeAgent:
             self.counters.applied.append(self.version)
             self.pending_ack = self.version  # acknowledged with the quality seen on the next block
 
-    def send_ack(self, version: int, status: str, quality: float | None, *, reason: str | None = None) -> None:
+    def send_ack(
+        self, version: int, status: str, quality: float | None, *, reason: str | None = None, durable: bool = True
+    ) -> None:
         msg = wire.ack_message(
             device=self.device,
             version=version,
             status=status,
             angle_quality_deg=quality,
-            at=float(self.source.now),
+            at=float(self.source.now) + (self.time_offset or 0.0),
             reason=reason,
         )
-        self.put(self.keys["ack"], wire.encode("ack", msg))
+        payload = wire.encode("ack", msg)
+        if durable:
+            self.outbox.add_ack(version, payload)  # resent until the watermark confirms it, like a window
+            self.outbox.mark_sent([("ack", version)], self.clock())
+        self.put(self.keys["ack"], payload)
 
     def factory_message(self) -> dict:
         return factory_message(self.device, self.factory)
@@ -302,6 +325,15 @@ def check_plausible(candidate: BandedCorrection, factory: BandedCorrection) -> N
         for m, (a, b) in band.harmonics.items():
             if np.hypot(a, b) > MAX_HARMONIC_RAD:
                 raise InputError(f"band at {band.temp_c} °C: harmonic {m} of {np.hypot(a, b):.3g} rad is implausible")
+
+
+def continued_clock(t: np.ndarray, last_window_end: float | None) -> float:
+    """What to add to the drive clock so this run's windows start after the last one this agent ever sent:
+    a drive that restarts its clock at 0 would otherwise send stretches of drive time the service has."""
+    if last_window_end is None or len(t) == 0 or t[0] > last_window_end:
+        return 0.0
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    return last_window_end - float(t[0]) + step
 
 
 def temp_rate(block: Samples) -> float:

@@ -1,8 +1,14 @@
-"""The agent's durable outbox: every window is written here before it is sent, and removed only when
-the service says it has stored it. Bounded: past the limit the oldest windows are dropped and counted."""
+"""The agent's durable outbox: every window and every ack is written here before it is sent, and removed
+only when the service says it has stored it. Bounded: past the limit the oldest windows are dropped and
+counted.
+
+What persists is clock-free: sequence numbers, versions and the drive clock's last window end. When a
+message was last sent is kept in memory only, so a restart resends everything unconfirmed and a clock that
+jumps (either way) makes messages due, never stuck."""
 
 from __future__ import annotations
 
+import math
 import sqlite3
 import threading
 from pathlib import Path
@@ -20,7 +26,9 @@ class Outbox:
             "CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY, payload BLOB NOT NULL, sent_at REAL)"
         )
         self.db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value)")
+        self.db.execute("CREATE TABLE IF NOT EXISTS acks (version INTEGER PRIMARY KEY, payload BLOB NOT NULL)")
         self.dropped = int(self._meta("dropped", 0))
+        self._sent: dict[tuple[str, int], float] = {}  # ("window", seq) | ("ack", version) -> when, this process
 
     def _meta(self, key, default):
         row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
@@ -48,11 +56,13 @@ class Outbox:
             row = self.db.execute("SELECT max(seq) FROM outbox").fetchone()
             return max(int(self._meta("last_seq", 0)), row[0] or 0)
 
-    def add(self, seq: int, payload: bytes) -> None:
+    def add(self, seq: int, payload: bytes, *, window_end: float | None = None) -> None:
         with self.lock:
             self.db.execute("BEGIN")
             self.db.execute("INSERT OR REPLACE INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", (seq, payload))
             self._set_meta("last_seq", max(seq, int(self._meta("last_seq", 0))))
+            if window_end is not None:
+                self._set_meta("last_window_end", window_end)
             over = self.db.execute("SELECT count(*) FROM outbox").fetchone()[0] - self.max_windows
             if over > 0:
                 self.db.execute(
@@ -62,26 +72,62 @@ class Outbox:
                 self._set_meta("dropped", self.dropped)
             self.db.execute("COMMIT")
 
-    def confirm_through(self, seq: int) -> int:
-        """The service has every window up to seq: forget them. Returns how many were removed."""
+    def last_window_end(self) -> float | None:
+        """The drive clock at the end of the newest window ever issued (a restarted drive continues past it)."""
         with self.lock:
+            value = self._meta("last_window_end", None)
+            return None if value is None else float(value)
+
+    def add_ack(self, version: int, payload: bytes) -> None:
+        """An ack, kept until the service's watermark says it has stored an ack for this version or a newer one."""
+        with self.lock:
+            self.db.execute("INSERT OR REPLACE INTO acks(version, payload) VALUES(?, ?)", (version, payload))
+
+    def confirm_through(self, seq: int, acked_version: int = 0) -> int:
+        """The service has every window up to seq and an ack up to acked_version: forget them. Returns how
+        many windows were removed."""
+        with self.lock:
+            self.db.execute("DELETE FROM acks WHERE version <= ?", (acked_version,))
             return self.db.execute("DELETE FROM outbox WHERE seq <= ?", (seq,)).rowcount
 
-    def pending(self, *, sent_before: float | None = None, limit: int = 500) -> list[tuple[int, bytes]]:
-        """Windows not yet confirmed, oldest first; with sent_before, only those never sent or sent earlier."""
+    def pending(self, *, limit: int = 500) -> list[tuple[int, bytes]]:
+        """Windows not yet confirmed, oldest first."""
         with self.lock:
-            if sent_before is None:
-                rows = self.db.execute("SELECT seq, payload FROM outbox ORDER BY seq LIMIT ?", (limit,))
-            else:
-                rows = self.db.execute(
-                    "SELECT seq, payload FROM outbox WHERE sent_at IS NULL OR sent_at < ? ORDER BY seq LIMIT ?",
-                    (sent_before, limit),
-                )
+            rows = self.db.execute("SELECT seq, payload FROM outbox ORDER BY seq LIMIT ?", (limit,))
             return [(int(s), bytes(p)) for s, p in rows.fetchall()]
 
-    def mark_sent(self, seqs: list[int], at: float) -> None:
+    def due(self, now: float, resend_after_s: float, *, limit: int = 500) -> list[tuple[str, int, bytes]]:
+        """Unconfirmed messages to send now, acks first then windows oldest first: ("ack" | "window", id, payload)
+        for each one not sent by this process, or sent more than resend_after_s before `now`, or "after" it
+        (the clock went back)."""
         with self.lock:
-            self.db.executemany("UPDATE outbox SET sent_at = ? WHERE seq = ?", [(at, s) for s in seqs])
+            out = []
+            for kind, table, column in (("ack", "acks", "version"), ("window", "outbox", "seq")):
+                ids = [i for (i,) in self.db.execute(f"SELECT {column} FROM {table} ORDER BY {column}")]
+                due = [i for i in ids if not (now - resend_after_s <= self._sent.get((kind, i), -math.inf) <= now)]
+                due = due[: limit - len(out)]
+                for i in range(0, len(due), 500):  # payloads of the due ones only, in chunks SQLite takes
+                    chunk = due[i : i + 500]
+                    marks = ",".join("?" * len(chunk))
+                    rows = self.db.execute(
+                        f"SELECT {column}, payload FROM {table} WHERE {column} IN ({marks}) ORDER BY {column}", chunk
+                    )
+                    out += [(kind, int(ident), bytes(payload)) for ident, payload in rows]
+            return out
+
+    def mark_sent(self, items: list[tuple[str, int]], at: float) -> None:
+        """("ack" | "window", id) sent at `at` (this process's clock; never written to disk)."""
+        with self.lock:
+            for item in items:
+                self._sent[item] = at
+            if len(self._sent) > 4 * self.max_windows:  # forget what was confirmed long ago
+                keep = {("window", s) for (s,) in self.db.execute("SELECT seq FROM outbox")}
+                keep |= {("ack", v) for (v,) in self.db.execute("SELECT version FROM acks")}
+                self._sent = {k: t for k, t in self._sent.items() if k in keep}
+
+    def pending_acks(self) -> list[int]:
+        with self.lock:
+            return [v for (v,) in self.db.execute("SELECT version FROM acks ORDER BY version")]
 
     def __len__(self) -> int:
         with self.lock:

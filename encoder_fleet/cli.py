@@ -120,6 +120,7 @@ def _extensions():
         "encoder_fleet.pki",
         "encoder_fleet.tokens_cli",
         "encoder_fleet.calibrate",
+        "encoder_fleet.bench_soak",
     ):
         try:
             module = importlib.import_module(name)

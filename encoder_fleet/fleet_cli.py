@@ -35,7 +35,7 @@ def cmd_agent(args) -> int:
     from edge_agent.outbox import Outbox
     from edge_agent.sources import ReplaySource, SimulatedDrive, drive_model, factory_calibration
     from encoder_core.correction import BandedCorrection
-    from fleet_wire.session import session_config
+    from fleet_wire.session import agent_session_config
 
     seed = args.seed if args.seed is not None else device_seed(args.device)
     if args.source == "sim":
@@ -65,7 +65,7 @@ def cmd_agent(args) -> int:
     identity, verifier = agent_security(args)
     outbox = Outbox(args.outbox or Path("out") / "outbox" / f"{args.device}.sqlite")
     try:
-        session = zenoh.open(session_config("client", connect=args.connect, identity=identity))
+        session = zenoh.open(agent_session_config(args.connect, identity=identity))
     except zenoh.ZError as exc:
         outbox.close()
         first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
@@ -137,6 +137,7 @@ def cmd_service(args) -> int:
         http_host=args.http_host,
         http_port=args.http_port,
         refit_interval_s=args.refit_interval,
+        db_max_mb=args.db_max_mb,
         **horizon,
     )
 
@@ -246,6 +247,11 @@ def register(sub) -> None:
         type=non_negative_float,
         help="drive hours of windows each temperature band's sum remembers, so refits follow aging "
         "(0: all history; default: the service's, 12 h)",
+    )
+    p.add_argument(
+        "--db-max-mb",
+        type=positive_float,
+        help="a quota on the database: past it, writes fail as on a full disk (/healthz says so, agents buffer)",
     )
     add_security_options(p, "service.crt/.key, ca.crt, signing.key and the device certificates (the registry)")
     p.add_argument(

@@ -32,9 +32,10 @@ MAX_PAYLOAD = 256 * 1024
 
 class WireError(InputError):
     """A message that cannot be accepted. `reason` is a short code, the message says what and where
-    (a JSON path). Codes: too_large, not_json (neither JSON nor MessagePack), non_finite, schema, inconsistent,
-    device_mismatch, bad_key, unknown_kind. service.store.Store.ingest adds unexpected_kind, seq_conflict and
-    normalisation_mismatch for well-formed messages it cannot take."""
+    (a JSON path). Codes: too_large, too_deep (nested past MAX_DEPTH), not_json (neither JSON nor MessagePack),
+    non_finite, schema, inconsistent, device_mismatch, bad_key, unknown_kind. service.store.Store.ingest adds
+    unexpected_kind, seq_conflict, clock_backwards and normalisation_mismatch for well-formed messages it
+    cannot take."""
 
     def __init__(self, reason: str, message: str):
         super().__init__(message)
@@ -370,6 +371,33 @@ def _check_window(win: Window) -> Window:
     return win
 
 
+MAX_DEPTH = 32  # no message nests deeper than 5; the parser recurses, so depth is bounded before it runs
+
+
+def _nesting_depth(text: str) -> int:
+    """How deep arrays and objects nest in JSON text, brackets inside strings not counted."""
+    if text.count("[") + text.count("{") <= MAX_DEPTH:  # the usual case, without a scan
+        return 0
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
 def _parse_json(kind: str, payload: bytes):
     """JSON text -> Python values, refusing what JSON parsers disagree on (duplicate keys) and naming
     non-finite numbers where they stand."""
@@ -377,6 +405,9 @@ def _parse_json(kind: str, payload: bytes):
         text = bytes(payload).decode("utf-8")
     except UnicodeDecodeError as exc:
         raise WireError("not_json", f"{kind} message: not UTF-8 at byte {exc.start}") from None
+    depth = _nesting_depth(text)
+    if depth > MAX_DEPTH:
+        raise WireError("too_deep", f"{kind} message: JSON nested {depth} deep, more than {MAX_DEPTH}")
     try:
         msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as exc:
@@ -405,6 +436,10 @@ def decode_window(payload: bytes, *, key_device: str | None) -> Window:
                 found = _find_non_finite(msgspec.msgpack.decode(payload))  # a NaN also fails its bound: name it
             except msgspec.DecodeError as bad:
                 raise WireError("not_json", f"window message: not MessagePack: {bad}") from None
+            except RecursionError:
+                raise WireError(
+                    "too_deep", "window message: MessagePack nested deeper than the decoder allows"
+                ) from None
             if found:
                 raise WireError("non_finite", f"window message: {found[0]}: non-finite number {found[1]}") from None
             raise WireError("schema", f"window message: {_where(exc)}") from None
@@ -674,18 +709,31 @@ def ack_message(
     return check("ack", msg)
 
 
-def watermark_reply(device: str, contiguous_seq: int) -> bytes:
-    """The service's answer on `received`: every window of `device` with seq <= contiguous_seq is stored."""
-    return json.dumps({"device": device, "contiguous_seq": int(contiguous_seq)}).encode()
+def watermark_reply(device: str, contiguous_seq: int, acked_version: int = 0) -> bytes:
+    """The service's answer on `received`: every window of `device` with seq <= contiguous_seq is stored, and
+    an ack for every coefficient version <= acked_version (the agent stops resending those)."""
+    return json.dumps(
+        {"device": device, "contiguous_seq": int(contiguous_seq), "acked_version": int(acked_version)}
+    ).encode()
+
+
+def parse_watermark_reply(payload: bytes, device: str) -> tuple[int, int]:
+    """(contiguous_seq, acked_version) of a watermark reply for `device` (acked_version 0 from services that
+    do not send it); WireError when it is not one."""
+    try:
+        body = json.loads(payload)
+        seq, acked = body["contiguous_seq"], body.get("acked_version", 0)
+        if body["device"] != device or not all(_count(v) for v in (seq, acked)):
+            raise TypeError
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        raise WireError("schema", f"not a watermark reply for {device}: {bytes(payload)[:200]!r}") from None
+    return seq, acked
 
 
 def parse_watermark(payload: bytes, device: str) -> int:
     """The contiguous_seq of a watermark reply for `device`; WireError when it is not one."""
-    try:
-        body = json.loads(payload)
-        seq = body["contiguous_seq"]
-        if body["device"] != device or not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
-            raise TypeError
-    except (ValueError, KeyError, TypeError):
-        raise WireError("schema", f"not a watermark reply for {device}: {bytes(payload)[:200]!r}") from None
-    return seq
+    return parse_watermark_reply(payload, device)[0]
+
+
+def _count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_INT

@@ -34,6 +34,22 @@ def session_config(
     return conf
 
 
+def agent_session_config(connect: list[str], *, identity=None) -> zenoh.Config:
+    """A drive's session: it opens with no router reachable and Zenoh's own connector keeps trying in the
+    background (a Zenoh client gives up at open), so the agent buffers in its outbox until a router appears.
+    A peer that listens on nothing and gossips its way to routers only, never to other drives."""
+    conf = session_config("peer", connect=connect, identity=identity)
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/timeout_ms", "-1")
+    conf.insert_json5("connect/exit_on_failure", "false")
+    conf.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
+    conf.insert_json5("scouting/gossip/autoconnect", json.dumps(["router"]))
+    return conf
+
+
+CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 4000, "period_increase_factor": 2}
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

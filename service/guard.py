@@ -7,7 +7,8 @@ for a router whose ACL is stale, misconfigured or absent):
   (The Python API does not hand a subscriber the sender's certificate, so the key is where the
   authenticated identity shows.)
 - an ack must be for a version the service made for that device (else: forged), and each
-  (device, version, status) is taken once (else: replayed).
+  (device, version, status) is taken once: the same ack again is the agent's resend (agents resend acks until
+  the watermark confirms them; the store drops it as a duplicate), another one is replayed.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ class IngestGuard:
     def __init__(self, store: Store, devices: list[str] | None):
         self.store = store
         self.devices = None if devices is None else set(devices)
-        self._acks: set[tuple[str, int, str]] = set()
+        self._acks: dict[tuple[str, int, str], float] = {}  # -> the drive time the ack was sent at
         self._lock = threading.Lock()
 
     def refuse(self, key_expr: str, payload: bytes) -> tuple[str, str] | None:
@@ -50,15 +51,19 @@ class IngestGuard:
         # a set the service made (stored before it is put: an agent's ack may beat mark_published)
         if version < 1 or self.store.coefficient_set(device, version) is None:
             return "forged_ack", f"ack from {device} for version {version}, which the service never published to it"
-        mark = (device, version, status)
+        mark, at = (device, version, status), msg.get("at")
         with self._lock:
-            if mark in self._acks or any(
-                a["version"] == version and a["status"] == status for a in self.store.acks(device)
-            ):
+            taken = self._acks.get(mark)
+            if taken is None:
+                taken = next(
+                    (a["at"] for a in self.store.acks(device) if a["version"] == version and a["status"] == status),
+                    None,
+                )
+            if taken is not None and taken != at:
                 return "replayed_ack", f"ack from {device} for version {version} ({status}) was already taken"
             if len(self._acks) >= ACK_MEMORY:
-                self._acks.clear()  # the acks table still remembers; this set only covers the ingest queue
-            self._acks.add(mark)
+                self._acks.clear()  # the acks table still remembers; this dict only covers the ingest queue
+            self._acks[mark] = at
         return None
 
     def admits(self, device: str) -> bool:

@@ -30,6 +30,11 @@ from service.trial import judge as default_judge
 
 log = logging.getLogger("service")
 MAX_BATCH = 500  # messages per ingest transaction
+MAX_QUEUED = 20_000  # messages waiting for the writer (~80 MB of windows at most)
+QUEUE_WAIT_S = 2.0  # how long Zenoh's callback waits for room before the message is dropped
+RATE_PER_KEY = 200.0  # messages/s one key may send on average (an agent sends one window a minute) …
+BURST_PER_KEY = 2_000.0  # … and at once (a catch-up resends at most 500 per sync)
+MAX_ALIVE_UNKNOWN = 10_000  # liveliness tokens of devices not yet heard from, remembered for when they speak
 # drive hours a band's sum remembers: short enough to follow a step within half a day, long enough for the
 # drift model that pools all bands (bench-fleet-accuracy: 12 h beat 24 h and a week at 0.5 and 20 Hz)
 BAND_HORIZON_H = 12.0
@@ -78,6 +83,31 @@ class ServiceCounters:
         }
 
 
+class KeyRateLimit:
+    """A token bucket per Zenoh key: `rate` messages/s on average, `burst` at once. Bounded memory: buckets
+    that have refilled are forgotten when there are too many."""
+
+    MAX_KEYS = 200_000
+
+    def __init__(self, rate: float, burst: float):
+        self.rate, self.burst = rate, burst
+        self._buckets: dict[str, tuple[float, float]] = {}  # key -> (tokens, at)
+        self._lock = threading.Lock()
+
+    def allow(self, key: str) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            tokens, at = self._buckets.get(key, (self.burst, now))
+            tokens = min(self.burst, tokens + max(0.0, now - at) * self.rate)
+            if len(self._buckets) >= self.MAX_KEYS:
+                self._buckets = {k: v for k, v in self._buckets.items() if v[0] + (now - v[1]) * self.rate < self.burst}
+            if tokens < 1.0:
+                self._buckets[key] = (tokens, now)
+                return False
+            self._buckets[key] = (tokens - 1.0, now)
+            return True
+
+
 class FleetService:
     def __init__(
         self,
@@ -90,6 +120,9 @@ class FleetService:
         guard=None,
         monitor_interval_s: float = 0.5,
         judge: Callable[[TrialEvidence], Verdict] = default_judge,
+        max_queued: int = MAX_QUEUED,
+        rate_per_key: float = RATE_PER_KEY,
+        burst_per_key: float = BURST_PER_KEY,
     ):
         self.store = store
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
@@ -103,11 +136,15 @@ class FleetService:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._watermarks: dict[str, int] = {}
-        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        # bounded: when the writer falls behind, Zenoh's callback waits (back-pressure to the router and to agents
+        # that put with CongestionControl.BLOCK) rather than memory growing; past QUEUE_WAIT_S it drops and counts
+        self._inbox: queue.Queue = queue.Queue(maxsize=max_queued)
+        self._rate = KeyRateLimit(rate_per_key, burst_per_key)
         self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
         self._changed: set[str] = set()  # devices with windows stored since their last refit
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
+        self._alive_unknown: dict[str, float] = {}  # tokens of devices that have sent nothing valid yet
         # drift monitor (service/monitor.py): devices with windows it has not seen, fed on its own thread
         self.monitor = Monitor(store, publish=self._publish_alarm)
         self.monitor_interval_s = monitor_interval_s
@@ -162,10 +199,21 @@ class FleetService:
     # --- ingest ------------------------------------------------------------------------------------
 
     def _enqueue(self, sample: zenoh.Sample) -> None:
-        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        key = str(sample.key_expr)
+        if not self._rate.allow(key):
+            # a peer sending faster than any agent does: dropped unread and counted; a real agent's windows
+            # are still in its outbox and come again
+            with self._lock:
+                self.counters.count("rate_limited")
+            return
+        payload = sample.payload.to_bytes()
         if not self._admitted(key, payload):
             return
-        self._inbox.put((key, payload, time.monotonic()))
+        try:
+            self._inbox.put((key, payload, time.monotonic()), timeout=QUEUE_WAIT_S)
+        except queue.Full:
+            with self._lock:
+                self.counters.count("overloaded")
 
     def _admitted(self, key: str, payload: bytes) -> bool:
         """The guard's checks (service/guard.py); what it refuses is dead-lettered and counted."""
@@ -200,6 +248,7 @@ class FleetService:
             committed = time.monotonic()
             for t in arrived:
                 self.counters.ingest_latency.observe(committed - t)
+            came_alive = []
             with self._lock:
                 self.counters.storage_error = None
                 for (key, _), status in zip(items, statuses):
@@ -207,6 +256,12 @@ class FleetService:
                     if status == "stored" and key.endswith("/stats"):
                         self._changed.add(wire.device_from_key(key))
                         self._monitor_changed.add(wire.device_from_key(key))
+                    if status == "stored" and self._alive_unknown:
+                        device = wire.device_from_key(key)
+                        if self._alive_unknown.pop(device, None) is not None:
+                            came_alive.append(device)
+            for device in came_alive:  # its token came before its first valid message
+                self.store.set_online(device, True)
 
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""
@@ -232,7 +287,18 @@ class FleetService:
             return
         if self.guard is not None and not self.guard.admits(device):
             return
-        self.store.set_online(device, sample.kind == zenoh.SampleKind.PUT)
+        online = sample.kind == zenoh.SampleKind.PUT
+        if self.store.device(device) is None:
+            # a token alone makes no device: it appears with its first valid message (_write_loop)
+            with self._lock:
+                self._alive_unknown.pop(device, None)
+                if online and len(self._alive_unknown) < MAX_ALIVE_UNKNOWN:
+                    self._alive_unknown[device] = time.time()
+            if self.store.device(device) is None:
+                return
+            with self._lock:  # its first window was stored meanwhile
+                self._alive_unknown.pop(device, None)
+        self.store.set_online(device, online)
         try:
             self.monitor.process(device)  # what it sent before it went (or came back) is judged first
             self.monitor.set_online(device, sample.kind == zenoh.SampleKind.PUT)
@@ -283,7 +349,9 @@ class FleetService:
             device = wire.device_from_key(query.key_expr)
         except wire.WireError:
             return
-        query.reply(query.key_expr, wire.watermark_reply(device, self.watermark(device)))
+        query.reply(
+            query.key_expr, wire.watermark_reply(device, self.watermark(device), self.store.acked_version(device))
+        )
 
     def watermark(self, device: str) -> int:
         """Highest seq with every window up to it stored (so the agent may forget them)."""
@@ -525,6 +593,7 @@ def run_service(
     pki=None,
     admin_token_file=None,
     rest_auth: bool = True,
+    db_max_mb: float | None = None,
 ) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM. pki: TLS, mTLS, ACL and signed sets (None: insecure);
     rest_auth: bearer tokens on REST, the first admin token written to admin_token_file."""
@@ -541,7 +610,7 @@ def run_service(
         except OSError as exc:
             raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
         horizon_s = band_horizon_h * 3600.0 if band_horizon_h else None
-        store = Store.open(db, band_horizon_s=horizon_s, check_integrity=True)
+        store = Store.open(db, band_horizon_s=horizon_s, check_integrity=True, max_mb=db_max_mb)
         running.callback(store.close)
         session = open_session(listen=listen, connect=connect, pki=pki)
         running.callback(session.close)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 import sqlite3
 import threading
@@ -137,6 +138,7 @@ class Store:
         # written behind in the transaction that changes them; dropped whenever a transaction rolls back
         self._bands: dict[str, dict[int, list]] = {}
         self._max_seq: dict[str, int] = {}  # device -> highest seq stored or staged (read with its bands)
+        self._max_end: dict[str, float] = {}  # device -> that window's end on the drive clock
 
     @classmethod
     def open(
@@ -146,6 +148,7 @@ class Store:
         migrations_dir=MIGRATIONS_DIR,
         band_horizon_s: float | None = None,
         check_integrity: bool = False,
+        max_mb: float | None = None,
     ) -> Store:
         """Open (or create) the database and apply the migrations it lacks. A database that cannot be
         opened raises StoreError('unavailable') with one line that says which file and why; with
@@ -157,6 +160,9 @@ class Store:
             conn.row_factory = sqlite3.Row
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute("PRAGMA foreign_keys=ON")
+            if max_mb is not None:  # a quota: past it writes fail as on a full disk (SQLITE_FULL)
+                page = conn.execute("PRAGMA page_size").fetchone()[0]
+                conn.execute(f"PRAGMA max_page_count = {max(1, int(max_mb * 2**20 / page))}")
             problems = [r[0] for r in conn.execute("PRAGMA quick_check(3)")] if check_integrity else ["ok"]
         except sqlite3.Error as exc:
             raise StoreError("unavailable", f"database {path} cannot be opened: {exc}") from None
@@ -198,6 +204,7 @@ class Store:
             except BaseException:
                 if not depth:
                     self._max_seq.clear()
+                    self._max_end.clear()
                     self._bands.clear()  # sums may hold what the rollback took back: read them again
                 # SQLite ends the transaction itself on some errors (a full disk, an I/O error): then there is
                 # nothing to roll back, and trying would hide the real error behind "no transaction is active"
@@ -283,8 +290,7 @@ class Store:
                 raise wire.WireError("unexpected_kind", f"the service does not accept {kind} messages on {key_expr}")
             msg = wire.decode(kind, payload, key_device=device)
             self._flush(batch)  # an ack and the windows before it update current_version in arrival order
-            self.insert_ack(msg, received_at=now)
-            return "stored"
+            return "duplicate" if self.insert_ack(msg, received_at=now) is None else "stored"
         except (wire.WireError, StoreError) as exc:
             self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=now)
             return exc.reason
@@ -310,9 +316,11 @@ class Store:
                     (device,),
                 )
             }
-            self._max_seq[device] = self._conn.execute(
-                "SELECT coalesce(max(seq), 0) FROM windows WHERE device = ?", (device,)
-            ).fetchone()[0]
+            newest = self._conn.execute(
+                "SELECT seq, window_end FROM windows WHERE device = ? ORDER BY seq DESC LIMIT 1", (device,)
+            ).fetchone()
+            self._max_seq[device] = 0 if newest is None else newest["seq"]
+            self._max_end[device] = -math.inf if newest is None else newest["window_end"]
         return bands
 
     @staticmethod
@@ -346,6 +354,14 @@ class Store:
                 "seq_conflict",
                 f"window {device}#{seq} is already stored with different content (agent restarted its sequence?)",
             )
+        if old is None and seq > self._max_seq[device] and win.window_start < self._max_end[device]:
+            # a later window that starts before the newest one ended: the drive's clock went back (a restart
+            # that reset it), and storing it would hold one stretch of drive time twice
+            raise StoreError(
+                "clock_backwards",
+                f"window {device}#{seq} starts at {win.window_start:.3f} s, before window "
+                f"#{self._max_seq[device]} ended at {self._max_end[device]:.3f} s (the drive clock went back)",
+            )
         stats = win.stats.window_stats()
         entry = bands.get(band)
         pending = batch.by_band.setdefault((device, band), [])
@@ -373,7 +389,8 @@ class Store:
             ]
         )
         pending.append((seq, win.samples, stats, win.window_end))
-        self._max_seq[device] = max(self._max_seq[device], seq)
+        if seq > self._max_seq[device]:
+            self._max_seq[device], self._max_end[device] = seq, win.window_end
         if seq > batch.newest.get(device, (0, 0))[0]:
             batch.newest[device] = (seq, win.coefficients_version)
         if entry is not None:
@@ -502,9 +519,17 @@ class Store:
         """Newest first."""
         return [dict(r) for r in self._rows("SELECT * FROM dead_letters ORDER BY id DESC LIMIT ?", (limit,))]
 
-    def insert_ack(self, msg: dict, *, received_at: float | None = None) -> int:
+    def insert_ack(self, msg: dict, *, received_at: float | None = None) -> int | None:
+        """Store an ack; None (nothing changed) when the same ack (version, verdict, drive time) is already
+        stored: agents resend acks until the watermark confirms them."""
         now = time.time() if received_at is None else received_at
         with self._tx() as c:
+            seen = c.execute(
+                "SELECT 1 FROM acks WHERE device = ? AND version = ? AND status = ? AND at = ?",
+                (msg["device"], msg["version"], msg["status"], msg["at"]),
+            ).fetchone()
+            if seen is not None:
+                return None
             self._touch(c, msg["device"], now)
             cur = c.execute(
                 "INSERT INTO acks (device, version, status, reason, angle_quality_deg, at, received_at) "
@@ -808,6 +833,10 @@ class Store:
                 mark += 1
             if len(rows) < 512:
                 return mark
+
+    def acked_version(self, device: str) -> int:
+        """Highest coefficient version the device has acknowledged, either way (0 when none)."""
+        return self._rows("SELECT coalesce(max(version), 0) AS v FROM acks WHERE device = ?", (device,))[0]["v"]
 
     def max_seq(self, device: str) -> int:
         """Highest window seq stored (0 when none): where an agent's catch-up resumes."""

@@ -112,3 +112,29 @@ def test_service_killed_mid_stream_loses_nothing(tmp_path, pki):
     finally:
         store.close()
     assert any("resent" in out and " 0 resent" not in out for out in outputs), outputs  # the catch-up happened
+
+
+def test_agent_started_before_the_router_buffers_and_delivers_when_it_appears(tmp_path, pki):
+    """The agent CLI with no router and no service: it starts, keeps correcting into its outbox (no
+    traceback, no exit), connects through Zenoh's own retry when the service's router appears, and ends
+    with every window stored once and its usual summary line."""
+    endpoint = loopback_endpoint().replace("tcp/", "tls/")
+    db = tmp_path / "fleet.sqlite"
+    agent = start_agent("drive-a", 0, endpoint, tmp_path / "drive-a.outbox", pki)
+    service = None
+    try:
+        time.sleep(4)  # a third of its stream, with nobody to hear it
+        assert agent.poll() is None, agent.communicate()[0]
+        service = start_service(db, endpoint, pki)
+        output = agent.communicate(timeout=180)[0]
+        assert agent.returncode == 0, output
+    finally:
+        if agent.poll() is None:
+            agent.kill()
+        if service is not None:
+            service.terminate()
+            service.wait(timeout=30)
+    assert stored_seqs(db, "drive-a") == list(range(1, WINDOWS + 1))
+    summary = [line for line in output.splitlines() if line.startswith("drive-a: ")]
+    assert summary and summary[0].startswith(f"drive-a: {WINDOWS} windows"), output
+    assert "Traceback" not in output

@@ -130,6 +130,7 @@ def test_device_a_cannot_put_b_stats(secured):
 def test_device_a_cannot_hold_b_liveliness_token(secured):
     a = secured.client(A)
     held = [a.liveliness().declare_token(keys.key(d, keys.ALIVE)) for d in (B, A)]  # undeclared when dropped
+    a.put(keys.key(A, keys.STATS), wire.encode("window", ws.window(A, 1)))  # a device appears when it speaks
     assert wait_for(lambda: (secured.store.device(A) or {}).get("online"))
     assert secured.store.device(B) is None
     del held
@@ -261,7 +262,8 @@ def test_service_refuses_forged_replayed_and_unregistered_messages(secured):
     put(keys.key(A, keys.ACK), ws.ack(A, version=9), "ack")  # never published
     secured.publish(ws.coefficients(A, version=1))
     put(keys.key(A, keys.ACK), ws.ack(A, version=1), "ack")
-    put(keys.key(A, keys.ACK), ws.ack(A, version=1), "ack")  # the same ack again
+    put(keys.key(A, keys.ACK), ws.ack(A, version=1), "ack")  # the same ack again: the agent's resend
+    put(keys.key(A, keys.ACK), ws.ack(A, version=1, at=999.0), "ack")  # another one for the same verdict
     put(keys.key("drive-zz", keys.STATS), ws.window("drive-zz", 1), "window")  # no certificate in the registry
     put(keys.key("drive-zz", keys.FACTORY), {**ws.coefficients("drive-zz", 0), "basis": "factory"}, "coefficients")
     expected = {"forged_ack": 1, "replayed_ack": 1, "unknown_device": 2}
@@ -269,6 +271,7 @@ def test_service_refuses_forged_replayed_and_unregistered_messages(secured):
     assert [a["version"] for a in secured.store.acks(A)] == [1]
     assert secured.store.device("drive-zz") is None
     assert {k: secured.service.counters.ingested.get(k) for k in expected} == expected
+    assert secured.service.counters.ingested.get("duplicate") == 1
 
 
 # --- REST tokens ------------------------------------------------------------------------------------

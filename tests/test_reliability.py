@@ -1,0 +1,270 @@
+"""Faults a plant has, on a real router and a real database file: hostile messages among good ones, an
+agent whose clock jumps or restarts at 0, an agent started before any router, acks the service missed,
+liveliness tokens from nobody, a peer that floods."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+import zenoh
+
+import tests.wire_samples as ws
+from edge_agent.agent import EdgeAgent, factory_message
+from edge_agent.outbox import Outbox
+from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
+from fleet_wire import keys
+from fleet_wire import messages as wire
+from fleet_wire.session import agent_session_config, loopback_endpoint, session_config
+from service.runtime import FleetService, open_session
+from service.store import Store
+
+DEVICE, SEED = "drive-t", 4
+
+
+def wait_for(predicate, timeout=30.0):
+    deadline = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return predicate()
+
+
+class Fleet:
+    """A router with the service in it, on a real database file; started and stopped at will."""
+
+    def __init__(self, tmp_path, **service_options):
+        self.endpoint = loopback_endpoint()
+        self.db = tmp_path / "fleet.sqlite"
+        self.options = service_options
+        self.router = self.store = self.service = None
+
+    def start(self) -> Fleet:
+        self.store = Store.open(self.db)
+        self.router = open_session(listen=[self.endpoint])
+        self.service = FleetService(self.store, self.router, refit_interval_s=0, **self.options).start()
+        return self
+
+    def stop(self) -> None:
+        if self.service is not None:
+            self.service.stop()
+            self.router.close()
+            self.store.close()
+        self.router = self.store = self.service = None
+
+    def seqs(self, device=DEVICE) -> list[int]:
+        return [w["seq"] for w in self.store.windows(device, limit=100_000)]
+
+
+@pytest.fixture
+def fleet(tmp_path):
+    f = Fleet(tmp_path)
+    yield f
+    f.stop()
+
+
+def agent_for(session, outbox_path, *, hours=1.0, clock=time.monotonic) -> EdgeAgent:
+    factory = factory_calibration(drive_model(SEED), SEED)
+    return EdgeAgent(
+        DEVICE, SimulatedDrive(SEED, hours=hours), session, Outbox(outbox_path), factory, clock=clock, resend_after_s=1
+    )
+
+
+# --- one message is judged alone ------------------------------------------------------------------
+
+
+def deep_json(depth: int) -> bytes:
+    return b'{"device":"drive-001","x":' + b"[" * depth + b"]" * depth + b"}"
+
+
+def test_hostile_messages_are_refused_alone_and_counted(fleet):
+    fleet.start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    huge_version = json.dumps({**ws.ack(version=1), "version": 2**70}).encode()
+    # MessagePack cannot carry 2**70; JSON windows (older agents) can
+    huge_rejected = json.dumps(
+        {**json.loads(wire.encode_json("window", ws.window(seq=41))), "rejected": 2**70}
+    ).encode()
+    deep_msgpack = b"\x82\xa6device\xa9drive-001\xa5stats" + b"\x91" * 5000 + b"\xc0"
+    hostile = [
+        ("ack", huge_version),
+        ("stats", huge_rejected),
+        ("ack", deep_json(1500)),
+        ("stats", deep_json(1500)),
+        ("stats", deep_msgpack),
+    ]
+    try:
+        for seq in range(1, 41):
+            client.put(keys.key("drive-001", keys.STATS), wire.encode("window", ws.window(seq=seq)))
+            if seq % 8 == 0:
+                client.put(keys.key("drive-001", keys.ACK), wire.encode("ack", ws.ack(version=seq // 8, at=60.0 * seq)))
+                suffix, payload = hostile[seq // 8 - 1]
+                client.put(keys.key("drive-001", suffix), payload)
+        expected = {"schema": 2, "too_deep": 3}
+        assert wait_for(lambda: fleet.store.rejection_counts() == expected), fleet.store.rejection_counts()
+        assert wait_for(lambda: fleet.seqs("drive-001") == list(range(1, 41)))
+        assert [a["version"] for a in fleet.store.acks("drive-001")] == [1, 2, 3, 4, 5]
+        assert {k: fleet.service.counters.ingested.get(k) for k in expected} == expected
+    finally:
+        client.close()
+
+
+# --- the agent's clocks ---------------------------------------------------------------------------
+
+
+def test_agent_started_before_any_router_buffers_and_resends_after_its_clock_jumps_back(fleet, tmp_path):
+    """No router when the agent starts: it opens, buffers 20 windows, then its monotonic clock jumps back a
+    day (as after a reboot that kept the process's notion of sends). The service appears: every window
+    arrives exactly once, and the factory set is announced."""
+    now = [1e6]
+    agent = agent_for(
+        zenoh.open(agent_session_config([fleet.endpoint])), tmp_path / "outbox.sqlite", clock=lambda: now[0]
+    )
+    agent.start()
+    for _ in range(20):
+        assert agent.step()
+        now[0] += 60.0
+    assert len(agent.outbox) == 20 and agent.counters.offline_syncs == 20
+    now[0] -= 86400.0  # the clock jumps back: every send time is now "in the future"
+    fleet.start()
+    try:
+        counters = agent.run()
+        assert agent.drain() and len(agent.outbox) == 0
+        assert counters.windows == 60
+        assert wait_for(lambda: fleet.seqs() == list(range(1, 61))), fleet.seqs()
+        assert fleet.store.current_coefficients(DEVICE) is not None  # the factory set, announced late
+        assert fleet.store.rejection_counts() == {}
+    finally:
+        agent.close()
+        agent.session.close()
+
+
+def test_a_restarted_drive_clock_is_continued_and_a_backwards_window_is_refused(fleet, tmp_path):
+    fleet.start()
+    session = zenoh.open(agent_session_config([fleet.endpoint]))
+    try:
+        first = agent_for(session, tmp_path / "outbox.sqlite", hours=0.5)
+        first.start()
+        first.run()
+        first.close()
+        first.outbox.close()
+        again = agent_for(session, tmp_path / "outbox.sqlite", hours=0.5)  # the drive's clock starts at 0 again
+        again.start()
+        again.run()
+        again.close()
+        assert wait_for(lambda: fleet.seqs() == list(range(1, 61)))
+        windows = fleet.store.windows(DEVICE, limit=1000)
+        ends = [w["window_end"] for w in windows]
+        assert all(b["window_start"] > a["window_end"] for a, b in zip(windows, windows[1:])), "time stored twice"
+        assert ends[-1] > 3600.0 - 60
+        # a window from a drive that did reset its clock is refused as such, and nothing else is touched
+        stale = ws.window(DEVICE, seq=61, start=120.0)
+        assert fleet.store.ingest(keys.key(DEVICE, keys.STATS), wire.encode("window", stale)) == "clock_backwards"
+        assert fleet.seqs() == list(range(1, 61))
+        assert "went back" in fleet.store.dead_letters(1)[0]["detail"]
+    finally:
+        session.close()
+
+
+# --- acks, at least once --------------------------------------------------------------------------
+
+
+def test_an_ack_the_service_missed_is_resent_until_stored(fleet, tmp_path):
+    fleet.start()
+    session = zenoh.open(agent_session_config([fleet.endpoint]))
+    agent = agent_for(session, tmp_path / "outbox.sqlite")
+    try:
+        agent.start()
+        assert wait_for(lambda: fleet.store.current_coefficients(DEVICE) is not None)
+        fleet.service.stop()  # the service goes; its router stays: what is put now reaches nobody
+        v1 = {**factory_message(DEVICE, agent.factory), "version": 1, "basis": "fit", "created_at": 60.0}
+        fleet.store.insert_coefficient_set(v1)
+        fleet.store.mark_published(DEVICE, 1)
+        fleet.router.put(keys.key(DEVICE, keys.COEFFICIENTS), wire.encode("coefficients", v1))
+        assert wait_for(lambda: agent.inbox.qsize() == 1)
+        assert agent.step()  # applies version 1 and acknowledges it into the void
+        assert agent.version == 1 and agent.outbox.pending_acks() == [1]
+        assert fleet.store.acks(DEVICE) == []
+        fleet.service = FleetService(fleet.store, fleet.router, refit_interval_s=0).start()
+        time.sleep(1.1)  # the ack's resend is due
+        assert agent.step()
+        assert wait_for(lambda: [a["version"] for a in fleet.store.acks(DEVICE)] == [1])
+        assert agent.sync() and agent.outbox.pending_acks() == []  # the watermark confirmed it
+        for _ in range(3):  # and it is not sent again
+            time.sleep(1.1)
+            agent.step()
+        assert len(fleet.store.acks(DEVICE)) == 1
+        assert fleet.store.device(DEVICE)["current_version"] == 1
+    finally:
+        agent.close()
+        session.close()
+
+
+# --- devices come from messages, not tokens -------------------------------------------------------
+
+
+def test_liveliness_tokens_alone_make_no_devices(fleet):
+    fleet.start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    tokens = [client.liveliness().declare_token(keys.key(f"ghost-{i}", keys.ALIVE)) for i in range(50)]
+    tokens.append(client.liveliness().declare_token(keys.key("drive-001", keys.ALIVE)))
+    try:
+        time.sleep(1.0)
+        assert fleet.store.devices() == []
+        client.put(keys.key("drive-001", keys.STATS), wire.encode("window", ws.window(seq=1)))
+        assert wait_for(lambda: [d["id"] for d in fleet.store.devices()] == ["drive-001"])
+        assert wait_for(lambda: fleet.store.device("drive-001")["online"] is True)
+    finally:
+        for token in tokens:
+            token.undeclare()
+        client.close()
+
+
+# --- bounded ---------------------------------------------------------------------------------------
+
+
+def test_a_flooding_key_is_rate_limited_and_the_others_are_served(tmp_path):
+    fleet = Fleet(tmp_path, rate_per_key=20.0, burst_per_key=50.0).start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    try:
+        payload = wire.encode("window", ws.window("drive-009", seq=1))
+        started = time.monotonic()
+        for _ in range(2000):  # the same window, as fast as the client can
+            client.put(keys.key("drive-009", keys.STATS), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        elapsed = time.monotonic() - started
+        for seq in range(1, 11):
+            client.put(keys.key("drive-001", keys.STATS), wire.encode("window", ws.window(seq=seq)))
+        assert wait_for(lambda: fleet.seqs("drive-001") == list(range(1, 11)))
+        counted = fleet.service.counters.ingested
+        assert wait_for(lambda: counted.get("rate_limited", 0) + counted.get("duplicate", 0) + 1 == 2000), counted
+        taken = counted.get("duplicate", 0) + 1  # what passed the limit: the burst and the rate since
+        assert taken <= 50 + 20.0 * (elapsed + 1.0), (taken, elapsed)
+        assert fleet.seqs("drive-009") == [1]
+    finally:
+        client.close()
+        fleet.stop()
+
+
+# --- the soak ---------------------------------------------------------------------------------------
+
+
+def test_bench_soak_loses_and_doubles_nothing(tmp_path):
+    """A short soak through the CLI: service, router and agents killed at random, bad messages, a full disk."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "soak.json"
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "bench-soak", "--minutes", "0.6", "--agents", "2"]
+    done = subprocess.run(
+        cmd + ["--seed", "3", "--out", str(tmp_path / "soak"), "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    result = json.loads(out.read_text())
+    assert set(result) == {"sent", "stored", "lost", "doubled", "memory_mb"}
+    assert result["sent"] > 300 and result["stored"] == result["sent"], result
+    assert result["lost"] == 0 and result["doubled"] == 0
+    assert len(result["memory_mb"]) > 10 and all(m > 0 for m in result["memory_mb"])
+    assert "killed" in done.stdout  # faults did happen
