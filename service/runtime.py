@@ -123,6 +123,7 @@ class FleetService:
         max_queued: int = MAX_QUEUED,
         rate_per_key: float = RATE_PER_KEY,
         burst_per_key: float = BURST_PER_KEY,
+        queue_wait_s: float = QUEUE_WAIT_S,
     ):
         self.store = store
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
@@ -140,6 +141,7 @@ class FleetService:
         # that put with CongestionControl.BLOCK) rather than memory growing; past QUEUE_WAIT_S it drops and counts
         self._inbox: queue.Queue = queue.Queue(maxsize=max_queued)
         self._rate = KeyRateLimit(rate_per_key, burst_per_key)
+        self.queue_wait_s = queue_wait_s
         self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
         self._changed: set[str] = set()  # devices with windows stored since their last refit
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
@@ -210,7 +212,7 @@ class FleetService:
         if not self._admitted(key, payload):
             return
         try:
-            self._inbox.put((key, payload, time.monotonic()), timeout=QUEUE_WAIT_S)
+            self._inbox.put((key, payload, time.monotonic()), timeout=self.queue_wait_s)
         except queue.Full:
             with self._lock:
                 self.counters.count("overloaded")

@@ -268,3 +268,23 @@ def test_bench_soak_loses_and_doubles_nothing(tmp_path):
     assert result["lost"] == 0 and result["doubled"] == 0
     assert len(result["memory_mb"]) > 10 and all(m > 0 for m in result["memory_mb"])
     assert "killed" in done.stdout  # faults did happen
+
+
+def test_the_ingest_queue_is_bounded_when_the_writer_falls_behind(tmp_path):
+    fleet = Fleet(tmp_path, max_queued=5, queue_wait_s=0.05).start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    try:
+        with fleet.store._lock:  # the writer is stuck (a slow disk): nothing leaves the queue
+            for seq in range(1, 51):
+                client.put(
+                    keys.key("drive-001", keys.STATS),
+                    wire.encode("window", ws.window(seq=seq)),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+            counted = fleet.service.counters.ingested
+            assert wait_for(lambda: counted.get("overloaded", 0) >= 40, timeout=60), counted
+            assert fleet.service._inbox.qsize() <= 5
+        assert wait_for(lambda: len(fleet.seqs("drive-001")) + counted.get("overloaded", 0) == 50), counted
+    finally:
+        client.close()
+        fleet.stop()
