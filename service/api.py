@@ -12,6 +12,7 @@ from importlib import resources
 from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
+from fastapi import Path as FastAPIPath
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
@@ -19,10 +20,11 @@ from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
-from .auth import TokenAuth, authorize, tokens
+from .auth import TokenAuth, authorize, require_admin, tokens
 from .mcap_export import iter_mcap
 from .monitor import device_state, fleet_health
 from .observability import health_checks, metrics_registry
+from .rollout import OUTCOMES, RolloutError, Rollouts, RolloutSpec
 from .store import Store
 
 if TYPE_CHECKING:
@@ -405,6 +407,124 @@ def metrics(request: Request):
     return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
 
 
+# --- staged rollouts (service/rollout.py): the API's mutations, admin token only ------------------------
+
+rollouts = APIRouter(prefix="/rollouts", tags=["rollouts"])
+RolloutId = Annotated[int, FastAPIPath(ge=1, le=2**62)]
+_ROLLOUT_ERRORS = {
+    404: {"model": ErrorMessage, "description": "No such rollout."},
+    409: {"model": ErrorMessage, "description": "The rollout's state does not allow it, or another is running."},
+}
+
+
+class RolloutDevice(BaseModel):
+    device: str
+    wave: int
+    state: str = Field(description=f"pending, in_progress or an outcome: {', '.join(OUTCOMES)}.")
+    before_version: int | None = Field(description="The set the device ran when the change reached it.")
+    version: int | None = Field(description="The set the change published to it.")
+    started_at: float | None = Field(description="Service clock, unix s.")
+    decided_at: float | None = Field(description="Service clock, unix s.")
+    reason: str | None
+
+
+class RolloutWave(BaseModel):
+    wave: int
+    size: int
+    by_state: dict[str, int]
+
+
+class RolloutSummary(BaseModel):
+    id: int
+    name: str
+    spec: RolloutSpec
+    state: str = Field(description="running, paused, aborted or completed.")
+    reason: str | None = Field(description="Why it paused, aborted or completed.")
+    wave: int = Field(description="The wave in progress (the last one once ended).")
+    wave_started_at: float | None
+    created_at: float
+    updated_at: float
+    devices_total: int
+    devices_done: int
+    percent_done: float
+    by_state: dict[str, int]
+    waves: list[RolloutWave]
+
+
+class RolloutDetail(RolloutSummary):
+    devices: list[RolloutDevice]
+
+
+def rollout_registry(request: Request) -> Rollouts:
+    service = request.app.state.service
+    return service.rollouts if service is not None else Rollouts(request.app.state.store)
+
+
+RolloutsDep = Annotated[Rollouts, Depends(rollout_registry)]
+
+
+def running_rollouts(request: Request, registry: RolloutsDep) -> Rollouts:
+    """Changes need the running service (it publishes the sets) and, with tokens, an admin one."""
+    require_admin(request)
+    if request.app.state.service is None:
+        raise HTTPException(status_code=503, detail="rollouts are changed through the running service")
+    return registry
+
+
+MutableRolloutsDep = Annotated[Rollouts, Depends(running_rollouts)]
+
+
+def _rollout_call(call, *args):
+    try:
+        return call(*args)
+    except RolloutError as e:
+        raise HTTPException(status_code=e.status, detail=str(e)) from None
+
+
+@rollouts.get("", response_model=list[RolloutSummary], summary="Staged rollouts, newest first")
+def list_rollouts(registry: RolloutsDep):
+    return registry.list()
+
+
+@rollouts.get("/{rollout_id}", response_model=RolloutDetail, responses=_ROLLOUT_ERRORS, summary="A rollout")
+def get_rollout(rollout_id: RolloutId, registry: RolloutsDep):
+    return _rollout_call(registry.get, rollout_id)
+
+
+@rollouts.post(
+    "",
+    response_model=RolloutDetail,
+    status_code=201,
+    responses=_ROLLOUT_ERRORS,
+    summary="Start a staged rollout (admin): waves, soak, abort criteria",
+)
+def create_rollout(spec: RolloutSpec, registry: MutableRolloutsDep):
+    rollout_id = _rollout_call(registry.create, spec)
+    return registry.get(rollout_id)
+
+
+@rollouts.post("/{rollout_id}/pause", response_model=RolloutDetail, responses=_ROLLOUT_ERRORS, summary="Pause (admin)")
+def pause_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):
+    return _rollout_call(registry.pause, rollout_id)
+
+
+@rollouts.post(
+    "/{rollout_id}/resume", response_model=RolloutDetail, responses=_ROLLOUT_ERRORS, summary="Resume (admin)"
+)
+def resume_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):
+    return _rollout_call(registry.resume, rollout_id)
+
+
+@rollouts.post(
+    "/{rollout_id}/abort",
+    response_model=RolloutDetail,
+    responses=_ROLLOUT_ERRORS,
+    summary="Abort (admin): the current wave is rolled back, later waves never start",
+)
+def abort_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):
+    return _rollout_call(registry.abort, rollout_id)
+
+
 STATIC = resources.files("service") / "static"
 
 
@@ -435,7 +555,7 @@ def create_app(store: Store, service: FleetService | None = None, auth: TokenAut
     app.state.service = service
     app.state.auth = auth
     app.state.metrics = metrics_registry(store, service)
-    for router in (devices, coefficients, windows, export, ingest, operations, alarms, page):
+    for router in (devices, coefficients, windows, export, ingest, operations, alarms, rollouts, page):
         app.include_router(router)
     app.mount("/static", StaticFiles(directory=str(STATIC)), name="static")
     if auth is not None:

@@ -15,6 +15,7 @@ from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from .rollout import OUTCOMES, ROLLOUT_STATES, Rollouts
 from .store import Store
 
 if TYPE_CHECKING:
@@ -43,6 +44,21 @@ class FleetCollector(Collector):
         for state, count in sorted(self.store.device_counts().items()):
             devices.add_metric([state], count)
         yield devices
+        staged, parts = Rollouts(self.store).counts()
+        rollouts_by_state = GaugeMetricFamily(
+            "encoder_fleet_staged_rollouts", "Staged rollouts, by state.", labels=["state"]
+        )
+        for state in ROLLOUT_STATES:
+            rollouts_by_state.add_metric([state], staged.get(state, 0))
+        yield rollouts_by_state
+        rollout_devices = GaugeMetricFamily(
+            "encoder_fleet_rollout_devices",
+            "Devices of the running and paused staged rollouts, by their part's state.",
+            labels=["state"],
+        )
+        for state in ("pending", "in_progress", *OUTCOMES):
+            rollout_devices.add_metric([state], parts.get(state, 0))
+        yield rollout_devices
         if self.service is None:
             return
         counters = self.service.counters.snapshot()

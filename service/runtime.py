@@ -23,7 +23,8 @@ from encoder_core.samples import InputError
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from service.monitor import Monitor
-from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, refit_device
+from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, RefitResult, refit_device
+from service.rollout import Rollouts
 from service.store import Store
 from service.trial import TrialEvidence, Verdict, changed_bands
 from service.trial import judge as default_judge
@@ -124,6 +125,7 @@ class FleetService:
         rate_per_key: float = RATE_PER_KEY,
         burst_per_key: float = BURST_PER_KEY,
         queue_wait_s: float = QUEUE_WAIT_S,
+        clock: Callable[[], float] = time.time,
     ):
         self.store = store
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
@@ -152,6 +154,8 @@ class FleetService:
         self.monitor_interval_s = monitor_interval_s
         self._monitor_changed: set[str] = set()
         self._monitor_thread: threading.Thread | None = None
+        # staged rollouts (service/rollout.py): stepped on the refit thread, after each refit pass
+        self.rollouts = Rollouts(store, self, clock=clock)
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
@@ -368,6 +372,10 @@ class FleetService:
     def _refit_loop(self) -> None:
         while not self._stop.wait(self.refit_interval_s):
             self.refit_all()
+            try:
+                self.rollouts.step()
+            except Exception:  # logged with its trace; the next pass tries again from what is stored
+                log.exception("rollout step failed")
 
     def refit_all(self) -> list[int]:
         """Refit every device that sent windows since its last refit; returns the versions published."""
@@ -398,10 +406,22 @@ class FleetService:
 
     def refit(self, device: str) -> int | None:
         """Judge the set on trial, if there is one (the device gets nothing new meanwhile); otherwise refit
-        and publish what changed, on trial. Returns the version published (a fit or a rollback)."""
+        and publish what changed, on trial. Returns the version published (a fit or a rollback). A device a
+        staged rollout holds (service/rollout.py) is left to the rollout."""
+        if self.rollouts.holds(device):
+            return None
         trial = self.store.set_on_trial(device)
         if trial is not None:
             return self._judge_trial(device, trial)
+        result = self.fit(device)
+        with self._lock:
+            self.counters.refits += 1
+        if result is None or not result.changed:
+            return None
+        return self.publish_fit(device, result)
+
+    def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
+        """The refit of the device's band sums against the set it runs; None when no set is known yet."""
         running_version = self.store.published_version(device)
         if running_version is None:
             return None  # no factory set known yet: nothing to anchor a rollout to
@@ -409,18 +429,17 @@ class FleetService:
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
         bin_temps = {band: stats.bin_temps() for band, stats in band_stats.items()}
-        result = refit_device(
+        return refit_device(
             band_stats,
             running,
             factory,
-            min_samples=self.min_band_samples,
+            min_samples=self.min_band_samples if min_band_samples is None else min_band_samples,
             bin_temps=bin_temps,
             after_step=self._stepped_recently(device),
         )
-        with self._lock:
-            self.counters.refits += 1
-        if not result.changed:
-            return None
+
+    def publish_fit(self, device: str, result: RefitResult, *, reason: str | None = None) -> int:
+        """Store the fits and the set they make (on trial) in one transaction, then publish it."""
         drive_now = self._drive_now(device)
         with self.store.transaction():  # the fits and the set they make land together, or not at all
             version = self.store.next_version(device)
@@ -440,12 +459,26 @@ class FleetService:
                 device=device, version=version, created_at=drive_now, basis="fit", bands=result.bands
             )
             msg = self._publishable(msg)
-            self.store.insert_coefficient_set(msg, state="trial")
+            self.store.insert_coefficient_set(msg, state="trial", reason=reason)
         self._publish(msg)
         log.info(
             "published coefficient set on trial",
             extra={"device": device, "version": version, "bands_adopted": sum(d.adopted for d in result.decisions)},
         )
+        return version
+
+    def publish_bands(self, device: str, bands: list[dict], *, restores_version: int, reason: str) -> int:
+        """Publish, on trial, a set that carries the bands of confirmed set `restores_version` again (a reset
+        to factory is restores_version 0)."""
+        drive_now = self._drive_now(device)
+        with self.store.transaction():
+            version = self.store.next_version(device)
+            msg = wire.coefficients_message(
+                device, version, drive_now, "rollback", bands, restores_version=restores_version
+            )
+            msg = self._publishable(msg)
+            self.store.insert_coefficient_set(msg, state="trial", reason=reason)
+        self._publish(msg)
         return version
 
     def _judge_trial(self, device: str, trial: dict) -> int | None:
@@ -456,10 +489,7 @@ class FleetService:
                 device, trial["version"], "confirmed", at=self._drive_now(device), reason="no set before"
             )
             return None
-        bands = changed_bands(trial["message"], before)
-        soak = self.store.stats_run_on(device, trial["version"], bands)
-        evidence = TrialEvidence(trial["message"], before, soak, factory=self.store.coefficient_set(device, 0))
-        verdict = self.judge(evidence)
+        verdict = self.judge_set(device, trial["message"], before)
         drive_now = self._drive_now(device)
         if verdict.action == "wait" and drive_now - trial["message"]["created_at"] >= TRIAL_MAX_S:
             verdict.action = "confirm"
@@ -470,28 +500,34 @@ class FleetService:
             self.store.set_state(device, trial["version"], "confirmed", at=drive_now, reason=verdict.reason)
             log.info("coefficient set confirmed", extra={"device": device, "version": trial["version"]})
             return None
+        return self.roll_back(device, trial["version"], before, verdict.reason)
+
+    def judge_set(self, device: str, trial: dict, before: dict) -> Verdict:
+        """The guard's verdict on set `trial` against `before`, from the windows the drive ran on `trial`."""
+        bands = changed_bands(trial, before)
+        soak = self.store.stats_run_on(device, trial["version"], bands)
+        return self.judge(TrialEvidence(trial, before, soak, factory=self.store.coefficient_set(device, 0)))
+
+    def roll_back(self, device: str, version: int, before: dict, reason: str) -> int:
+        """Mark set `version` rolled back and publish `before`'s bands again (basis rollback, confirmed)."""
+        drive_now = self._drive_now(device)
         with self.store.transaction():
-            version = self.store.next_version(device)
+            new_version = self.store.next_version(device)
             bands_again = [{k: v for k, v in b.items()} for b in before["bands"]]
             msg = wire.coefficients_message(
-                device, version, drive_now, "rollback", bands_again, restores_version=before["version"]
+                device, new_version, drive_now, "rollback", bands_again, restores_version=before["version"]
             )
             msg = self._publishable(msg)
-            self.store.set_state(device, trial["version"], "rolled_back", at=drive_now, reason=verdict.reason)
-            self.store.insert_coefficient_set(msg, reason=f"restores v{before['version']}: {verdict.reason}")
+            self.store.set_state(device, version, "rolled_back", at=drive_now, reason=reason)
+            self.store.insert_coefficient_set(msg, reason=f"restores v{before['version']}: {reason}")
         self._publish(msg)
         with self._lock:
             self.counters.rollbacks += 1
         log.warning(
             "coefficient set rolled back",
-            extra={
-                "device": device,
-                "version": trial["version"],
-                "restored": before["version"],
-                "new_version": version,
-            },
+            extra={"device": device, "version": version, "restored": before["version"], "new_version": new_version},
         )
-        return version
+        return new_version
 
     def _publishable(self, msg: dict) -> dict:
         # stored signed: the queryable replies with the same content the subscribers got

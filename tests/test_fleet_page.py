@@ -9,6 +9,7 @@ import pytest
 from wire_samples import ack, coefficients, window
 
 from fleet_wire.session import free_port
+from service.rollout import Rollouts, RolloutSpec
 from service.runtime import HttpServer
 from service.store import Store
 
@@ -33,6 +34,8 @@ def served(tmp_path):
     # a planted alarm: what the drift monitor writes when drive-002's offsets jump
     step = {"kind": "raise", "cause": "offset_step", "at": 7200.0, "parameters": {"delta_d": 0.02, "delta_q": 0.0}}
     store.save_monitor("drive-002", {}, 8, [{**step, "evidence": "the offsets jumped (planted by the test)"}])
+    spec = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 1, "soak_windows": 30}
+    Rollouts(store).create(RolloutSpec(name="back to the bench", **spec))  # a rollout in progress
     port = free_port()
     http = HttpServer(store, port).start()
     yield f"http://127.0.0.1:{port}"
@@ -66,6 +69,10 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         assert [a.split("\t")[:3] for a in open_alarms] == [["drive-002", "offset_step", "2.00"]]
         timeline = page.evaluate("document.getElementById('alarm-timeline').data.map(t => [t.name, t.x])")
         assert timeline == [["offset_step (open)", [2.0, 3.0]]]
+        rollouts = page.locator("#rollouts tbody tr").all_inner_texts()
+        assert [r.split("\t")[:6] for r in rollouts] == [
+            ["1", "back to the bench", "reset_to_factory", "running", "1 of 2", "0 %"]
+        ]
         browser.close()
     assert problems == []
 

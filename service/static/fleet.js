@@ -58,6 +58,7 @@ async function showFleet() {
     row.addEventListener("click", () => showDevice(d.id));
   }
   await showOpenAlarms();
+  await showRollouts();
   if (devices.length) await showDevice(devices[0].id);
 }
 
@@ -74,6 +75,28 @@ async function showOpenAlarms() {
     cell(row, (a.raised_at / 3600).toFixed(2));
     cell(row, a.evidence);
     row.addEventListener("click", () => showDevice(a.device));
+  }
+}
+
+// staged rollouts (service/rollout.py), the running and paused ones first
+async function showRollouts() {
+  const rollouts = await getJson("/rollouts");
+  const order = { running: 0, paused: 1 };
+  rollouts.sort((a, b) => (order[a.state] ?? 2) - (order[b.state] ?? 2) || b.id - a.id);
+  document.getElementById("no-rollouts").hidden = rollouts.length > 0;
+  const body = document.querySelector("#rollouts tbody");
+  body.replaceChildren();
+  for (const r of rollouts) {
+    const row = body.insertRow();
+    row.dataset.rollout = r.id;
+    cell(row, r.id);
+    cell(row, r.name);
+    cell(row, r.spec.change.kind);
+    cell(row, r.state, r.state === "aborted" || r.state === "paused" ? "state-alarm" : undefined);
+    cell(row, `${r.wave + 1} of ${r.waves.length}`);
+    cell(row, `${r.percent_done} %`);
+    cell(row, Object.entries(r.by_state).map(([s, n]) => `${s} ${n}`).join(", "));
+    cell(row, r.reason || "");
   }
 }
 

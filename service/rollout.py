@@ -1,0 +1,401 @@
+"""Staged rollouts (issue 12): a change that touches many drives goes out in waves, under control.
+
+Anchors: AWS IoT Jobs (an exponential rollout rate `base_per_minute` x `increment_factor`^wave, abort criteria
+`failure_type` / `threshold_percentage` / `min_executed`) and Eclipse hawkBit (a group starts when the one
+before it has soaked; an error threshold stops the rollout).
+
+- Wave k holds floor(base_per_minute * increment_factor**k) devices and starts at least a minute after wave
+  k-1 started, and only once every device of wave k-1 has an outcome: so no more than the wave's rate starts
+  per minute, and nothing new starts while the last wave is unproven.
+- A device's part: the change publishes a new set on trial; the soak is `soak_windows` windows the drive ran
+  on it (the agent labels each window with the set it ran). Then the guard's own judge (service/trial.py)
+  compares it with the set the device ran before on those windows: not worse -> succeeded, worse -> regressed
+  and rolled back at once. An ack that refuses the set -> rejected; no soak within `timeout_s` -> timed_out
+  and rolled back (never worse: an unproven change does not stay).
+- Abort criteria count outcomes decided since the rollout started or was last resumed. A criterion that
+  trips pauses the rollout or aborts it; abort (tripped or asked for over REST) rolls the current wave back:
+  every device of it still running the rollout's set gets the set it ran before again. Devices of later
+  waves are never touched.
+- All state is in SQLite (migrations/060_rollouts.sql): a restarted service resumes where it was.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+
+from fleet_wire import keys
+
+if TYPE_CHECKING:
+    from .runtime import FleetService
+    from .store import Store
+
+log = logging.getLogger("service.rollout")
+
+FAILURE_TYPES = ("rejected", "timed_out", "regressed")
+ROLLOUT_STATES = ("running", "paused", "aborted", "completed")
+OUTCOMES = ("succeeded", "unchanged", *FAILURE_TYPES, "rolled_back")  # a device's part, once decided
+WAVE_SPACING_S = 60.0  # the rate is per minute: wave k+1 starts no sooner than a minute after wave k
+
+
+class AbortCriterion(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    failure_type: Literal["rejected", "timed_out", "regressed"]
+    threshold_percentage: float = Field(gt=0, le=100, description="Trips when failures / executed reach this.")
+    min_executed: int = Field(ge=1, le=10_000_000, description="Outcomes needed before the criterion may trip.")
+    action: Literal["abort", "pause"] = Field("abort", description="abort rolls the current wave back.")
+
+
+class Change(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    kind: Literal["reset_to_factory", "refit"] = Field(
+        description="reset_to_factory: every drive runs its factory set again. refit: a refit now from the "
+        "band sums (after a new refit method or policy), published through the waves instead of at once."
+    )
+    min_band_samples: int | None = Field(None, ge=1, description="refit only: the policy's samples per band.")
+
+
+DeviceId = Annotated[str, StringConstraints(pattern=keys.DEVICE_RE.pattern)]
+
+
+class RolloutSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(min_length=1, max_length=200)
+    change: Change
+    devices: list[DeviceId] | None = Field(
+        None, min_length=1, max_length=1_000_000, description="Known devices to include; all known if left out."
+    )
+    base_per_minute: int = Field(ge=1, le=1_000_000, description="Devices in the first wave.")
+    increment_factor: float = Field(1.0, ge=1.0, le=10.0, description="Each wave is this many times the last.")
+    soak_windows: int = Field(ge=1, le=100_000, description="Windows a drive runs on the new set before judging.")
+    timeout_s: float = Field(3600.0, gt=0, le=30 * 86400, description="Service seconds a device has to soak.")
+    abort_criteria: list[AbortCriterion] = Field(default_factory=list, max_length=10)
+
+
+class RolloutError(ValueError):
+    """A request the rollouts cannot take: `status` is the HTTP status that says so."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+
+
+def wave_sizes(total: int, base: int, factor: float) -> list[int]:
+    sizes = []
+    while sum(sizes) < total:
+        sizes.append(min(max(1, math.floor(base * factor ** len(sizes) + 1e-9)), total - sum(sizes)))
+    return sizes
+
+
+class Rollouts:
+    """The rollouts in one store; with the running service (`service`) they can be stepped and changed,
+    without it (the REST app of a bare Store) only read."""
+
+    def __init__(self, store: Store, service: FleetService | None = None, *, clock: Callable[[], float] = time.time):
+        self.store = store
+        self.service = service
+        self.clock = clock
+        self._lock = threading.RLock()  # REST calls and the refit thread's steps take turns
+
+    # --- the operator's side (REST) ----------------------------------------------------------------
+
+    def create(self, spec: RolloutSpec) -> int:
+        with self._lock:
+            known = [d["id"] for d in self.store.devices()]
+            devices = sorted(known) if spec.devices is None else list(dict.fromkeys(spec.devices))
+            unknown = sorted(set(devices) - set(known))
+            if unknown:
+                raise RolloutError(422, f"unknown devices: {', '.join(unknown[:10])}")
+            if not devices:
+                raise RolloutError(422, "no devices to roll out to")
+            busy = self.store._rows(
+                "SELECT id, name FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id LIMIT 1"
+            )
+            if busy:  # one change at a time: outcomes of two changes on one drive could not be told apart
+                raise RolloutError(409, f"rollout {busy[0]['id']} ({busy[0]['name']!r}) is still running or paused")
+            now = self.clock()
+            sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
+            waves = [wave for wave, size in enumerate(sizes) for _ in range(size)]
+            with self.store._tx() as c:
+                cur = c.execute(
+                    "INSERT INTO rollouts (name, spec_json, state, counted_from, created_at, updated_at) "
+                    "VALUES (?, ?, 'running', ?, ?, ?)",
+                    (spec.name, spec.model_dump_json(), now, now, now),
+                )
+                rollout = cur.lastrowid
+                c.executemany(
+                    "INSERT INTO rollout_devices (rollout, device, wave, state) VALUES (?, ?, ?, 'pending')",
+                    [(rollout, device, wave) for device, wave in zip(devices, waves, strict=True)],
+                )
+            log.info("rollout created", extra={"rollout": rollout, "devices": len(devices), "waves": len(sizes)})
+            return rollout
+
+    def pause(self, rollout: int, reason: str = "paused by an operator") -> dict:
+        with self._lock:
+            self._expect(rollout, ("running",), "pause")
+            self._set_state(rollout, "paused", reason)
+            return self.get(rollout)
+
+    def resume(self, rollout: int) -> dict:
+        with self._lock:
+            self._expect(rollout, ("paused",), "resume")
+            now = self.clock()
+            with self.store._tx() as c:
+                c.execute(
+                    "UPDATE rollouts SET state = 'running', reason = ?, counted_from = ?, updated_at = ? WHERE id = ?",
+                    ("resumed by an operator", now, now, rollout),
+                )
+            return self.get(rollout)
+
+    def abort(self, rollout: int, reason: str = "aborted by an operator") -> dict:
+        with self._lock:
+            self._expect(rollout, ("running", "paused"), "abort")
+            self._abort(rollout, reason)
+            return self.get(rollout)
+
+    # --- what the service reads ---------------------------------------------------------------------
+
+    def holds(self, device: str) -> bool:
+        """The device is soaking a rollout's set: the automatic refit leaves it alone."""
+        return bool(
+            self.store._rows("SELECT 1 FROM rollout_devices WHERE device = ? AND state = 'in_progress'", (device,))
+        )
+
+    def counts(self) -> tuple[dict[str, int], dict[str, int]]:
+        """(rollouts by state, devices of running and paused rollouts by state): for /metrics."""
+        by_state = self.store._rows("SELECT state, count(*) AS n FROM rollouts GROUP BY state")
+        devices = self.store._rows(
+            "SELECT d.state, count(*) AS n FROM rollout_devices d JOIN rollouts r ON r.id = d.rollout "
+            "WHERE r.state IN ('running', 'paused') GROUP BY d.state"
+        )
+        return {r["state"]: r["n"] for r in by_state}, {r["state"]: r["n"] for r in devices}
+
+    def list(self) -> list[dict]:
+        rows = self.store._rows("SELECT id FROM rollouts ORDER BY id DESC")
+        return [self.get(r["id"], with_devices=False) for r in rows]
+
+    def get(self, rollout: int, *, with_devices: bool = True) -> dict:
+        rows = self.store._rows("SELECT * FROM rollouts WHERE id = ?", (rollout,))
+        if not rows:
+            raise RolloutError(404, f"no rollout {rollout}")
+        r = rows[0]
+        devices = self._devices(rollout)
+        waves: dict[int, Counter] = {}
+        for d in devices:
+            waves.setdefault(d["wave"], Counter())[d["state"]] += 1
+        by_state = Counter(d["state"] for d in devices)
+        done = sum(n for state, n in by_state.items() if state in OUTCOMES)
+        out = {
+            "id": r["id"],
+            "name": r["name"],
+            "spec": json.loads(r["spec_json"]),
+            "state": r["state"],
+            "reason": r["reason"],
+            "wave": r["wave"],
+            "wave_started_at": r["wave_started_at"],
+            "created_at": r["created_at"],
+            "updated_at": r["updated_at"],
+            "devices_total": len(devices),
+            "devices_done": done,
+            "percent_done": round(100.0 * done / len(devices), 1) if devices else 100.0,
+            "by_state": dict(sorted(by_state.items())),
+            "waves": [
+                {"wave": w, "size": sum(c.values()), "by_state": dict(sorted(c.items()))}
+                for w, c in sorted(waves.items())
+            ],
+        }
+        if with_devices:
+            out["devices"] = devices
+        return out
+
+    def _devices(self, rollout: int) -> list[dict]:
+        rows = self.store._rows(
+            "SELECT device, wave, state, before_version, version, started_at, decided_at, reason "
+            "FROM rollout_devices WHERE rollout = ? ORDER BY wave, device",
+            (rollout,),
+        )
+        return [dict(r) for r in rows]
+
+    # --- the controller (the refit thread) ----------------------------------------------------------
+
+    def step(self) -> None:
+        """Decide what the soaks say, apply the abort criteria, start the next devices."""
+        with self._lock:
+            for r in self.store._rows("SELECT * FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id"):
+                self._step_one(r)
+
+    def _step_one(self, r) -> None:
+        rollout, spec = r["id"], RolloutSpec.model_validate_json(r["spec_json"])
+        now = self.clock()
+        devices = self._devices(rollout)
+        for d in devices:  # a paused rollout still decides its soaks: a regressed drive is rolled back at once
+            if d["state"] == "in_progress":
+                self._decide(rollout, spec, d, now)
+        if r["state"] == "paused":
+            return
+        devices = self._devices(rollout)
+        tripped = self._tripped(spec, devices, r["counted_from"])
+        if tripped is not None:
+            criterion, reason = tripped
+            if criterion.action == "pause":
+                self._set_state(rollout, "paused", reason)
+            else:
+                self._abort(rollout, reason)
+            log.warning("rollout abort criterion tripped", extra={"rollout": rollout, "reason": reason})
+            return
+        wave = r["wave"]
+        in_wave = [d for d in devices if d["wave"] == wave]
+        if r["wave_started_at"] is None or any(d["state"] == "pending" for d in in_wave):
+            if r["wave_started_at"] is None:
+                self._update(rollout, wave_started_at=now)
+            for d in in_wave:
+                if d["state"] == "pending":
+                    self._start(rollout, spec, d["device"], now)
+            return
+        if any(d["state"] not in OUTCOMES for d in in_wave):
+            return  # the wave is soaking
+        if wave == max(d["wave"] for d in devices):
+            counts = Counter(d["state"] for d in devices)
+            self._set_state(rollout, "completed", ", ".join(f"{n} {s}" for s, n in sorted(counts.items())))
+            log.info("rollout completed", extra={"rollout": rollout})
+            return
+        if now - r["wave_started_at"] >= WAVE_SPACING_S:
+            self._update(rollout, wave=wave + 1, wave_started_at=None)
+            self._step_one(self.store._rows("SELECT * FROM rollouts WHERE id = ?", (rollout,))[0])
+
+    def _start(self, rollout: int, spec: RolloutSpec, device: str, now: float) -> None:
+        """Publish the change to one device, on trial; a device with a set already on trial waits for it."""
+        service, store = self.service, self.store
+        if store.set_on_trial(device) is not None:
+            return  # the guard is judging a fit: the change starts after it, on a known-good base
+        running = store.published_version(device)
+        before = store.coefficient_set(device, running) if running is not None else None
+        if before is None:
+            self._record(rollout, device, "unchanged", now, reason="no set known for the device")
+            return
+        why = f"rollout {rollout}: {spec.change.kind}"
+        if spec.change.kind == "reset_to_factory":
+            factory = store.coefficient_set(device, 0)
+            if factory is None or _same_bands(factory["bands"], before["bands"]):
+                self._record(rollout, device, "unchanged", now, before=running, reason="already runs its factory set")
+                return
+            version = service.publish_bands(device, factory["bands"], restores_version=0, reason=why)
+        else:
+            result = service.fit(device, min_band_samples=spec.change.min_band_samples)
+            if result is None or not result.changed:
+                self._record(rollout, device, "unchanged", now, before=running, reason="the refit changes nothing")
+                return
+            version = service.publish_fit(device, result, reason=why)
+        with store._tx() as c:
+            c.execute(
+                "UPDATE rollout_devices SET state = 'in_progress', before_version = ?, version = ?, started_at = ? "
+                "WHERE rollout = ? AND device = ?",
+                (running, version, now, rollout, device),
+            )
+
+    def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float) -> None:
+        device, version = d["device"], d["version"]
+        refused = self.store._rows(
+            "SELECT reason FROM acks WHERE device = ? AND version = ? AND status = 'rejected' LIMIT 1",
+            (device, version),
+        )
+        if refused:  # the drive still runs the set before: the service's record says so again
+            reason = f"the agent refused v{version}: {refused[0]['reason']}"
+            self._revert(device, version, d["before_version"], f"rollout {rollout}: {reason}")
+            self._record(rollout, device, "rejected", now, reason=reason)
+            return
+        soaked = self.store._rows(
+            "SELECT count(*) AS n FROM windows WHERE device = ? AND coefficients_version = ?", (device, version)
+        )[0]["n"]
+        late = now - d["started_at"] >= spec.timeout_s
+        if soaked < spec.soak_windows:
+            if late:
+                reason = f"{soaked} of {spec.soak_windows} soak windows within {spec.timeout_s:g} s"
+                self._revert(device, version, d["before_version"], f"rollout {rollout} timed out: {reason}")
+                self._record(rollout, device, "timed_out", now, reason=reason)
+            return
+        trial = self.store.coefficient_set(device, version)
+        before = self.store.coefficient_set(device, d["before_version"])
+        verdict = self.service.judge_set(device, trial, before)
+        drive_now = self.service._drive_now(device)
+        if verdict.action == "rollback":
+            self.service.roll_back(device, version, before, f"rollout {rollout}: {verdict.reason}")
+            self._record(rollout, device, "regressed", now, reason=verdict.reason)
+        elif verdict.action == "confirm":
+            self.store.set_state(
+                device, version, "confirmed", at=drive_now, reason=f"rollout {rollout}: {verdict.reason}"
+            )
+            self._record(rollout, device, "succeeded", now, reason=verdict.reason)
+        elif late:  # soaked, but the windows cannot tell the sets apart: kept, as the guard keeps a trial
+            reason = f"{verdict.reason}; not measurable within {spec.timeout_s:g} s: kept"
+            self.store.set_state(device, version, "confirmed", at=drive_now, reason=f"rollout {rollout}: {reason}")
+            self._record(rollout, device, "succeeded", now, reason=reason)
+
+    def _tripped(self, spec: RolloutSpec, devices: list[dict], counted_from: float):
+        decided = [d for d in devices if d["state"] in OUTCOMES and d["decided_at"] >= counted_from]
+        executed = len(decided)
+        for criterion in spec.abort_criteria:
+            failures = sum(d["state"] == criterion.failure_type for d in decided)
+            if executed >= criterion.min_executed and 100.0 * failures / executed >= criterion.threshold_percentage:
+                share = 100.0 * failures / executed
+                return criterion, (
+                    f"{failures} of {executed} executed {criterion.failure_type} ({share:.0f} % >= "
+                    f"{criterion.threshold_percentage:g} %)"
+                )
+        return None
+
+    def _abort(self, rollout: int, reason: str) -> None:
+        """Stop, and roll the current wave back: its devices still on the rollout's set run their set before."""
+        now = self.clock()
+        wave = self.store._rows("SELECT wave FROM rollouts WHERE id = ?", (rollout,))[0]["wave"]
+        for d in self._devices(rollout):
+            if d["wave"] != wave or d["state"] not in ("in_progress", "succeeded"):
+                continue
+            if self.store.published_version(d["device"]) != d["version"]:
+                continue  # the device has moved on since (a later fit): that set is the guard's, not ours
+            self._revert(d["device"], d["version"], d["before_version"], f"rollout {rollout} aborted: {reason}")
+            self._record(rollout, d["device"], "rolled_back", now, reason=f"wave rolled back: {reason}")
+        self._set_state(rollout, "aborted", reason)
+        log.warning("rollout aborted", extra={"rollout": rollout, "reason": reason})
+
+    def _revert(self, device: str, version: int, before_version: int, reason: str) -> None:
+        before = self.store.coefficient_set(device, before_version)
+        self.service.roll_back(device, version, before, reason)
+
+    def _record(self, rollout: int, device: str, state: str, now: float, *, reason: str, before=None) -> None:
+        with self.store._tx() as c:
+            c.execute(
+                "UPDATE rollout_devices SET state = ?, decided_at = ?, reason = ?, "
+                "before_version = coalesce(before_version, ?) WHERE rollout = ? AND device = ?",
+                (state, now, reason, before, rollout, device),
+            )
+
+    def _expect(self, rollout: int, states: tuple[str, ...], what: str) -> None:
+        state = self.get(rollout, with_devices=False)["state"]
+        if state not in states:
+            raise RolloutError(409, f"rollout {rollout} is {state}: cannot {what} it")
+
+    def _set_state(self, rollout: int, state: str, reason: str) -> None:
+        self._update(rollout, state=state, reason=reason)
+
+    def _update(self, rollout: int, **values) -> None:
+        values["updated_at"] = self.clock()
+        assignments = ", ".join(f"{column} = ?" for column in values)  # column names are this module's own
+        with self.store._tx() as c:
+            c.execute(f"UPDATE rollouts SET {assignments} WHERE id = ?", (*values.values(), rollout))
+
+
+def _same_bands(a: list[dict], b: list[dict]) -> bool:
+    return _band_keys(a) == _band_keys(b)
+
+
+def _band_keys(bands: list[dict]) -> list[str]:
+    return sorted(json.dumps({k: v for k, v in band.items() if k != "quality"}, sort_keys=True) for band in bands)
