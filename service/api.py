@@ -415,6 +415,10 @@ _ROLLOUT_ERRORS = {
     404: {"model": ErrorMessage, "description": "No such rollout."},
     409: {"model": ErrorMessage, "description": "The rollout's state does not allow it, or another is running."},
 }
+_ROLLOUT_CHANGE_ERRORS = {
+    **_ROLLOUT_ERRORS,
+    503: {"model": ErrorMessage, "description": "No running service in this process to publish the change."},
+}
 
 
 class RolloutDevice(BaseModel):
@@ -495,7 +499,7 @@ def get_rollout(rollout_id: RolloutId, registry: RolloutsDep):
     "",
     response_model=RolloutDetail,
     status_code=201,
-    responses=_ROLLOUT_ERRORS,
+    responses=_ROLLOUT_CHANGE_ERRORS,
     summary="Start a staged rollout (admin): waves, soak, abort criteria",
 )
 def create_rollout(spec: RolloutSpec, registry: MutableRolloutsDep):
@@ -503,13 +507,15 @@ def create_rollout(spec: RolloutSpec, registry: MutableRolloutsDep):
     return registry.get(rollout_id)
 
 
-@rollouts.post("/{rollout_id}/pause", response_model=RolloutDetail, responses=_ROLLOUT_ERRORS, summary="Pause (admin)")
+@rollouts.post(
+    "/{rollout_id}/pause", response_model=RolloutDetail, responses=_ROLLOUT_CHANGE_ERRORS, summary="Pause (admin)"
+)
 def pause_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):
     return _rollout_call(registry.pause, rollout_id)
 
 
 @rollouts.post(
-    "/{rollout_id}/resume", response_model=RolloutDetail, responses=_ROLLOUT_ERRORS, summary="Resume (admin)"
+    "/{rollout_id}/resume", response_model=RolloutDetail, responses=_ROLLOUT_CHANGE_ERRORS, summary="Resume (admin)"
 )
 def resume_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):
     return _rollout_call(registry.resume, rollout_id)
@@ -518,7 +524,7 @@ def resume_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):
 @rollouts.post(
     "/{rollout_id}/abort",
     response_model=RolloutDetail,
-    responses=_ROLLOUT_ERRORS,
+    responses=_ROLLOUT_CHANGE_ERRORS,
     summary="Abort (admin): the current wave is rolled back, later waves never start",
 )
 def abort_rollout(rollout_id: RolloutId, registry: MutableRolloutsDep):

@@ -18,10 +18,11 @@ from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.security import SetSigner, SetVerifier, registry
+from fleet_wire.session import loopback_endpoint
 from service.api import create_app
 from service.auth import TokenAuth
 from service.guard import IngestGuard
-from service.runtime import FleetService
+from service.runtime import FleetService, open_session
 from service.store import Store
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
@@ -169,9 +170,13 @@ def rest_app(tmp_path_factory):
     _, admin = auth.create("admin", "fuzz")
     with store._tx() as c:  # out of the way of DELETE /tokens/{small id}
         c.execute("UPDATE api_tokens SET id = ? WHERE name = 'fuzz'", (987654321987,))
-    app = create_app(store, auth=auth)
+    session = open_session(listen=[loopback_endpoint()])  # the running service: rollouts can be changed
+    service = FleetService(store, session, refit_interval_s=0, monitor_interval_s=0).start()
+    app = create_app(store, service, auth=auth)
     app.state.fuzz_token = admin
     yield app
+    service.stop()
+    session.close()
     store.close()
 
 

@@ -290,6 +290,9 @@ def test_rest_creates_pauses_resumes_and_aborts_with_an_admin_token_only(fleet, 
     metrics = api.get("/metrics", headers=as_reader).text
     assert 'encoder_fleet_staged_rollouts{state="aborted"} 1.0' in metrics
     assert 'encoder_fleet_staged_rollouts{state="running"} 0.0' in metrics
+    bare = TestClient(create_app(store))  # REST of the bare database, no running service: read only
+    assert bare.get("/rollouts/1").json()["state"] == "aborted"
+    assert bare.post("/rollouts", json=spec).status_code == 503
 
 
 def test_a_rejected_set_and_a_silent_drive_count_as_failures_and_are_rolled_back(fleet, clock):
@@ -315,3 +318,27 @@ def test_a_rejected_set_and_a_silent_drive_count_as_failures_and_are_rolled_back
         assert store.coefficient_set(device, store.published_version(device))["restores_version"] == 1
     assert result["state"] == "paused" and "1 of 2 executed timed_out" in result["reason"]
     assert outcome[DEVICES[2]]["state"] == "pending"
+
+
+def test_a_refit_rollout_publishes_each_drives_own_fit_wave_by_wave(fleet, clock):
+    """kind refit (a new refit method or policy): the waves carry each drive's fit from its band sums; the
+    fleet sets were wrong by a zero error drawn from the seed, and every drive ends on a confirmed fit."""
+    store, service = fleet
+    errors = drifted_drives(3)
+    for device in DEVICES[:4]:
+        install(store, service, device, shifted(true_bands(device), errors.get(device, 0.03)))
+        run_on(store, device, 1, hours=2.0)  # enough band sums for a refit
+    service.rollouts.create(
+        RolloutSpec(
+            name="method v2", change={"kind": "refit"}, devices=DEVICES[:4], base_per_minute=1,
+            increment_factor=3.0, soak_windows=30, abort_criteria=REGRESSED_ABORTS,
+        )
+    )  # fmt: skip
+    result = soak_and_step(store, service, clock)
+    assert result["state"] == "completed" and result["by_state"] == {"succeeded": 4}, result
+    assert [w["size"] for w in result["waves"]] == [1, 3]
+    for device in DEVICES[:4]:
+        current = store.coefficient_set(device, store.published_version(device))
+        assert current["basis"] == "fit" and current["version"] == 2
+        zero_error = abs(current["bands"][0]["w"][1] - true_bands(device)[0]["w"][1])
+        assert zero_error < errors.get(device, 0.03) / 3, (device, zero_error)

@@ -289,14 +289,20 @@ def rest(tmp_path):
 
 def test_rest_needs_a_token_everywhere_but_healthz_and_the_page_shell(rest):
     client, read, admin, _ = rest
-    paths = [p.replace("{device_id}", "drive-a").replace("{token_id}", "1") for p in client.app.openapi()["paths"]]
-    assert "/healthz" in paths and "/metrics" in paths and "/tokens" in paths
-    for path in paths:
+    ids = {"{device_id}": "drive-a", "{token_id}": "1", "{rollout_id}": "1"}
+    routes = []
+    for path, operations in client.app.openapi()["paths"].items():
+        for name, value in ids.items():
+            path = path.replace(name, value)
+        routes += [(method.upper(), path) for method in operations]
+    paths = {path for _, path in routes}
+    assert "/healthz" in paths and "/metrics" in paths and "/tokens" in paths and "/rollouts" in paths
+    for method, path in routes:
         if path in ("/healthz", "/"):  # liveness, and the fleet page's HTML shell (its data needs a token)
             assert client.get(path).status_code == 200
             continue
         for headers in ({}, {"Authorization": "Bearer nope"}, {"Authorization": f"Basic {read}"}):
-            response = client.request("DELETE" if "/tokens/" in path else "GET", path, headers=headers)
+            response = client.request(method, path, headers=headers)
             assert response.status_code == 401, (path, headers, response.text)
             assert response.headers["www-authenticate"] == "Bearer"
     assert client.get("/static/plotly.min.js").status_code == 200  # the page's code loads without a token
