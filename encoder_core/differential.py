@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -199,15 +200,32 @@ class PolarLocus:
         psi = np.arctan2(u[1], u[0])
         order = np.argsort(psi)
         self.psi, self.rho = psi[order], np.hypot(u[0], u[1])[order]
+        # the curve closed once here (one point past each end), so each interpolation needs no sort: np.interp's
+        # `period` re-sorts its 2,048 points on every call, and the drift fit calls it ~2,000 times per device
+        self._psi_closed = np.concatenate([[self.psi[-1] - 2 * np.pi], self.psi, [self.psi[0] + 2 * np.pi]])
+        self._rho_closed = np.concatenate([[self.rho[-1]], self.rho, [self.rho[0]]])
 
     def unit(self, d, q) -> np.ndarray:
         return self.to_unit @ np.vstack([np.asarray(d, float) - self.center[0], np.asarray(q, float) - self.center[1]])
 
     def residual(self, d, q) -> np.ndarray:
         """Radial distance of points from the curve, in units of the locus radius."""
-        u = self.unit(d, q)
-        rho = np.interp(np.arctan2(u[1], u[0]), self.psi, self.rho, period=2 * np.pi)
+        return self.residual_of_unit(self.unit(d, q))
+
+    def residual_of_unit(self, u: np.ndarray) -> np.ndarray:
+        """The same for points already in the locus's unit frame: u[0], u[1] of any shape."""
+        rho = np.interp(np.arctan2(u[1], u[0]), self._psi_closed, self._rho_closed)
         return np.hypot(u[0], u[1]) - rho
+
+
+def polar_locus(locus: BenchLocus) -> PolarLocus:
+    """The locus's polar curve, built once per bench locus (a refit pass fits every band against it twice)."""
+    return _polar_of(locus.d.tobytes(), locus.q.tobytes())
+
+
+@lru_cache(maxsize=4096)
+def _polar_of(d: bytes, q: bytes) -> PolarLocus:
+    return PolarLocus(BenchLocus(0.0, np.frombuffer(d), np.frombuffer(q), 0))
 
 
 def _drift_of(x: np.ndarray, bench_center: np.ndarray) -> Drift:
@@ -239,7 +257,7 @@ def fit_drift(
     when the model fits worse than the scatter says) and a jackknife over the circle's quarters, which
     sees what the scatter cannot: bins seen at different times disagreeing (a drive that reverses over
     arcs while the band warms). `adjust` may move the bin points first (see `temperature_adjust`)."""
-    polar = PolarLocus(locus)
+    polar = polar_locus(locus)
     radius = locus.radius
     x = np.array([polar.center[0], polar.center[1], 0.0, 0.0, 0.0])
     for _ in range(2):  # the bin points' outward shift depends on the centre: settle it once
@@ -269,14 +287,21 @@ def _solve(polar: PolarLocus, points, weights, x, iterations: int):
     """Gauss-Newton on the radial residuals; returns the parameters, their information matrix, the residuals."""
     radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
     steps = STEPS * np.array([radius, radius, 1, 1, 1])
+    probes = np.vstack([np.zeros(5), np.diag(steps)])  # the point and its five finite-difference neighbours
+    field = np.ascontiguousarray(points.T)  # (2, n)
 
-    def residual(xv):
-        d, q = _drift_of(xv, polar.center).apply(points[:, 0], points[:, 1])
-        return polar.residual(d, q)
+    def residuals(xs: np.ndarray) -> np.ndarray:
+        """(m, 5) parameter sets -> (m, n) residuals, in one pass: polar.unit(drift.apply(p)) is one 2x2 map
+        per set, because the drift's bench centre is the locus's centre."""
+        shapes = np.zeros((len(xs), 2, 2))
+        shapes[:, 0, 0], shapes[:, 1, 0], shapes[:, 1, 1] = np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4])
+        u = (polar.to_unit @ shapes) @ (field[None] - xs[:, :2, None])  # (m, 2, n)
+        return polar.residual_of_unit(np.moveaxis(u, 1, 0))
 
     for _ in range(iterations):
-        r0 = residual(x)
-        jac = np.column_stack([(residual(x + np.eye(5)[k] * steps[k]) - r0) / steps[k] for k in range(5)])
+        r = residuals(x + probes)
+        r0 = r[0]
+        jac = ((r[1:] - r0) / steps[:, None]).T
         info = jac.T @ (jac * weights[:, None])
         try:
             step = np.linalg.solve(info, -jac.T @ (weights * r0))
@@ -285,7 +310,7 @@ def _solve(polar: PolarLocus, points, weights, x, iterations: int):
         x = x + step
         if np.all(np.abs(step) < steps * 1e-3):
             break
-    return x, info, residual(x)
+    return x, info, residuals(x[None])[0]
 
 
 def _jackknife(polar: PolarLocus, pts: BinPoints, weights, x, radius: float, min_bins: int) -> dict[str, float]:

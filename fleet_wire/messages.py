@@ -66,30 +66,53 @@ def _validator(kind: str) -> Draft202012Validator:
 # arrays cut out, plus a Python check of those arrays against the same schema nodes. Anything the
 # fast path refuses goes through the full validator, which names the error.
 
-_PLAIN_ARRAY_KEYS = {"type", "minItems", "maxItems", "items", "description", "title"}
+_PLAIN_ARRAY_KEYS = {"type", "minItems", "maxItems", "items", "prefixItems", "description", "title"}
 _NUMBER = {"type": "number"}
+_INTEGER_KEYS = {"type", "minimum", "maximum"}
+
+
+def _is_bounded_integer(node) -> bool:
+    return isinstance(node, dict) and node.get("type") == "integer" and set(node) <= _INTEGER_KEYS
 
 
 def _is_plain_numeric_array(node) -> bool:
-    """{"type": "array", "minItems", "maxItems", "items": a number or another such array}."""
+    """{"type": "array", "minItems", "maxItems", "items": a number or another such array, "prefixItems": bounded
+    integers} (a harmonic's [m, a_m, b_m])."""
     return (
         isinstance(node, dict)
         and node.get("type") == "array"
         and set(node) <= _PLAIN_ARRAY_KEYS
+        and all(_is_bounded_integer(prefix) for prefix in node.get("prefixItems", []))
         and (node.get("items") == _NUMBER or _is_plain_numeric_array(node.get("items")))
     )
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _integer_ok(node: dict, x) -> bool:
+    # JSON Schema's integer: any number with no fractional part (2.0 is an integer)
+    if not _is_number(x) or not (isinstance(x, int) or x.is_integer()):
+        return False
+    return node.get("minimum", -math.inf) <= x <= node.get("maximum", math.inf)
 
 
 def _numeric_array_ok(node: dict, value) -> bool:
     if not isinstance(value, list) or not node.get("minItems", 0) <= len(value) <= node.get("maxItems", math.inf):
         return False
+    prefix = node.get("prefixItems", [])
+    if not all(_integer_ok(p, x) for p, x in zip(prefix, value)):
+        return False
+    rest = value[len(prefix) :]
     if node["items"] == _NUMBER:
-        return all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
-    return all(_numeric_array_ok(node["items"], x) for x in value)
+        return all(_is_number(x) for x in rest)
+    return all(_numeric_array_ok(node["items"], x) for x in rest)
 
 
 def _cut_arrays(node: dict, path: tuple = ()) -> list[tuple[tuple, dict]]:
-    """Replace plain numeric arrays among (nested) object properties by `true`; return their paths and nodes."""
+    """Replace plain numeric arrays among (nested) object properties, also inside arrays of objects (path
+    element "*": every item), by `true`; return their paths and nodes."""
     cut = []
     for name, prop in node.get("properties", {}).items():
         if _is_plain_numeric_array(prop):
@@ -97,7 +120,24 @@ def _cut_arrays(node: dict, path: tuple = ()) -> list[tuple[tuple, dict]]:
             node["properties"][name] = True
         elif isinstance(prop, dict) and prop.get("type") == "object":
             cut += _cut_arrays(prop, path + (name,))
+        elif isinstance(prop, dict) and prop.get("type") == "array" and isinstance(prop.get("items"), dict):
+            if prop["items"].get("type") == "object":
+                cut += _cut_arrays(prop["items"], path + (name, "*"))
     return cut
+
+
+def _values_at(value, path: tuple):
+    """The values at `path` ("*" walks every item of a list); a key that is absent holds nothing to check:
+    the cut schema has already said whether it may be absent."""
+    if not path:
+        yield value
+        return
+    key, rest = path[0], path[1:]
+    if key == "*":
+        for item in value:
+            yield from _values_at(item, rest)
+    elif key in value:
+        yield from _values_at(value[key], rest)
 
 
 @cache
@@ -112,10 +152,7 @@ def _fast_valid(kind: str, msg) -> bool:
     if not validator.is_valid(msg):
         return False
     for path, node in arrays:
-        value = msg
-        for key in path:  # the cut schema still requires each parent object and key
-            value = value[key]
-        if not _numeric_array_ok(node, value):
+        if not all(_numeric_array_ok(node, value) for value in _values_at(msg, path)):
             return False
     return True
 

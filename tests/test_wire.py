@@ -174,7 +174,32 @@ def test_fast_path_cuts_exactly_the_plain_numeric_arrays():
     _, arrays = wire._fast_validator("window")
     assert sorted(path for path, _ in arrays) == [("stats", "bins"), ("stats", "moments")]
     assert wire._fast_valid("window", window())
-    assert wire._fast_validator("coefficients")[1] == []  # w sits inside band items: the full validator checks it
+    _, arrays = wire._fast_validator("coefficients")  # inside every band: w and the harmonics [m, a_m, b_m]
+    assert sorted(path for path, _ in arrays) == [("bands", "*", "harmonics"), ("bands", "*", "w")]
+
+
+@pytest.mark.parametrize(
+    "harmonics",
+    [
+        [[2, 0.01, -0.02]],
+        [[2.0, 0.01, -0.02]],  # JSON Schema's integer: no fractional part
+        [[2.5, 0.01, -0.02]],
+        [[0, 0.01, -0.02]],
+        [[65, 0.01, -0.02]],
+        [[True, 0.01, -0.02]],
+        [[2, 0.01]],
+        [[2, 0.01, -0.02, 0.0]],
+        [[2, "0.01", -0.02]],
+        [[2, 0.01, None]],
+        [[m, 0.0, 0.0] for m in range(1, 66)],
+        [],
+        "none",
+    ],
+)
+def test_fast_path_agrees_with_the_schema_on_harmonics(harmonics):
+    msg = json.loads(json.dumps(coefficients(bands=(1, 2))))
+    msg["bands"][1]["harmonics"] = harmonics
+    assert wire._fast_valid("coefficients", msg) == wire._validator("coefficients").is_valid(msg)
 
 
 def test_device_in_body_must_match_key():
