@@ -158,3 +158,53 @@ def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):
     assert counts.get("device_mismatch") == 1 and counts.get("seq_conflict") == 1, counts
     assert store.device("drive-8") is None or store.device("drive-8")["windows"] == 0
     assert store.device("drive-7")["windows"] == 120  # nothing else affected
+
+
+def test_a_staged_rollout_reaches_real_agents_and_soaks_on_their_windows(fleet, tmp_path):
+    """The rollout controller on the service's own refit thread, with agents in their own processes over TLS:
+    each agent applies the rollout's signed set, labels its windows with it, and the soak counts those."""
+    endpoint, store, service, session, pki = fleet
+    names = ["drive-1", "drive-2"]
+    agents = [
+        subprocess.Popen(
+            [sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", name, "--seed", str(i),
+             "--connect", endpoint, "--sim-hours", "16", "--real-time-factor", "1800",
+             "--outbox", str(tmp_path / f"ob{i}.sqlite"), "--pki", str(pki)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        for i, name in enumerate(names, start=1)
+    ]  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not all(store.device(n) and store.device(n)["windows"] >= 60 for n in names):
+            assert time.monotonic() < deadline, "the agents' first hour never arrived"
+            time.sleep(0.2)
+        spec = {"name": "back to the bench", "change": {"kind": "reset_to_factory"}, "base_per_minute": 2}
+        spec |= {"soak_windows": 20, "timeout_s": 25.0}
+        created = TestClient(create_app(store, service)).post("/rollouts", json=spec)
+        assert created.status_code == 201, created.text
+        deadline = time.monotonic() + 40
+        while service.rollouts.get(1)["state"] == "running":
+            assert time.monotonic() < deadline, service.rollouts.get(1)
+            time.sleep(0.2)
+    finally:
+        outputs = [a.communicate(timeout=120)[0] for a in agents]
+    assert all(a.returncode == 0 for a in agents), outputs
+    result = service.rollouts.get(1)
+    assert result["state"] in ("completed", "aborted"), result
+    for part in result["devices"]:
+        device, version = part["device"], part["version"]
+        assert part["state"] in ("succeeded", "unchanged", "regressed"), part  # no timeout: the agents answered
+        if version is None:
+            continue
+        acks = {(a["version"], a["status"]) for a in store.acks(device)}
+        assert (version, "applied") in acks, (part, acks)  # the agent took the rollout's signed set
+        soaked = [w for w in store.windows(device) if w["coefficients_version"] == version]
+        assert len(soaked) >= 20, part  # and ran it for the soak, as its windows say
+        if part["state"] == "regressed":  # rolled back: the agent applied the set before again
+            rollback = [
+                h["version"] for h in store.coefficient_history(device)
+                if h["basis"] == "rollback" and h["version"] > version
+                and h["message"]["restores_version"] == part["before_version"]
+            ]  # fmt: skip
+            assert rollback and (rollback[-1], "applied") in acks, (part, acks)
