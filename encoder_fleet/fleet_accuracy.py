@@ -36,12 +36,10 @@ from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from service.refit import STEP_OPEN_S, refit_device
-from service.runtime import BAND_HORIZON_H, TRIAL_MAX_S
+from service.runtime import BAND_HORIZON_H, REFIT_EVERY_S, TRIAL_MAX_S
 from service.trial import TrialEvidence, changed_bands, judge
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
-REFIT_EVERY_S = 3600.0
-# the service refits about once per drive-hour at the replay speed
 BAND_HORIZON_S = BAND_HORIZON_H * 3600.0  # drive time a band's sum remembers, as the service's store
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
 # an hour is worse than the factory's when its RMS error is higher by over 1 % and over a millidegree

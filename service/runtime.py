@@ -43,6 +43,10 @@ BAND_HORIZON_H = 12.0
 # the refit's own uncertainty rather than freezing the device's refits until the temperature comes back
 # (bench-fleet-accuracy at 0.5 Hz: with no limit the guard cut the median gain from 3.0x to 1.2x)
 TRIAL_MAX_S = 3600.0
+# drive time between two refits of one device: the cadence bench-fleet-accuracy measured the refit at, and what
+# keeps the refit loop ahead of the fleet (a refit costs ~75 ms; once per window it would be 1,000 drives per core,
+# once per drive-hour ~48,000). A set on trial is judged at every pass, and an offset step refits at once.
+REFIT_EVERY_S = 3600.0
 
 
 @dataclass
@@ -126,6 +130,7 @@ class FleetService:
         burst_per_key: float = BURST_PER_KEY,
         queue_wait_s: float = QUEUE_WAIT_S,
         clock: Callable[[], float] = time.time,
+        refit_every_s: float = REFIT_EVERY_S,
     ):
         self.store = store
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
@@ -146,6 +151,9 @@ class FleetService:
         self.queue_wait_s = queue_wait_s
         self._writer = threading.Thread(target=self._write_loop, name="ingest", daemon=True)
         self._changed: set[str] = set()  # devices with windows stored since their last refit
+        self.refit_every_s = refit_every_s
+        self._fitted_at: dict[str, float] = {}  # device -> drive time of its last refit
+        self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
         self._alive_unknown: dict[str, float] = {}  # tokens of devices that have sent nothing valid yet
@@ -337,6 +345,7 @@ class FleetService:
             bands = self.store.restart_band_memory(alarm["device"], after=alarm["raised_at"])
             with self._lock:
                 self._changed.add(alarm["device"])
+                self._refit_now.add(alarm["device"])
             log.info("band memory restarted after an offset step", extra={"device": alarm["device"], "bands": bands})
 
     # --- queries -----------------------------------------------------------------------------------
@@ -378,11 +387,15 @@ class FleetService:
                 log.exception("rollout step failed")
 
     def refit_all(self) -> list[int]:
-        """Refit every device that sent windows since its last refit; returns the versions published."""
+        """Refit every device that sent windows since its last refit and is due (REFIT_EVERY_S of drive time
+        since then, a set on trial to judge, or a step); returns the versions published."""
         with self._lock:
             changed, self._changed = sorted(self._changed), set()
-        published = []
+        published, later = [], set()
         for device in changed:
+            if not self._refit_due(device):
+                later.add(device)
+                continue
             try:
                 with self.counters.refit_latency.time():
                     version = self.refit(device)
@@ -391,7 +404,19 @@ class FleetService:
                 continue
             if version is not None:
                 published.append(version)
+        with self._lock:
+            self._changed |= later
         return published
+
+    def _refit_due(self, device: str) -> bool:
+        with self._lock:
+            if device in self._refit_now:
+                self._refit_now.discard(device)
+                return True
+        last = self._fitted_at.get(device)
+        if last is None or self.store.set_on_trial(device) is not None:
+            return True
+        return self._drive_now(device) - last >= self.refit_every_s
 
     def _correction(self, device: str, version: int) -> BandedCorrection | None:
         """A stored set, decoded once: (device, version) never changes content (insert refuses a reuse)."""
@@ -414,6 +439,7 @@ class FleetService:
         if trial is not None:
             return self._judge_trial(device, trial)
         result = self.fit(device)
+        self._fitted_at[device] = self._drive_now(device)
         with self._lock:
             self.counters.refits += 1
         if result is None or not result.changed:

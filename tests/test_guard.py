@@ -181,3 +181,33 @@ def test_the_guard_measures_against_the_bench_locus_on_an_independent_drive(flee
         assert published == 2 and history[1]["state"] == "rolled_back", history[1]["state_reason"]
         assert history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
         assert "worse than the set before" in history[1]["state_reason"]
+
+
+def test_a_device_is_refit_once_per_drive_hour_not_once_per_window(fleet):
+    """REFIT_EVERY_S: the refit loop keeps up with a fleet by refitting a device once per drive-hour (the
+    cadence bench-fleet-accuracy measures); windows in between wait, and a detected step refits at once."""
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_set(store)
+
+    def refit_pass() -> int:
+        """One pass of the loop (the device sent windows); a set it publishes is confirmed, as if soaked."""
+        service._changed.add(DEVICE)
+        service.refit_all()
+        if (trial := store.set_on_trial(DEVICE)) is not None:
+            store.set_state(DEVICE, trial["version"], "confirmed", at=0.0, reason="the test's soak")
+        return service.counters.refits
+
+    run_on(store, 0, hours=0.5)
+    assert refit_pass() == 1
+    run_on(store, 0, hours=0.5, after_s=1800.0)  # half an hour more: not due
+    assert refit_pass() == 1 and DEVICE in service._changed  # kept for a later pass
+    step = {"id": 1, "device": DEVICE, "cause": "offset_step", "parameters": {"delta_d": 0.02, "delta_q": 0.0}}
+    step |= {"evidence": "a test step", "raised_at": 3000.0, "cleared_at": None}
+    service._publish_alarm(*alarms.encode(step))
+    assert refit_pass() == 2  # the step: at once
+    run_on(store, 0, hours=0.5, after_s=3600.0)
+    assert refit_pass() == 2  # less than an hour since the step's refit
+    run_on(store, 0, hours=1.0, after_s=7200.0)
+    assert refit_pass() == 3
