@@ -282,24 +282,27 @@ class Rollouts:
             self._record(rollout, device, "unchanged", now, reason="no set known for the device")
             return
         why = f"rollout {rollout}: {spec.change.kind}"
+
+        def started(version: int) -> None:  # inside the set's transaction: a crash keeps both or neither
+            with store._tx() as c:
+                c.execute(
+                    "UPDATE rollout_devices SET state = 'in_progress', before_version = ?, version = ?, "
+                    "started_at = ? WHERE rollout = ? AND device = ?",
+                    (running, version, now, rollout, device),
+                )
+
         if spec.change.kind == "reset_to_factory":
             factory = store.coefficient_set(device, 0)
             if factory is None or _same_bands(factory["bands"], before["bands"]):
                 self._record(rollout, device, "unchanged", now, before=running, reason="already runs its factory set")
                 return
-            version = service.publish_bands(device, factory["bands"], restores_version=0, reason=why)
+            service.publish_bands(device, factory["bands"], restores_version=0, reason=why, then=started)
         else:
             result = service.fit(device, min_band_samples=spec.change.min_band_samples)
             if result is None or not result.changed:
                 self._record(rollout, device, "unchanged", now, before=running, reason="the refit changes nothing")
                 return
-            version = service.publish_fit(device, result, reason=why)
-        with store._tx() as c:
-            c.execute(
-                "UPDATE rollout_devices SET state = 'in_progress', before_version = ?, version = ?, started_at = ? "
-                "WHERE rollout = ? AND device = ?",
-                (running, version, now, rollout, device),
-            )
+            service.publish_fit(device, result, reason=why, then=started)
 
     def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float) -> None:
         device, version = d["device"], d["version"]
@@ -308,9 +311,7 @@ class Rollouts:
             (device, version),
         )
         if refused:  # the drive still runs the set before: the service's record says so again
-            reason = f"the agent refused v{version}: {refused[0]['reason']}"
-            self._revert(device, version, d["before_version"], f"rollout {rollout}: {reason}")
-            self._record(rollout, device, "rejected", now, reason=reason)
+            self._revert(rollout, d, "rejected", f"the agent refused v{version}: {refused[0]['reason']}", now)
             return
         soaked = self.store._rows(
             "SELECT count(*) AS n FROM windows WHERE device = ? AND coefficients_version = ?", (device, version)
@@ -319,23 +320,22 @@ class Rollouts:
         if soaked < spec.soak_windows:
             if late:
                 reason = f"{soaked} of {spec.soak_windows} soak windows within {spec.timeout_s:g} s"
-                self._revert(device, version, d["before_version"], f"rollout {rollout} timed out: {reason}")
-                self._record(rollout, device, "timed_out", now, reason=reason)
+                self._revert(rollout, d, "timed_out", reason, now)
             return
         trial = self.store.coefficient_set(device, version)
         before = self.store.coefficient_set(device, d["before_version"])
         verdict = self.service.judge_set(device, trial, before)
-        drive_now = self.service._drive_now(device)
         if verdict.action == "rollback":
-            self.service.roll_back(device, version, before, f"rollout {rollout}: {verdict.reason}")
-            self._record(rollout, device, "regressed", now, reason=verdict.reason)
-        elif verdict.action == "confirm":
-            self.store.set_state(
-                device, version, "confirmed", at=drive_now, reason=f"rollout {rollout}: {verdict.reason}"
-            )
-            self._record(rollout, device, "succeeded", now, reason=verdict.reason)
+            self._revert(rollout, d, "regressed", verdict.reason, now)
+            return
+        if verdict.action == "confirm":
+            reason = verdict.reason
         elif late:  # soaked, but the windows cannot tell the sets apart: kept, as the guard keeps a trial
             reason = f"{verdict.reason}; not measurable within {spec.timeout_s:g} s: kept"
+        else:
+            return  # soaking on
+        drive_now = self.service._drive_now(device)
+        with self.store.transaction():  # the set's state and the rollout's record land together
             self.store.set_state(device, version, "confirmed", at=drive_now, reason=f"rollout {rollout}: {reason}")
             self._record(rollout, device, "succeeded", now, reason=reason)
 
@@ -361,14 +361,20 @@ class Rollouts:
                 continue
             if self.store.published_version(d["device"]) != d["version"]:
                 continue  # the device has moved on since (a later fit): that set is the guard's, not ours
-            self._revert(d["device"], d["version"], d["before_version"], f"rollout {rollout} aborted: {reason}")
-            self._record(rollout, d["device"], "rolled_back", now, reason=f"wave rolled back: {reason}")
+            self._revert(rollout, d, "rolled_back", f"wave rolled back: {reason}", now)
         self._set_state(rollout, "aborted", reason)
         log.warning("rollout aborted", extra={"rollout": rollout, "reason": reason})
 
-    def _revert(self, device: str, version: int, before_version: int, reason: str) -> None:
-        before = self.store.coefficient_set(device, before_version)
-        self.service.roll_back(device, version, before, reason)
+    def _revert(self, rollout: int, d: dict, outcome: str, reason: str, now: float) -> None:
+        """The device gets the set it ran before the rollout again, and its part ends as `outcome`, in one
+        transaction (a crash between them would roll it back twice)."""
+        device = d["device"]
+        before = self.store.coefficient_set(device, d["before_version"])
+
+        def record() -> None:
+            self._record(rollout, device, outcome, now, reason=reason)
+
+        self.service.roll_back(device, d["version"], before, f"rollout {rollout}: {reason}", then=record)
 
     def _record(self, rollout: int, device: str, state: str, now: float, *, reason: str, before=None) -> None:
         with self.store._tx() as c:

@@ -464,8 +464,11 @@ class FleetService:
             after_step=self._stepped_recently(device),
         )
 
-    def publish_fit(self, device: str, result: RefitResult, *, reason: str | None = None) -> int:
-        """Store the fits and the set they make (on trial) in one transaction, then publish it."""
+    def publish_fit(
+        self, device: str, result: RefitResult, *, reason: str | None = None, then: Callable[[int], None] | None = None
+    ) -> int:
+        """Store the fits and the set they make (on trial) in one transaction, then publish it. `then(version)`
+        runs inside that transaction (a rollout records its part with the set, or neither lands)."""
         drive_now = self._drive_now(device)
         with self.store.transaction():  # the fits and the set they make land together, or not at all
             version = self.store.next_version(device)
@@ -486,6 +489,8 @@ class FleetService:
             )
             msg = self._publishable(msg)
             self.store.insert_coefficient_set(msg, state="trial", reason=reason)
+            if then is not None:
+                then(version)
         self._publish(msg)
         log.info(
             "published coefficient set on trial",
@@ -493,9 +498,11 @@ class FleetService:
         )
         return version
 
-    def publish_bands(self, device: str, bands: list[dict], *, restores_version: int, reason: str) -> int:
+    def publish_bands(
+        self, device: str, bands: list[dict], *, restores_version: int, reason: str, then: Callable[[int], None]
+    ) -> int:
         """Publish, on trial, a set that carries the bands of confirmed set `restores_version` again (a reset
-        to factory is restores_version 0)."""
+        to factory is restores_version 0); `then(version)` runs inside the set's transaction."""
         drive_now = self._drive_now(device)
         with self.store.transaction():
             version = self.store.next_version(device)
@@ -504,6 +511,7 @@ class FleetService:
             )
             msg = self._publishable(msg)
             self.store.insert_coefficient_set(msg, state="trial", reason=reason)
+            then(version)
         self._publish(msg)
         return version
 
@@ -534,8 +542,11 @@ class FleetService:
         soak = self.store.stats_run_on(device, trial["version"], bands)
         return self.judge(TrialEvidence(trial, before, soak, factory=self.store.coefficient_set(device, 0)))
 
-    def roll_back(self, device: str, version: int, before: dict, reason: str) -> int:
-        """Mark set `version` rolled back and publish `before`'s bands again (basis rollback, confirmed)."""
+    def roll_back(
+        self, device: str, version: int, before: dict, reason: str, then: Callable[[], None] | None = None
+    ) -> int:
+        """Mark set `version` rolled back and publish `before`'s bands again (basis rollback, confirmed);
+        `then()` runs inside that transaction."""
         drive_now = self._drive_now(device)
         with self.store.transaction():
             new_version = self.store.next_version(device)
@@ -546,6 +557,8 @@ class FleetService:
             msg = self._publishable(msg)
             self.store.set_state(device, version, "rolled_back", at=drive_now, reason=reason)
             self.store.insert_coefficient_set(msg, reason=f"restores v{before['version']}: {reason}")
+            if then is not None:
+                then()
         self._publish(msg)
         with self._lock:
             self.counters.rollbacks += 1

@@ -19,6 +19,7 @@ from service.runtime import FleetService, open_session
 from service.store import Store
 
 DEVICES = [f"drive-{i:02d}" for i in range(1, 9)]
+DEVICE_0 = DEVICES[0]
 
 
 class Clock:
@@ -342,3 +343,29 @@ def test_a_refit_rollout_publishes_each_drives_own_fit_wave_by_wave(fleet, clock
         assert current["basis"] == "fit" and current["version"] == 2
         zero_error = abs(current["bands"][0]["w"][1] - true_bands(device)[0]["w"][1])
         assert zero_error < errors.get(device, 0.03) / 3, (device, zero_error)
+
+
+def test_a_set_and_the_rollouts_record_of_it_land_together_or_not_at_all(fleet, clock):
+    """The store refuses the rollout's record (a trigger stands in for a disk that fails at that moment): the
+    set it would have recorded is not stored or published either, so a restart cannot find a change the
+    rollout does not know it made."""
+    import sqlite3
+
+    store, service = fleet
+    install(store, service, DEVICES[0], shifted(true_bands(DEVICES[0]), 0.03))
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, base_per_minute=1, soak_windows=60)
+    )
+    with store._tx() as c:
+        c.execute(
+            "CREATE TRIGGER refuse BEFORE UPDATE OF state ON rollout_devices WHEN NEW.state = 'in_progress' "
+            "BEGIN SELECT RAISE(ABORT, 'the disk failed here'); END"
+        )
+    with pytest.raises(sqlite3.IntegrityError, match="the disk failed here"):
+        service.rollouts.step()
+    assert store.next_version(DEVICE_0) == 2 and store.published_version(DEVICE_0) == 1
+    assert service.rollouts.get(1)["by_state"] == {"pending": 1}
+    with store._tx() as c:
+        c.execute("DROP TRIGGER refuse")
+    service.rollouts.step()
+    assert service.rollouts.get(1)["devices"][0]["version"] == 2 == store.published_version(DEVICE_0)
