@@ -119,6 +119,7 @@ def _extensions():
         "encoder_fleet.fleet_cli",
         "encoder_fleet.pki",
         "encoder_fleet.tokens_cli",
+        "encoder_fleet.rollout_cli",
         "encoder_fleet.calibrate",
         "encoder_fleet.bench_soak",
     ):

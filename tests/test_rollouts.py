@@ -369,3 +369,59 @@ def test_a_set_and_the_rollouts_record_of_it_land_together_or_not_at_all(fleet, 
         c.execute("DROP TRIGGER refuse")
     service.rollouts.step()
     assert service.rollouts.get(1)["devices"][0]["version"] == 2 == store.published_version(DEVICE_0)
+
+
+def test_the_rollout_command_drives_the_rest_api_as_an_operator_would(fleet, tmp_path):
+    """`encoder-fleet rollout` in its own process against the real HTTP server: create, list, show, pause,
+    abort with an admin token file; a read token or a bad argument is one line and exit 2."""
+    import json
+    import subprocess
+    import sys
+
+    from fleet_wire.session import free_port
+    from service.auth import TokenAuth
+    from service.runtime import HttpServer
+
+    store, service = fleet
+    for device in DEVICES[:3]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    auth = TokenAuth(store)
+    admin, reader = tmp_path / "admin-token", tmp_path / "read-token"
+    admin.write_text(auth.create("admin")[1])
+    reader.write_text(auth.create("read")[1])
+    port = free_port()
+    http = HttpServer(store, port, service=service, auth=auth).start()
+
+    def rollout(*args, token=admin):
+        cmd = [sys.executable, "-m", "encoder_fleet.cli", "rollout", *args]
+        cmd += ["--url", f"http://127.0.0.1:{port}", "--token-file", str(token)]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+
+    try:
+        create = ["create", "--name", "back to the bench", "--change", "reset_to_factory", "--base-per-minute", "1"]
+        create += ["--increment-factor", "2", "--soak-windows", "30", "--abort", "regressed:10:2"]
+        refused = rollout(*create, token=reader)
+        assert refused.returncode == 2 and "403 this endpoint needs an admin token" in refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1 and not refused.stdout
+        bad = rollout(*create[:-2], "--abort", "regressed:0:2")
+        assert bad.returncode == 2 and "threshold_percentage" in bad.stderr, bad.stderr
+        made = rollout(*create, "--json", str(tmp_path / "created.json"))
+        assert made.returncode == 0, made.stderr
+        assert "back to the bench" in made.stdout and "pending 3" in made.stdout
+        assert json.loads((tmp_path / "created.json").read_text())["spec"]["abort_criteria"] == [
+            {"failure_type": "regressed", "threshold_percentage": 10.0, "min_executed": 2, "action": "abort"}
+        ]
+        service.rollouts.step()  # wave 1: one drive
+        shown = rollout("show", "1", token=reader)
+        assert shown.returncode == 0 and "in_progress" in shown.stdout and "v1 -> v2" in shown.stdout
+        assert rollout("pause", "1").returncode == 0
+        again = rollout("pause", "1")
+        assert again.returncode == 2 and "409 rollout 1 is paused: cannot pause it" in again.stderr
+        aborted = rollout("abort", "1")
+        assert aborted.returncode == 0 and "aborted" in aborted.stdout and "rolled_back" in aborted.stdout
+        listed = rollout("list", token=reader)
+        assert listed.returncode == 0 and listed.stdout.split()[:2] == ["1", "aborted"]
+        missing = rollout("show", "9", token=reader)
+        assert missing.returncode == 2 and "404 no rollout 9" in missing.stderr
+    finally:
+        http.stop()

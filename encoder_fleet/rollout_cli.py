@@ -1,0 +1,138 @@
+"""`encoder-fleet rollout`: staged rollouts through the service's REST API (service/rollout.py), as an operator
+runs them: create, list, show, pause, resume, abort. A thin client of the same endpoints curl would call."""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from encoder_core.samples import InputError
+
+from .argtypes import positive_float, positive_int
+
+
+def request(args, method: str, path: str, body: dict | None = None) -> dict | list:
+    """One REST call; every failure is one line (InputError), with the service's own `detail`."""
+    headers = {"Accept": "application/json"}
+    if args.token_file:
+        try:
+            headers["Authorization"] = "Bearer " + Path(args.token_file).read_text().strip()
+        except OSError as exc:
+            raise InputError(f"--token-file {args.token_file}: {exc.strerror}") from None
+    data = None
+    if body is not None:
+        data, headers["Content-Type"] = json.dumps(body).encode(), "application/json"
+    url = args.url.rstrip("/") + path
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, data, headers, method=method), timeout=30) as resp:
+            return json.loads(resp.read())
+    except urllib.error.HTTPError as exc:
+        try:
+            detail = json.loads(exc.read()).get("detail", "")
+        except ValueError:
+            detail = ""
+        if isinstance(detail, list):  # FastAPI's validation errors: where and what
+            detail = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', [])[1:])}: {d.get('msg')}" for d in detail)
+        raise InputError(f"{method} {path}: {exc.code} {detail or exc.reason}") from None
+    except (urllib.error.URLError, OSError) as exc:
+        raise InputError(f"{url}: cannot reach the service ({getattr(exc, 'reason', exc)})") from None
+
+
+def parse_abort(text: str) -> dict:
+    """FAILURE:PERCENT:MIN_EXECUTED[:ACTION], e.g. regressed:10:5 or timed_out:20:10:pause."""
+    parts = text.split(":")
+    if len(parts) not in (3, 4):
+        raise ValueError(f"{text!r}: expected FAILURE:PERCENT:MIN_EXECUTED[:abort|pause]")
+    criterion = {"failure_type": parts[0], "threshold_percentage": float(parts[1]), "min_executed": int(parts[2])}
+    if len(parts) == 4:
+        criterion["action"] = parts[3]
+    return criterion
+
+
+def summary_line(r: dict) -> str:
+    outcomes = ", ".join(f"{state} {n}" for state, n in r["by_state"].items())
+    wave = f"wave {r['wave'] + 1}/{len(r['waves'])}"
+    return f"{r['id']:>4} {r['state']:<9} {wave:<10} {r['percent_done']:>5.1f} %  {r['name']}  [{outcomes}]"
+
+
+def show(r: dict) -> None:
+    print(summary_line(r))
+    if r.get("reason"):
+        print(f"     {r['reason']}")
+    for part in r.get("devices", []):
+        version = "–" if part["version"] is None else f"v{part['before_version']} -> v{part['version']}"
+        where = f"wave {part['wave'] + 1:<3} {part['device']:<24}"
+        print(f"     {where} {part['state']:<12} {version:<12} {part['reason'] or ''}")
+
+
+def cmd_rollout(args) -> int:
+    action = args.rollout_command
+    if action == "create":
+        spec = {
+            "name": args.name,
+            "change": {"kind": args.change},
+            "base_per_minute": args.base_per_minute,
+            "increment_factor": args.increment_factor,
+            "soak_windows": args.soak_windows,
+            "timeout_s": args.timeout_s,
+            "abort_criteria": args.abort or [],
+        }
+        if args.devices:
+            spec["devices"] = args.devices.split(",")
+        result = request(args, "POST", "/rollouts", spec)
+    elif action == "list":
+        result = request(args, "GET", "/rollouts")
+    elif action == "show":
+        result = request(args, "GET", f"/rollouts/{args.id}")
+    else:  # pause | resume | abort
+        result = request(args, "POST", f"/rollouts/{args.id}/{action}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    if action != "list":
+        show(result)
+    for r in result if action == "list" else []:
+        print(summary_line(r))
+    if action == "list" and not result:
+        print("no rollouts")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("rollout", help="staged rollouts over the service's REST API (create, list, pause, ...)")
+    rsub = p.add_subparsers(dest="rollout_command", required=True)
+
+    def common(q) -> None:
+        q.add_argument("--url", default="http://127.0.0.1:8000", help="the service's REST address")
+        q.add_argument("--token-file", metavar="FILE", help="a REST token (admin to change a rollout)")
+        q.add_argument("--json", metavar="FILE", help="also write the service's answer as JSON")
+
+    q = rsub.add_parser("create", help="start a rollout: waves, soak and abort criteria")
+    q.add_argument("--name", required=True, help="what the change is, for the audit trail")
+    q.add_argument("--change", choices=["reset_to_factory", "refit"], required=True, help="what every drive gets")
+    q.add_argument("--devices", help="comma-separated device ids (default: every known device)")
+    q.add_argument("--base-per-minute", type=positive_int, required=True, help="devices in the first wave")
+    q.add_argument("--increment-factor", type=positive_float, default=1.0, help="each wave this many times the last")
+    q.add_argument("--soak-windows", type=positive_int, required=True, help="windows each drive runs before judging")
+    q.add_argument("--timeout-s", type=positive_float, default=3600.0, help="seconds a drive has to soak")
+    q.add_argument(
+        "--abort",
+        type=parse_abort,
+        action="append",
+        metavar="FAILURE:PERCENT:MIN[:ACTION]",
+        help="abort criterion, repeatable: failure rejected|timed_out|regressed, e.g. regressed:10:5",
+    )
+    common(q)
+    q = rsub.add_parser("list", help="every rollout, newest first")
+    common(q)
+    for name, text in (
+        ("show", "one rollout, with every device's part"),
+        ("pause", "start nobody new (soaks are still judged)"),
+        ("resume", "go on; abort criteria count again from now"),
+        ("abort", "stop and roll the current wave back"),
+    ):
+        q = rsub.add_parser(name, help=text)
+        q.add_argument("id", type=positive_int, help="the rollout's id (rollout list)")
+        common(q)
+    p.set_defaults(func=cmd_rollout)
