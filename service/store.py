@@ -33,6 +33,8 @@ from encoder_core.stats import WindowStats
 from fleet_wire import keys
 from fleet_wire import messages as wire
 
+from . import db
+
 # numbered SQL files: migrations/ in the repository, shipped as package data (service.migrations)
 MIGRATIONS_DIR = resources.files("service.migrations")
 MIGRATION_NAME = re.compile(r"^(\d+)_[\w.-]*\.sql$")
@@ -154,6 +156,9 @@ class Store:
         opened raises StoreError('unavailable') with one line that says which file and why; with
         check_integrity (the service at start-up) a corrupt file is refused before anything runs on it."""
         migrations = migration_files(migrations_dir)
+        if db.is_postgres(path):
+            return cls._open_postgres(path, migrations, band_horizon_s)
+        path = db.sqlite_path(path)
         try:
             # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
             conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
@@ -172,6 +177,20 @@ class Store:
                 "unavailable", f"database {path} is corrupt ({' '.join(' '.join(problems).split())}); restore a backup"
             )
         store = cls(conn, str(path), band_horizon_s)
+        try:
+            store._migrate(migrations)
+        except BaseException:
+            conn.close()
+            raise
+        return store
+
+    @classmethod
+    def _open_postgres(cls, url: str, migrations, band_horizon_s: float | None) -> Store:
+        try:
+            conn = db.PgConnection(url)
+        except db.database_errors() as exc:
+            raise StoreError("unavailable", f"database {db.redacted(url)} cannot be opened: {exc}") from None
+        store = cls(conn, db.redacted(url), band_horizon_s)
         try:
             store._migrate(migrations)
         except BaseException:
@@ -228,11 +247,12 @@ class Store:
                     "CREATE TABLE IF NOT EXISTS schema_migrations "
                     "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)"
                 )
-        except sqlite3.DatabaseError as exc:  # not a database, corrupt, read-only when new, ...
+        except db.database_errors() as exc:  # not a database, corrupt, read-only when new, ...
             raise StoreError("unavailable", f"database {self.path} cannot be used: {exc}") from None
         for version, path in migrations:
             # check inside the write transaction: another process may be migrating the same file
             with self._tx() as c:
+                db.migration_lock(c)
                 if c.execute("SELECT 1 FROM schema_migrations WHERE version = ?", (version,)).fetchone():
                     continue
                 for statement in _statements(path.read_text(encoding="utf-8")):
@@ -250,7 +270,7 @@ class Store:
         """Make sure the device row exists; heard=True when the device itself spoke (moves last_seen)."""
         c.execute(
             "INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
-            + ("UPDATE SET last_seen = max(last_seen, excluded.last_seen)" if heard else "NOTHING"),
+            + ("UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen)" if heard else "NOTHING"),
             (device, now, now),
         )
 
@@ -458,7 +478,7 @@ class Store:
         if batch.rows:
             c.executemany(
                 "INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
-                "UPDATE SET last_seen = max(last_seen, excluded.last_seen)",
+                "UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen)",
                 [(device, batch.now, batch.now) for device in batch.newest],
             )
             c.executemany(
@@ -801,7 +821,7 @@ class Store:
         """'ok' when the database answers a read, else what went wrong (for /healthz)."""
         try:
             self._rows("SELECT count(*) FROM schema_migrations")
-        except sqlite3.Error as exc:
+        except db.database_errors() as exc:
             return f"database error: {exc}"
         return "ok"
 
@@ -870,7 +890,7 @@ class Store:
                 device,
                 -float("inf") if t_from is None else t_from,
                 float("inf") if t_to is None else t_to,
-                -1 if limit is None else limit,
+                2**62 if limit is None else limit,  # no bound: SQLite reads -1 so, PostgreSQL does not
             ),
         )
         return [self._window(r, stats) for r in rows]
