@@ -143,10 +143,11 @@ def cmd_service(args) -> int:
 
 
 def cmd_export(args) -> int:
+    from service.db import is_postgres, sqlite_path
     from service.mcap_export import export_mcap
     from service.store import Store
 
-    if not Path(args.db).exists():
+    if not is_postgres(args.db) and not Path(sqlite_path(args.db)).exists():
         raise InputError(f"--db {args.db}: no such database")
     if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
@@ -231,7 +232,11 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_agent)
 
     p = sub.add_parser("service", help="run the central service (embeds a Zenoh router by default)")
-    p.add_argument("--db", default="out/fleet.sqlite", help="the SQLite history (created if missing)")
+    p.add_argument(
+        "--db",
+        default="out/fleet.sqlite",
+        help="the history: a SQLite file (path or sqlite:///path, created if missing) or postgresql://user@host:port/db",
+    )
     p.add_argument(
         "--listen",
         action="append",
@@ -263,7 +268,7 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_service)
 
     p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")
-    p.add_argument("--db", default="out/fleet.sqlite", help="the service's SQLite history")
+    p.add_argument("--db", default="out/fleet.sqlite", help="the service's history: a SQLite path or postgresql:// URL")
     p.add_argument("--device", required=True, type=device_name, help="the device to export")
     p.add_argument("--out", required=True, help="the MCAP file to write")
     p.add_argument("--from", dest="t_from", type=finite_float, help="start, s on the drive's clock")

@@ -22,6 +22,7 @@ from encoder_core.correction import BandedCorrection
 from encoder_core.samples import InputError
 from fleet_wire import keys
 from fleet_wire import messages as wire
+from service.db import is_postgres, sqlite_path
 from service.monitor import Monitor
 from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, RefitResult, refit_device
 from service.rollout import Rollouts
@@ -682,8 +683,12 @@ def run_service(
     with ExitStack() as running:  # whatever started is stopped again, in reverse, on any error
         if http_port:
             check_port_free(http_host, http_port, "REST")
+        postgres = is_postgres(db)
+        if postgres and db_max_mb is not None:
+            raise InputError("--db-max-mb is a quota on a SQLite file; give PostgreSQL its own limits")
         try:
-            Path(db).parent.mkdir(parents=True, exist_ok=True)
+            if not postgres:
+                Path(sqlite_path(db)).parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
         horizon_s = band_horizon_h * 3600.0 if band_horizon_h else None
@@ -701,7 +706,7 @@ def run_service(
             from .auth import TokenAuth
 
             auth = TokenAuth(store)
-            token_file = admin_token_file or Path(db).parent / "admin-token"
+            token_file = admin_token_file or (Path("out") if postgres else Path(sqlite_path(db)).parent) / "admin-token"
             written = auth.first_admin_token(token_file)
         if http_port:
             running.callback(HttpServer(store, http_port, host=http_host, service=service, auth=auth).start().stop)

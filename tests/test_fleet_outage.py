@@ -6,6 +6,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from fleet_wire.session import loopback_endpoint
 from service.store import Store
 
@@ -13,7 +15,7 @@ HOURS = 6
 WINDOWS = HOURS * 60
 
 
-def start_service(db, endpoint, pki):
+def start_service(db, endpoint, pki, token_folder):
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -31,7 +33,7 @@ def start_service(db, endpoint, pki):
             "--pki",  # TLS, the ACL of the registry, signed sets (tests/conftest.py)
             str(pki),
             "--admin-token-file",
-            str(db.parent / "admin-token"),
+            str(token_folder / "admin-token"),
         ],
         stdout=subprocess.PIPE,
         text=True,
@@ -71,6 +73,13 @@ def start_agent(name, seed, endpoint, outbox, pki):
 
 
 def stored_seqs(db, device):
+    """What the database holds, read from outside the service (another connection)."""
+    if str(db).startswith("postgresql://"):
+        import psycopg
+
+        with psycopg.connect(str(db)) as conn:
+            rows = conn.execute("SELECT seq FROM windows WHERE device = %s ORDER BY seq", (device,)).fetchall()
+        return [r[0] for r in rows]
     conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
     try:
         return [r[0] for r in conn.execute("SELECT seq FROM windows WHERE device = ? ORDER BY seq", (device,))]
@@ -78,11 +87,12 @@ def stored_seqs(db, device):
         conn.close()
 
 
-def test_service_killed_mid_stream_loses_nothing(tmp_path, pki):
+@pytest.mark.parametrize("database", ["sqlite", "postgres"])
+def test_service_killed_mid_stream_loses_nothing(tmp_path, pki, database, request):
     endpoint = loopback_endpoint().replace("tcp/", "tls/")
-    db = tmp_path / "fleet.sqlite"
+    db = tmp_path / "fleet.sqlite" if database == "sqlite" else request.getfixturevalue("postgres_url")
     names = ["drive-a", "drive-b"]
-    service = start_service(db, endpoint, pki)
+    service = start_service(db, endpoint, pki, tmp_path)
     agents = [start_agent(n, i, endpoint, tmp_path / f"{n}.outbox", pki) for i, n in enumerate(names)]
     try:
         deadline = time.monotonic() + 60
@@ -93,7 +103,7 @@ def test_service_killed_mid_stream_loses_nothing(tmp_path, pki):
         before = {n: stored_seqs(db, n) for n in names}
         assert all(0 < len(s) < WINDOWS for s in before.values()), {n: len(s) for n, s in before.items()}
         time.sleep(3)  # the agents keep correcting and buffering while the service is gone
-        service = start_service(db, endpoint, pki)
+        service = start_service(db, endpoint, pki, tmp_path)
         outputs = [a.communicate(timeout=180)[0] for a in agents]
         assert all(a.returncode == 0 for a in agents), outputs
     finally:
@@ -125,7 +135,7 @@ def test_agent_started_before_the_router_buffers_and_delivers_when_it_appears(tm
     try:
         time.sleep(4)  # a third of its stream, with nobody to hear it
         assert agent.poll() is None, agent.communicate()[0]
-        service = start_service(db, endpoint, pki)
+        service = start_service(db, endpoint, pki, tmp_path)
         output = agent.communicate(timeout=180)[0]
         assert agent.returncode == 0, output
     finally:
