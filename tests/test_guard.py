@@ -24,9 +24,10 @@ from service.store import Store
 DEVICE, SEED = "drive-7", 7
 
 
-@pytest.fixture
-def fleet(tmp_path):
-    store = Store.open(tmp_path / "fleet.sqlite")
+@pytest.fixture(params=["sqlite", "postgres"])
+def fleet(request, tmp_path):
+    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    store = Store.open(target)
     session = open_session(listen=[loopback_endpoint()])
     service = FleetService(store, session, refit_interval_s=0).start()
     yield store, service

@@ -48,9 +48,10 @@ def stop(store, session, service):
     store.close()
 
 
-@pytest.fixture
-def fleet(tmp_path, clock):
-    parts = start(tmp_path / "fleet.sqlite", clock)
+@pytest.fixture(params=["sqlite", "postgres"])
+def fleet(request, tmp_path, clock):
+    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    parts = start(target, clock)
     yield parts[0], parts[2]
     stop(*parts)
 
@@ -188,8 +189,9 @@ def test_a_reset_that_fixes_a_bad_fleet_set_reaches_every_drive(fleet, clock):
         assert {h["version"]: h["state"] for h in store.coefficient_history(device)}[2] == "confirmed"
 
 
-def test_a_restart_mid_rollout_resumes_where_it_was(tmp_path, clock):
-    path = tmp_path / "fleet.sqlite"
+@pytest.mark.parametrize("database", ["sqlite", "postgres"])
+def test_a_restart_mid_rollout_resumes_where_it_was(tmp_path, clock, database, request):
+    path = tmp_path / "fleet.sqlite" if database == "sqlite" else request.getfixturevalue("postgres_url")
     store, session, service = start(path, clock)
     for device in DEVICES:
         install(store, service, device, shifted(true_bands(device), 0.03))
@@ -349,24 +351,35 @@ def test_a_set_and_the_rollouts_record_of_it_land_together_or_not_at_all(fleet, 
     """The store refuses the rollout's record (a trigger stands in for a disk that fails at that moment): the
     set it would have recorded is not stored or published either, so a restart cannot find a change the
     rollout does not know it made."""
-    import sqlite3
+    from service.db import database_errors
 
     store, service = fleet
     install(store, service, DEVICES[0], shifted(true_bands(DEVICES[0]), 0.03))
     service.rollouts.create(
         RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, base_per_minute=1, soak_windows=60)
     )
+    postgres = store.path.startswith("postgresql://")
     with store._tx() as c:
-        c.execute(
-            "CREATE TRIGGER refuse BEFORE UPDATE OF state ON rollout_devices WHEN NEW.state = 'in_progress' "
-            "BEGIN SELECT RAISE(ABORT, 'the disk failed here'); END"
-        )
-    with pytest.raises(sqlite3.IntegrityError, match="the disk failed here"):
+        if postgres:
+            c.execute(
+                "CREATE FUNCTION refuse() RETURNS trigger LANGUAGE plpgsql AS "
+                "$$ BEGIN RAISE EXCEPTION 'the disk failed here'; END $$"
+            )
+            c.execute(
+                "CREATE TRIGGER refuse BEFORE UPDATE OF state ON rollout_devices FOR EACH ROW "
+                "WHEN (NEW.state = 'in_progress') EXECUTE FUNCTION refuse()"
+            )
+        else:
+            c.execute(
+                "CREATE TRIGGER refuse BEFORE UPDATE OF state ON rollout_devices WHEN NEW.state = 'in_progress' "
+                "BEGIN SELECT RAISE(ABORT, 'the disk failed here'); END"
+            )
+    with pytest.raises(database_errors(), match="the disk failed here"):
         service.rollouts.step()
     assert store.next_version(DEVICE_0) == 2 and store.published_version(DEVICE_0) == 1
     assert service.rollouts.get(1)["by_state"] == {"pending": 1}
     with store._tx() as c:
-        c.execute("DROP TRIGGER refuse")
+        c.execute("DROP TRIGGER refuse ON rollout_devices" if postgres else "DROP TRIGGER refuse")
     service.rollouts.step()
     assert service.rollouts.get(1)["devices"][0]["version"] == 2 == store.published_version(DEVICE_0)
 
