@@ -1,7 +1,6 @@
 """The fleet end to end with real parts: a service (embedded Zenoh router, SQLite file) in this process,
 agents in their own processes over loopback, coefficients rolled out and acknowledged."""
 
-import sqlite3
 import subprocess
 import sys
 import time
@@ -48,10 +47,11 @@ def start_agent(name, seed, endpoint, outbox, hours, pki):
     )
 
 
-@pytest.fixture
-def fleet(tmp_path, pki):
+@pytest.fixture(params=["sqlite", "postgres"])
+def fleet(request, tmp_path, pki):
     endpoint = loopback_endpoint().replace("tcp/", "tls/")
-    store = Store.open(tmp_path / "fleet.sqlite")
+    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    store = Store.open(target)
     session = open_session(listen=[endpoint], pki=pki)
     service = FleetService(store, session, refit_interval_s=0.5, **service_security(store, pki)).start()
     yield endpoint, store, service, session, pki
@@ -83,8 +83,11 @@ def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
         assert applied is not None and applied["version"] >= 1, store.acks(name)
         assert applied["signature"]  # the sets the agents applied carry the service's signature
         versions = {h["version"] for h in store.coefficient_history(name) if h["basis"] == "fit"}
-        with sqlite3.connect(store.path) as conn:  # every fit is kept, tagged with the set it was made for
-            fits = conn.execute("SELECT version, adopted FROM fits WHERE device = ?", (name,)).fetchall()
+        # every fit is kept, tagged with the set it was made for
+        fits = [
+            (r["version"], r["adopted"])
+            for r in store._rows("SELECT version, adopted FROM fits WHERE device = ?", (name,))
+        ]
         assert {v for v, _ in fits} == versions and any(a for _, a in fits)
         result = score(i, applied["bands"])
         assert result["rms_error_deg_fleet"] * 5 < result["rms_error_deg_factory"], result
