@@ -64,6 +64,12 @@ def postgres_server():
     folder = tempfile.mkdtemp(prefix="encoder-fleet-pg-")
     as_user = []
     if os.geteuid() == 0:
+        import pwd
+
+        try:
+            pwd.getpwnam("postgres")
+        except KeyError:
+            pytest.skip("running as root with no `postgres` user to run the PostgreSQL server as")
         shutil.chown(folder, "postgres", "postgres")
         as_user = ["runuser", "-u", "postgres", "--"]
     data, port = os.path.join(folder, "data"), free_port()

@@ -16,9 +16,10 @@ from service.store import Store
 DEVICE = "drive-001"
 
 
-@pytest.fixture
-def store(tmp_path):
-    with Store.open(tmp_path / "fleet.db") as s:
+@pytest.fixture(params=["sqlite", "postgres"])
+def store(request, tmp_path):
+    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    with Store.open(target) as s:
         yield s
 
 
