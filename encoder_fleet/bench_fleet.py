@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import msgspec
@@ -127,12 +129,38 @@ def secured_router(workdir: Path, endpoint: str, names: list[str], store):
     return pki, session, {"signer": SetSigner.load(pki), "guard": IngestGuard(store, names)}
 
 
-def run_size(devices: int, windows: int, workdir: Path, secure: bool = False) -> dict:
+@contextmanager
+def bench_database(workdir: Path, name: str, postgres: str | None):
+    """A fresh database for one run: a SQLite file, or a PostgreSQL database created (and then dropped) through
+    the admin URL `postgres`."""
+    if postgres is None:
+        yield str(workdir / f"{name}.sqlite")
+        return
+    import psycopg
+
+    database = f"{name.replace('-', '_')}_{os.getpid()}"
+    with psycopg.connect(postgres, autocommit=True) as admin:
+        admin.execute(f"DROP DATABASE IF EXISTS {database}")
+        admin.execute(f"CREATE DATABASE {database}")
+    try:
+        yield postgres.rsplit("/", 1)[0] + "/" + database
+    finally:
+        with psycopg.connect(postgres, autocommit=True) as admin:
+            admin.execute(f"DROP DATABASE IF EXISTS {database} WITH (FORCE)")
+
+
+def run_size(devices: int, windows: int, workdir: Path, secure: bool = False, postgres: str | None = None) -> dict:
+    with bench_database(workdir, f"bench-{devices}-{'tls' if secure else 'tcp'}", postgres) as target:
+        row = _run_size(devices, windows, workdir, target, secure)
+    return {"store": "postgresql" if postgres else "sqlite", **row}
+
+
+def _run_size(devices: int, windows: int, workdir: Path, target: str, secure: bool) -> dict:
     from service.runtime import FleetService, open_session
     from service.store import Store
 
     endpoint = loopback_endpoint()
-    store = Store.open(workdir / f"bench-{devices}-{'tls' if secure else 'tcp'}.sqlite")
+    store = Store.open(target)
     names = [f"bench-{i:05d}" for i in range(devices)]
     pki_args, security = [], {}
     if secure:
@@ -181,28 +209,32 @@ def run_size(devices: int, windows: int, workdir: Path, secure: bool = False) ->
         store.close()
 
 
-def run_bench(sizes: list[int], windows_per_device: int, security: str = "both", json_path=None) -> int:
+def run_bench(
+    sizes: list[int], windows_per_device: int, security: str = "both", json_path=None, postgres: str | None = None
+) -> int:
     rows = []
     modes = {"both": (False, True), "off": (False,), "on": (True,)}[security]
+    stores = (None, postgres) if postgres else (None,)
     with tempfile.TemporaryDirectory() as tmp:
         for n in sizes:
             for secure in modes:
-                what = "TLS, ACL, signed sets" if secure else "plain TCP"
-                print(f"… {n} devices × {windows_per_device} windows, {what}", file=sys.stderr, flush=True)
-                rows.append(run_size(n, windows_per_device, Path(tmp), secure=secure))
+                for store_url in stores:
+                    what = ("TLS, ACL, signed sets" if secure else "plain TCP") + (", PostgreSQL" if store_url else "")
+                    print(f"… {n} devices × {windows_per_device} windows, {what}", file=sys.stderr, flush=True)
+                    rows.append(run_size(n, windows_per_device, Path(tmp), secure=secure, postgres=store_url))
     print(
-        f"\n{'security':>16} {'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10} {'refit s':>8}"
-        f" {'refits/s':>9}"
+        f"\n{'store':>10} {'security':>16} {'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10}"
+        f" {'refit s':>8} {'refits/s':>9}"
         f" {'rollouts':>9} {'rejected':>9}"
     )
     for r in rows:
         print(
-            f"{r['security']:>16} {r['devices']:>8} {r['windows']:>9} {r['ingest_s']:>9.2f} "
+            f"{r['store']:>10} {r['security']:>16} {r['devices']:>8} {r['windows']:>9} {r['ingest_s']:>9.2f} "
             f"{r['windows_per_s']:>10.0f} "
             f"{r['refit_s']:>8.2f} {r['refits_per_s']:>9.1f} {r['rollouts']:>9} {r['rejected']:>9}"
         )
     print(
-        "\nwindows/s: validated, deduplicated and stored (with the band sums) through a real router and SQLite;"
+        "\nwindows/s: validated, deduplicated and stored (with the band sums) through a real router and the store;"
         "\nrefits/s: one refit pass over every device (ellipse, pooled harmonics, zero anchor, rollout decision)."
         "\nmTLS+ACL+signed: TLS with client certificates, the router's ACL of the whole fleet, the service's guard,"
         "\nand every rolled-out set signed (Ed25519)."

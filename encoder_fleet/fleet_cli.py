@@ -188,7 +188,11 @@ def cmd_bench_fleet(args) -> int:
     from encoder_fleet.bench_fleet import run_bench
 
     return run_bench(
-        sizes=args.sizes or args.devices, windows_per_device=args.windows, security=args.security, json_path=args.json
+        sizes=args.sizes or args.devices,
+        windows_per_device=args.windows,
+        security=args.security,
+        json_path=args.json,
+        postgres=args.postgres,
     )
 
 
@@ -294,6 +298,12 @@ def register(sub) -> None:
         choices=["both", "off", "on"],
         default="both",
         help="plain TCP, TLS + ACL + signed sets, or both side by side (the cost of the security model)",
+    )
+    p.add_argument(
+        "--postgres",
+        metavar="URL",
+        help="also run each size on PostgreSQL: an admin URL (postgresql://user@host:port/db) that may create "
+        "and drop a database per run",
     )
     p.set_defaults(func=cmd_bench_fleet)
 

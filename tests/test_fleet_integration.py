@@ -47,10 +47,12 @@ def start_agent(name, seed, endpoint, outbox, hours, pki):
     )
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
+@pytest.fixture
 def fleet(request, tmp_path, pki):
+    """The service on SQLite, or on PostgreSQL where a test asks (parametrize "fleet", indirect)."""
     endpoint = loopback_endpoint().replace("tcp/", "tls/")
-    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    database = getattr(request, "param", "sqlite")
+    target = tmp_path / "fleet.sqlite" if database == "sqlite" else request.getfixturevalue("postgres_url")
     store = Store.open(target)
     session = open_session(listen=[endpoint], pki=pki)
     service = FleetService(store, session, refit_interval_s=0.5, **service_security(store, pki)).start()
@@ -60,6 +62,7 @@ def fleet(request, tmp_path, pki):
     store.close()
 
 
+@pytest.mark.parametrize("fleet", ["sqlite", "postgres"], indirect=True)
 def test_agents_roll_out_and_beat_factory(fleet, tmp_path):
     endpoint, store, service, session, pki = fleet
     agents = [start_agent(f"drive-{i}", i, endpoint, tmp_path / f"ob{i}.sqlite", 24, pki) for i in (1, 2)]
