@@ -72,11 +72,12 @@ _INSERT = re.compile(r"^\s*INSERT\s+INTO\s+(\w+)", re.I)
 _DDL = re.compile(r"^\s*(--[^\n]*\n\s*)*(CREATE|ALTER|DROP)\b", re.I)
 
 
-def pg_statement(sql: str) -> str:
+def pg_statement(sql: str, placeholders: bool = True) -> str:
+    """A statement in PostgreSQL's words; without placeholders (no arguments) a literal % or ? stays as it is."""
     if sql.strip().upper() == "BEGIN IMMEDIATE":
         return "BEGIN"
     sql = _TWO_ARG_MAX.sub(r"greatest(\1,\2)", sql)
-    return sql.replace("%", "%%").replace("?", "%s")
+    return sql.replace("%", "%%").replace("?", "%s") if placeholders else sql
 
 
 def _arg(value):
@@ -160,16 +161,13 @@ class PgConnection:
         if _DDL.match(sql):  # a migration's statement: types translated, no placeholders, comments untouched
             self._has_id.clear()
             return _Cursor(self._conn.execute(pg_migration(sql)))
-        if not args:
-            args = None  # no placeholders to parse: a literal % or ? stays as it is
-        statement = pg_statement(sql) if args is not None else _TWO_ARG_MAX.sub(r"greatest(\1,\2)", sql)
-        if statement.strip().upper() == "BEGIN IMMEDIATE":
-            statement = "BEGIN"
+        args = [_arg(a) for a in args] if args else None  # None: psycopg parses no placeholders
+        statement = pg_statement(sql, placeholders=args is not None)
         insert = _INSERT.match(sql)
         returning = insert is not None and "RETURNING" not in sql.upper() and self._table_has_id(insert.group(1))
         if returning:
             statement = statement.rstrip().rstrip(";") + " RETURNING id"
-        cursor = self._conn.execute(statement, None if args is None else [_arg(a) for a in args])
+        cursor = self._conn.execute(statement, args)
         lastrowid = None
         if returning:
             row = cursor.fetchone()

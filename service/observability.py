@@ -40,25 +40,17 @@ class FleetCollector(Collector):
         self.service = service
 
     def collect(self) -> Iterator[Metric]:
-        devices = GaugeMetricFamily("encoder_fleet_devices", "Devices known, by liveliness state.", labels=["state"])
-        for state, count in sorted(self.store.device_counts().items()):
-            devices.add_metric([state], count)
-        yield devices
+        devices = self.store.device_counts()
+        yield gauge("encoder_fleet_devices", "Devices known, by liveliness state.", "state", devices, sorted(devices))
         staged, parts = Rollouts(self.store).counts()
-        rollouts_by_state = GaugeMetricFamily(
-            "encoder_fleet_staged_rollouts", "Staged rollouts, by state.", labels=["state"]
-        )
-        for state in ROLLOUT_STATES:
-            rollouts_by_state.add_metric([state], staged.get(state, 0))
-        yield rollouts_by_state
-        rollout_devices = GaugeMetricFamily(
+        yield gauge("encoder_fleet_staged_rollouts", "Staged rollouts, by state.", "state", staged, ROLLOUT_STATES)
+        yield gauge(
             "encoder_fleet_rollout_devices",
             "Devices of the running and paused staged rollouts, by their part's state.",
-            labels=["state"],
+            "state",
+            parts,
+            ("pending", "in_progress", *OUTCOMES),
         )
-        for state in ("pending", "in_progress", *OUTCOMES):
-            rollout_devices.add_metric([state], parts.get(state, 0))
-        yield rollout_devices
         if self.service is None:
             return
         counters = self.service.counters.snapshot()
@@ -90,10 +82,16 @@ class FleetCollector(Collector):
         )
         yield from self.service.counters.ingest_latency.collect()
         yield from self.service.counters.refit_latency.collect()
-        alarms = GaugeMetricFamily("encoder_fleet_open_alarms", "Open drift alarms, by cause.", labels=["cause"])
-        for cause, count in self.store.open_alarm_counts().items():
-            alarms.add_metric([cause], count)
-        yield alarms
+        alarms = self.store.open_alarm_counts()
+        yield gauge("encoder_fleet_open_alarms", "Open drift alarms, by cause.", "cause", alarms, alarms)
+
+
+def gauge(name: str, documentation: str, label: str, counts: dict[str, int], values) -> GaugeMetricFamily:
+    """One gauge per label value in `values`, from `counts` (a value it lacks reads 0)."""
+    family = GaugeMetricFamily(name, documentation, labels=[label])
+    for value in values:
+        family.add_metric([value], counts.get(value, 0))
+    return family
 
 
 def metrics_registry(store: Store, service: FleetService | None) -> CollectorRegistry:

@@ -147,12 +147,7 @@ class Rollouts:
     def resume(self, rollout: int) -> dict:
         with self._lock:
             self._expect(rollout, ("paused",), "resume")
-            now = self.clock()
-            with self.store._tx() as c:
-                c.execute(
-                    "UPDATE rollouts SET state = 'running', reason = ?, counted_from = ?, updated_at = ? WHERE id = ?",
-                    ("resumed by an operator", now, now, rollout),
-                )
+            self._update(rollout, state="running", reason="resumed by an operator", counted_from=self.clock())
             return self.get(rollout)
 
     def abort(self, rollout: int, reason: str = "aborted by an operator") -> dict:
@@ -385,7 +380,10 @@ class Rollouts:
             )
 
     def _expect(self, rollout: int, states: tuple[str, ...], what: str) -> None:
-        state = self.get(rollout, with_devices=False)["state"]
+        rows = self.store._rows("SELECT state FROM rollouts WHERE id = ?", (rollout,))
+        if not rows:
+            raise RolloutError(404, f"no rollout {rollout}")
+        state = rows[0]["state"]
         if state not in states:
             raise RolloutError(409, f"rollout {rollout} is {state}: cannot {what} it")
 

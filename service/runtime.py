@@ -465,14 +465,40 @@ class FleetService:
             after_step=self._stepped_recently(device),
         )
 
+    def _issue_set(
+        self,
+        device: str,
+        basis: str,
+        bands: list[dict],
+        *,
+        state: str,
+        reason: str | None,
+        restores_version: int | None = None,
+        before: Callable[[int, float], None] | None = None,
+        after: Callable[[int], None] | None = None,
+    ) -> int:
+        """A new set in one transaction (`before(version, drive_now)` and `after(version)` run inside it, around
+        the set's insert: what belongs with the set lands with it, or nothing does), then published."""
+        drive_now = self._drive_now(device)
+        with self.store.transaction():
+            version = self.store.next_version(device)
+            if before is not None:
+                before(version, drive_now)
+            msg = wire.coefficients_message(device, version, drive_now, basis, bands, restores_version=restores_version)
+            msg = self._publishable(msg)
+            self.store.insert_coefficient_set(msg, state=state, reason=reason)
+            if after is not None:
+                after(version)
+        self._publish(msg)
+        return version
+
     def publish_fit(
         self, device: str, result: RefitResult, *, reason: str | None = None, then: Callable[[int], None] | None = None
     ) -> int:
         """Store the fits and the set they make (on trial) in one transaction, then publish it. `then(version)`
         runs inside that transaction (a rollout records its part with the set, or neither lands)."""
-        drive_now = self._drive_now(device)
-        with self.store.transaction():  # the fits and the set they make land together, or not at all
-            version = self.store.next_version(device)
+
+        def record_fits(version: int, drive_now: float) -> None:
             for decision in result.decisions:
                 fit = decision.candidate
                 correction = {k: v for k, v in fit.items() if k not in ("band", "quality")}
@@ -485,14 +511,10 @@ class FleetService:
                     version=version,
                     adopted=decision.adopted,
                 )
-            msg = wire.coefficients_message(
-                device=device, version=version, created_at=drive_now, basis="fit", bands=result.bands
-            )
-            msg = self._publishable(msg)
-            self.store.insert_coefficient_set(msg, state="trial", reason=reason)
-            if then is not None:
-                then(version)
-        self._publish(msg)
+
+        version = self._issue_set(
+            device, "fit", result.bands, state="trial", reason=reason, before=record_fits, after=then
+        )
         log.info(
             "published coefficient set on trial",
             extra={"device": device, "version": version, "bands_adopted": sum(d.adopted for d in result.decisions)},
@@ -504,17 +526,9 @@ class FleetService:
     ) -> int:
         """Publish, on trial, a set that carries the bands of confirmed set `restores_version` again (a reset
         to factory is restores_version 0); `then(version)` runs inside the set's transaction."""
-        drive_now = self._drive_now(device)
-        with self.store.transaction():
-            version = self.store.next_version(device)
-            msg = wire.coefficients_message(
-                device, version, drive_now, "rollback", bands, restores_version=restores_version
-            )
-            msg = self._publishable(msg)
-            self.store.insert_coefficient_set(msg, state="trial", reason=reason)
-            then(version)
-        self._publish(msg)
-        return version
+        return self._issue_set(
+            device, "rollback", bands, state="trial", reason=reason, restores_version=restores_version, after=then
+        )
 
     def _judge_trial(self, device: str, trial: dict) -> int | None:
         """Confirm, roll back (a new set, basis rollback, carrying the last confirmed set again) or wait."""
@@ -548,19 +562,20 @@ class FleetService:
     ) -> int:
         """Mark set `version` rolled back and publish `before`'s bands again (basis rollback, confirmed);
         `then()` runs inside that transaction."""
-        drive_now = self._drive_now(device)
-        with self.store.transaction():
-            new_version = self.store.next_version(device)
-            bands_again = [{k: v for k, v in b.items()} for b in before["bands"]]
-            msg = wire.coefficients_message(
-                device, new_version, drive_now, "rollback", bands_again, restores_version=before["version"]
-            )
-            msg = self._publishable(msg)
+
+        def mark_rolled_back(_: int, drive_now: float) -> None:
             self.store.set_state(device, version, "rolled_back", at=drive_now, reason=reason)
-            self.store.insert_coefficient_set(msg, reason=f"restores v{before['version']}: {reason}")
-            if then is not None:
-                then()
-        self._publish(msg)
+
+        new_version = self._issue_set(
+            device,
+            "rollback",
+            [dict(b) for b in before["bands"]],
+            state="confirmed",
+            reason=f"restores v{before['version']}: {reason}",
+            restores_version=before["version"],
+            before=mark_rolled_back,
+            after=None if then is None else lambda _: then(),
+        )
         with self._lock:
             self.counters.rollbacks += 1
         log.warning(

@@ -157,7 +157,11 @@ class Store:
         check_integrity (the service at start-up) a corrupt file is refused before anything runs on it."""
         migrations = migration_files(migrations_dir)
         if db.is_postgres(path):
-            return cls._open_postgres(path, migrations, band_horizon_s)
+            try:
+                conn = db.PgConnection(path)
+            except db.database_errors() as exc:
+                raise StoreError("unavailable", f"database {db.redacted(path)} cannot be opened: {exc}") from None
+            return cls._migrated(conn, db.redacted(path), band_horizon_s, migrations)
         path = db.sqlite_path(path)
         try:
             # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
@@ -176,21 +180,12 @@ class Store:
             raise StoreError(
                 "unavailable", f"database {path} is corrupt ({' '.join(' '.join(problems).split())}); restore a backup"
             )
-        store = cls(conn, str(path), band_horizon_s)
-        try:
-            store._migrate(migrations)
-        except BaseException:
-            conn.close()
-            raise
-        return store
+        return cls._migrated(conn, str(path), band_horizon_s, migrations)
 
     @classmethod
-    def _open_postgres(cls, url: str, migrations, band_horizon_s: float | None) -> Store:
-        try:
-            conn = db.PgConnection(url)
-        except db.database_errors() as exc:
-            raise StoreError("unavailable", f"database {db.redacted(url)} cannot be opened: {exc}") from None
-        store = cls(conn, db.redacted(url), band_horizon_s)
+    def _migrated(cls, conn, path: str, band_horizon_s: float | None, migrations) -> Store:
+        """The store on an open connection (either database), with the migrations it lacks applied."""
+        store = cls(conn, path, band_horizon_s)
         try:
             store._migrate(migrations)
         except BaseException:
