@@ -66,3 +66,11 @@ def device_name(text: str) -> str:
             f"{text!r} is not a device id: a letter or digit, then up to 63 letters, digits, '_', '.' or '-'"
         )
     return text
+
+
+def member_name(text: str) -> str:
+    if not DEVICE_RE.match(text):  # the same shape: it is one chunk of a Zenoh key
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a member name: a letter or digit, then up to 63 letters, digits, '_', '.' or '-'"
+        )
+    return text

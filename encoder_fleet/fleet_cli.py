@@ -1,4 +1,4 @@
-"""Fleet subcommands: agent, service, export, demo, bench-fleet, bench-monitor."""
+"""Fleet subcommands: agent, service, export, demo, bench-fleet, bench-scale, bench-monitor."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from encoder_core.samples import InputError
 from encoder_fleet.argtypes import (
     device_name,
     finite_float,
+    member_name,
     non_negative_float,
     non_negative_int,
     port,
@@ -134,6 +135,8 @@ def cmd_service(args) -> int:
         db=args.db,
         listen=args.listen,
         connect=args.connect,
+        mesh=args.mesh,
+        member=args.member,
         http_host=args.http_host,
         http_port=args.http_port,
         refit_interval_s=args.refit_interval,
@@ -196,6 +199,16 @@ def cmd_bench_fleet(args) -> int:
     )
 
 
+def cmd_bench_scale(args) -> int:
+    from encoder_fleet.bench_scale import run_bench as run_scale_bench
+    from encoder_fleet.pgserver import NoPostgres
+
+    try:
+        return run_scale_bench(args.sizes, args.processes, args.postgres, json_path=args.json)
+    except NoPostgres as exc:
+        raise InputError(f"bench-scale needs PostgreSQL: {exc}; give --postgres URL") from None
+
+
 def cmd_bench_monitor(args) -> int:
     from encoder_fleet.bench_monitor import run_bench as run_monitor_bench
 
@@ -248,6 +261,18 @@ def register(sub) -> None:
         help="router endpoint (default tls/127.0.0.1:7447, tcp/ with --insecure)",
     )
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="join external routers instead")
+    p.add_argument(
+        "--mesh",
+        action="append",
+        metavar="ENDPOINT",
+        help="the embedded router also connects to this router (another service's or a zenohd): routers meshed",
+    )
+    p.add_argument(
+        "--member",
+        type=member_name,
+        help="share the fleet with other service processes on the same PostgreSQL database: this process's "
+        "unique name; it serves the device partitions that fall to it among the live members",
+    )
     p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
     p.add_argument("--http-port", type=port, default=8000, help="REST port (0: no REST)")
     p.add_argument("--refit-interval", type=positive_float, default=2.0, help="seconds between refit passes")
@@ -306,6 +331,23 @@ def register(sub) -> None:
         "and drop a database per run",
     )
     p.set_defaults(func=cmd_bench_fleet)
+
+    p = sub.add_parser(
+        "bench-scale",
+        help="drives at one window a drive-minute against 1, 2, 4 service processes on PostgreSQL and one on SQLite",
+    )
+    p.add_argument("--sizes", type=size_list, default=[1000, 10000, 100000], help="fleet sizes, comma-separated")
+    p.add_argument(
+        "--processes", type=size_list, default=[1, 2, 4], help="service processes on PostgreSQL, comma-separated"
+    )
+    p.add_argument(
+        "--postgres",
+        metavar="URL",
+        help="an admin URL that may create and drop a database per row (default: a throwaway server started "
+        "from this machine's PostgreSQL binaries)",
+    )
+    p.add_argument("--json", metavar="FILE", help='also write {"rows": [...]} to FILE')
+    p.set_defaults(func=cmd_bench_scale)
 
     p = sub.add_parser(
         "bench-monitor",

@@ -5,7 +5,7 @@ per external router), the service's Ed25519 key that signs coefficient sets. Pri
     encoder-fleet pki issue DIR NAME           -> DIR/NAME.crt, DIR/NAME.key       (a device; CN = NAME)
     encoder-fleet pki issue DIR --service      -> DIR/service.crt, DIR/service.key, DIR/signing.key, DIR/signing.pub
     encoder-fleet pki issue DIR --router NAME  -> DIR/NAME.crt, DIR/NAME.key       (an external router, e.g. zenohd)
-    encoder-fleet pki router-config DIR ...    -> a zenohd config: TLS, mTLS and the ACL of the registry
+    encoder-fleet pki router-config DIR ...    -> a zenohd config: TLS, mTLS, the ACL of the registry, mesh links
 
 A certificate's role (device, service, router) is its organizational unit; the device registry is the set
 of device certificates in DIR (fleet_wire.security.registry).
@@ -207,27 +207,42 @@ def _signing_key(pki_dir: Path, *, force: bool) -> None:
     _write(pki_dir / SIGNING_PUB, public, private=False)
 
 
-def router_config(pki_dir, name: str, *, listen: list[str], container_dir: str | None = None) -> dict:
+def router_config(
+    pki_dir,
+    name: str,
+    *,
+    listen: list[str],
+    container_dir: str | None = None,
+    connect: list[str] = (),
+    peers: list[str] = (),
+) -> dict:
     """A zenohd configuration: TLS with mutual authentication on `listen`, and the access control generated
-    from the registry. container_dir: where zenohd sees pki_dir (paths in the config are zenohd's)."""
+    from the registry. container_dir: where zenohd sees pki_dir (paths in the config are zenohd's).
+    Meshed routers: `connect` to other routers (with this router's certificate); `peers`, the certificate names
+    of the routers meshed with this one either way, whom its access control trusts as it trusts the service."""
     pki_dir = Path(pki_dir)
     where = Path(container_dir) if container_dir else pki_dir.resolve()
-    return {
+    tls = {
+        "root_ca_certificate": str(where / f"{CA_NAME}.crt"),
+        "listen_private_key": str(where / f"{name}.key"),
+        "listen_certificate": str(where / f"{name}.crt"),
+        "enable_mtls": True,
+    }
+    conf = {
         "mode": "router",
         "listen": {"endpoints": listen},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "tls": {
-                    "root_ca_certificate": str(where / f"{CA_NAME}.crt"),
-                    "listen_private_key": str(where / f"{name}.key"),
-                    "listen_certificate": str(where / f"{name}.crt"),
-                    "enable_mtls": True,
-                }
-            }
-        },
-        "access_control": access_control(registry(pki_dir)),
+        "transport": {"link": {"tls": tls}},
+        "access_control": access_control(registry(pki_dir), routers=list(peers)),
     }
+    if connect:
+        conf["connect"] = {"endpoints": list(connect)}
+        tls.update(
+            connect_private_key=str(where / f"{name}.key"),
+            connect_certificate=str(where / f"{name}.crt"),
+            verify_name_on_connect=True,
+        )
+    return conf
 
 
 # --- the command --------------------------------------------------------------------------------------
@@ -254,7 +269,14 @@ def cmd_pki(args) -> int:
             print(f"device certificate: {crt} (CN {args.name}); restart the service so its router admits it")
         return 0
     if args.pki_command == "router-config":
-        conf = router_config(args.dir, args.name, listen=args.listen or ["tls/0.0.0.0:7447"], container_dir=args.as_dir)
+        conf = router_config(
+            args.dir,
+            args.name,
+            listen=args.listen or ["tls/0.0.0.0:7447"],
+            container_dir=args.as_dir,
+            connect=args.connect or [],
+            peers=args.peer or [],
+        )
         text = json.dumps(conf, indent=1)
         if args.out:
             Path(args.out).write_text(text + "\n")
@@ -283,5 +305,9 @@ def register(sub) -> None:
     q.add_argument("--name", default="zenohd", help="the router's certificate name (pki issue DIR --router NAME)")
     q.add_argument("--listen", action="append", metavar="ENDPOINT", help="default tls/0.0.0.0:7447")
     q.add_argument("--as-dir", help="the folder as zenohd sees it (e.g. /pki in a container)")
+    q.add_argument("--connect", action="append", metavar="ENDPOINT", help="mesh: connect to this router too")
+    q.add_argument(
+        "--peer", action="append", metavar="NAME", help="mesh: a router certificate name to trust as the service"
+    )
     q.add_argument("--out", help="write here instead of stdout")
     p.set_defaults(func=cmd_pki)

@@ -499,12 +499,16 @@ def key_for(kind: str, device: str) -> str:
     return keys.key(device, KEY_SUFFIX[kind])
 
 
+def _key_shape(suffixes) -> str:
+    return f"{keys.PREFIX}/<device>/<{'|'.join(suffixes)}>[/p<device's partition>]"
+
+
 def parse_key(key_expr: str) -> tuple[str, str]:
     """`encoders/<device>/<suffix>` of a message kind -> (device, kind)."""
     kinds = {suffix: kind for kind, suffix in KEY_SUFFIX.items()}
     parts = keys.split(key_expr)
     if parts is None or parts[1] not in kinds:
-        raise WireError("bad_key", f"key {key_expr!r} is not {keys.PREFIX}/<device>/<{'|'.join(kinds)}>")
+        raise WireError("bad_key", f"key {key_expr!r} is not {_key_shape(kinds)}")
     return parts[0], kinds[parts[1]]
 
 
@@ -512,7 +516,7 @@ def device_from_key(key_expr: str) -> str:
     """The <device> of any fleet key (stats, ack, coefficients, factory, received, alive)."""
     parts = keys.split(key_expr)
     if parts is None or parts[1] not in keys.SUFFIXES:
-        raise WireError("bad_key", f"key {key_expr!r} is not {keys.PREFIX}/<device>/<{'|'.join(keys.SUFFIXES)}>")
+        raise WireError("bad_key", f"key {key_expr!r} is not {_key_shape(keys.SUFFIXES)}")
     return parts[0]
 
 

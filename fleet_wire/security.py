@@ -150,12 +150,13 @@ SERVICE_MESSAGES = [
 ]
 
 
-def access_control(devices: list[str], service: str = SERVICE_NAME) -> dict:
+def access_control(devices: list[str], service: str = SERVICE_NAME, routers: list[str] = ()) -> dict:
     """The router's `access_control` config, default deny, generated from the device registry.
 
     The service is a subject too (it needs rules when it is a client of an external router, as in compose);
-    an embedded router's own session is not filtered. Zenoh key expressions cannot refer to the subject's
-    common name, so there is one subject and one policy per device."""
+    an embedded router's own session is not filtered. `routers`: the certificate names of the routers this one
+    is meshed with, trusted as the service is (the fleet's traffic crosses their links both ways). Zenoh key
+    expressions cannot refer to the subject's common name, so there is one subject and one policy per device."""
     rules = [
         {
             "id": f"{service}/all",
@@ -165,7 +166,7 @@ def access_control(devices: list[str], service: str = SERVICE_NAME) -> dict:
             "key_exprs": [f"{keys.PREFIX}/**"],
         }
     ]
-    subjects = [{"id": service, "cert_common_names": [service]}]
+    subjects = [{"id": service, "cert_common_names": [service, *routers]}]
     policies = [{"id": f"{service}/policy", "rules": [f"{service}/all"], "subjects": [service]}]
     for device in sorted(set(devices)):
         if not keys.DEVICE_RE.match(device) or device in RESERVED_NAMES:

@@ -407,6 +407,30 @@ def metrics(request: Request):
     return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
 
 
+class Cluster(BaseModel):
+    member: str | None = Field(description="This process's name among the service processes; null when it runs alone.")
+    members: list[str] = Field(description="The live service processes sharing the fleet (empty when alone).")
+    partitions: int = Field(description="Partitions of the fleet (a stable hash of the device id, in its keys).")
+    served: list[str] = Field(description="The partitions this process serves: it receives only their devices' keys.")
+    leads_rollouts: bool = Field(description="Whether this process steps the staged rollouts.")
+    stored_by_partition: dict[str, int] = Field(
+        description="Messages this process stored since it started, by partition."
+    )
+
+
+@operations.get(
+    "/cluster",
+    response_model=Cluster,
+    responses={503: {"model": ErrorMessage, "description": "No running service in this process."}},
+    summary="Which device partitions this service process serves",
+)
+def cluster(request: Request):
+    service = request.app.state.service
+    if service is None:
+        raise HTTPException(status_code=503, detail="no running service in this process")
+    return service.cluster()
+
+
 # --- staged rollouts (service/rollout.py): the API's mutations, admin token only ------------------------
 
 rollouts = APIRouter(prefix="/rollouts", tags=["rollouts"])

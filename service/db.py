@@ -9,11 +9,15 @@ The migrations stay written once, in SQLite's dialect, which is also the one mos
 
 from __future__ import annotations
 
+import queue
 import re
 import sqlite3
+import threading
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+READ_POOL_SIZE = 4  # read connections per service process (PostgreSQL's default max_connections is 100)
 
 
 def is_postgres(target) -> bool:
@@ -121,27 +125,33 @@ class _Cursor:
         return iter(self.fetchall())
 
 
-class PgConnection:
-    """psycopg 3 in autocommit mode: the Store opens and ends its transactions itself, as with SQLite."""
+def _configure(conn) -> None:
+    """Every connection reads like SQLite: sum() and avg() of integers are NUMERIC in PostgreSQL, read as int or
+    float; rows by name and by position."""
+    from psycopg.adapt import Loader
 
-    def __init__(self, url: str):
+    class NumericLoader(Loader):
+        def load(self, data):
+            text = bytes(data).decode()
+            return int(text) if text.lstrip("-").isdigit() else float(text)
+
+    conn.adapters.register_loader("numeric", NumericLoader)
+    conn.row_factory = _row_factory
+
+
+class PgConnection:
+    """psycopg 3 in autocommit mode: the Store opens and ends its transactions itself, as with SQLite.
+    `conn`: an open psycopg connection to wrap (one lent by PgReadPool) instead of connecting to `url`."""
+
+    def __init__(self, url: str | None = None, *, conn=None):
         import psycopg
 
         self._psycopg = psycopg
-        self._conn = psycopg.connect(url, autocommit=True, row_factory=_row_factory)
-        self._register_numeric()
+        if conn is None:
+            conn = psycopg.connect(url, autocommit=True)
+            _configure(conn)
+        self._conn = conn
         self._has_id: dict[str, bool] = {}
-
-    def _register_numeric(self) -> None:
-        # sum() and avg() of integers are NUMERIC in PostgreSQL: read them as int or float, as SQLite returns them
-        from psycopg.adapt import Loader
-
-        class NumericLoader(Loader):
-            def load(self, data):
-                text = bytes(data).decode()
-                return int(text) if text.lstrip("-").isdigit() else float(text)
-
-        self._conn.adapters.register_loader("numeric", NumericLoader)
 
     @property
     def in_transaction(self) -> bool:
@@ -180,3 +190,48 @@ class PgConnection:
 
     def close(self) -> None:
         self._conn.close()
+
+
+class SqliteReadPool:
+    """Read connections to a SQLite file in WAL mode: readers see the last commit and never wait for the writer."""
+
+    def __init__(self, path: str, max_size: int = READ_POOL_SIZE):
+        self._path = path
+        self._idle: queue.LifoQueue = queue.LifoQueue()
+        self._slots = threading.BoundedSemaphore(max_size)
+
+    def rows(self, sql: str, args: Sequence = ()) -> list:
+        with self._slots:
+            try:
+                conn = self._idle.get_nowait()
+            except queue.Empty:
+                uri = Path(self._path).resolve().as_uri() + "?mode=ro"
+                conn = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=30.0)
+                conn.row_factory = sqlite3.Row
+            try:
+                return conn.execute(sql, args).fetchall()
+            finally:
+                self._idle.put(conn)
+
+    def close(self) -> None:
+        while not self._idle.empty():
+            self._idle.get_nowait().close()
+
+
+class PgReadPool:
+    """Connections for reads outside the writer's transaction (REST, queries, the monitor): psycopg_pool, so a
+    reader never waits behind a batch being written, and sees what is committed."""
+
+    def __init__(self, url: str, max_size: int = READ_POOL_SIZE):
+        from psycopg_pool import ConnectionPool
+
+        self._pool = ConnectionPool(
+            url, min_size=1, max_size=max_size, kwargs={"autocommit": True}, configure=_configure, open=True
+        )
+
+    def rows(self, sql: str, args: Sequence = ()) -> list:
+        with self._pool.connection() as conn:
+            return PgConnection(conn=conn).execute(sql, args).fetchall()
+
+    def close(self) -> None:
+        self._pool.close()

@@ -70,14 +70,15 @@ class IngestGuard:
         return self.devices is None or device in self.devices
 
 
-def router_security(pki, *, listen: list[str] | None, connect: list[str] | None) -> tuple:
+def router_security(pki, *, listen: list[str] | None, connect: list[str] | None, mesh: list[str] | None = None):
     """(identity, access control) of the service's Zenoh session: (None, None) when insecure. Every endpoint
-    must be TLS when a PKI is given (a tcp/ listener would take clients without a certificate)."""
+    must be TLS when a PKI is given (a tcp/ listener would take clients without a certificate). An embedded
+    router meshed with others connects to them as the service (their access control lets it through)."""
     if pki is None:
         return None, None
     from fleet_wire.security import ROLE_SERVICE, SERVICE_NAME, Identity, SecurityError, access_control, registry
 
-    plain = [e for e in (connect or listen or []) if not str(e).startswith("tls/")]
+    plain = [e for e in (connect or [*(listen or []), *(mesh or [])]) if not str(e).startswith("tls/")]
     if plain:
         raise SecurityError(f"with --pki every endpoint must be tls/HOST:PORT, not {', '.join(plain)}")
     identity = Identity.load(pki, SERVICE_NAME, ROLE_SERVICE)

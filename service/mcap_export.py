@@ -330,7 +330,7 @@ def iter_mcap(store: Store, device: str, t_from: float | None = None, t_to: floa
     }
     channels = {
         suffix: writer.register_channel(
-            topic=f"/{keys.key(device, suffix)}",
+            topic=f"/{keys.PREFIX}/{device}/{suffix}",  # the record, not the route: no partition
             message_encoding="json",
             schema_id=schema_ids[schema],
             metadata={"device": device},

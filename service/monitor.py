@@ -41,15 +41,26 @@ class Monitor:
         self.devices: dict[str, DeviceMonitor] = {}
         self.last_seq: dict[str, int] = {}
         self._lock = threading.RLock()
-        for device, (state, last_seq) in store.monitor_states().items():
-            try:
-                mon = DeviceMonitor.from_dict(state, self.settings)
-            except (KeyError, TypeError, ValueError) as exc:  # a state from an incompatible version: start over
-                log.warning("monitor state unreadable, starting over", extra={"device": device, "error": str(exc)})
-                mon = DeviceMonitor(device, self.settings)
-            self.devices[device] = mon
-            self.last_seq[device] = last_seq
-            self.fleet.report(device, mon.rate_estimates())
+        self.reload(lambda device: True)
+
+    def reload(self, which: Callable[[str], bool]) -> None:
+        """(Re)read the saved state of the devices `which` selects: at start, and when this process takes over
+        devices another process monitored (service/cluster.py)."""
+        with self._lock:
+            for device in [d for d in self.devices if which(d)]:
+                del self.devices[device]
+                del self.last_seq[device]
+            for device, (state, last_seq) in self.store.monitor_states().items():
+                if not which(device):
+                    continue
+                try:
+                    mon = DeviceMonitor.from_dict(state, self.settings)
+                except (KeyError, TypeError, ValueError) as exc:  # a state from an incompatible version: start over
+                    log.warning("monitor state unreadable, starting over", extra={"device": device, "error": str(exc)})
+                    mon = DeviceMonitor(device, self.settings)
+                self.devices[device] = mon
+                self.last_seq[device] = last_seq
+                self.fleet.report(device, mon.rate_estimates())
 
     def _device(self, device: str) -> DeviceMonitor:
         mon = self.devices.get(device)

@@ -71,6 +71,11 @@ class FleetCollector(Collector):
                 rejected.add_metric([reason], count)
         yield rejected
         yield CounterMetricFamily("encoder_fleet_refits", "Device refits run.", value=counters["refits"])
+        yield GaugeMetricFamily(
+            "encoder_fleet_partitions_served",
+            "Device partitions this process serves (all of them when it runs alone).",
+            value=len(self.service.partitions.held),
+        )
         rollouts = CounterMetricFamily("encoder_fleet_rollouts", "Coefficient sets by outcome.", labels=["outcome"])
         rollouts.add_metric(["published"], counters["rollouts"])
         rollouts.add_metric(["rolled_back"], counters["rollbacks"])

@@ -22,7 +22,8 @@ from encoder_core.correction import BandedCorrection
 from encoder_core.samples import InputError
 from fleet_wire import keys
 from fleet_wire import messages as wire
-from service.db import is_postgres, sqlite_path
+from service.cluster import Partitions
+from service.db import is_postgres, redacted, sqlite_path
 from service.monitor import Monitor
 from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, RefitResult, refit_device
 from service.rollout import Rollouts
@@ -36,6 +37,9 @@ MAX_QUEUED = 20_000  # messages waiting for the writer (~80 MB of windows at mos
 QUEUE_WAIT_S = 2.0  # how long Zenoh's callback waits for room before the message is dropped
 RATE_PER_KEY = 200.0  # messages/s one key may send on average (an agent sends one window a minute) …
 BURST_PER_KEY = 2_000.0  # … and at once (a catch-up resends at most 500 per sync)
+# liveliness, factory sets and queries waiting for the control thread: a process's whole share of tokens at
+# start (each item is a reference, not a payload)
+MAX_CONTROL = 200_000
 MAX_ALIVE_UNKNOWN = 10_000  # liveliness tokens of devices not yet heard from, remembered for when they speak
 # drive hours a band's sum remembers: short enough to follow a step within half a day, long enough for the
 # drift model that pools all bands (bench-fleet-accuracy: 12 h beat 24 h and a week at 0.5 and 20 Hz)
@@ -58,6 +62,8 @@ class ServiceCounters:
     rollbacks: int = 0
     storage_failures: int = 0  # batches the database refused (disk full, read-only, I/O): agents resend them
     storage_error: str | None = None  # the last refusal, until a batch is stored again (/healthz fails meanwhile)
+    # windows and acks this process stored, by the device's partition (GET /cluster: who served what)
+    stored_by_partition: list[int] = field(default_factory=lambda: [0] * keys.PARTITIONS)
     # seconds from a message's arrival to its commit, and of one device's refit (read by service.observability)
     ingest_latency: Histogram = field(
         default_factory=lambda: Histogram(
@@ -132,6 +138,7 @@ class FleetService:
         queue_wait_s: float = QUEUE_WAIT_S,
         clock: Callable[[], float] = time.time,
         refit_every_s: float = REFIT_EVERY_S,
+        member: str | None = None,
     ):
         self.store = store
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
@@ -165,21 +172,26 @@ class FleetService:
         self._monitor_thread: threading.Thread | None = None
         # staged rollouts (service/rollout.py): stepped on the refit thread, after each refit pass
         self.rollouts = Rollouts(store, self, clock=clock)
+        # which devices' keys this process serves (service/cluster.py): all of them unless `member` names it
+        # one of several processes sharing the fleet
+        self.partitions = Partitions(self, member)
+        # factory sets, liveliness and queries touch the database: one thread answers them in turn, so that
+        # Zenoh's own threads only hand over (and a process serving many partitions needs no thread for each)
+        self._control: queue.Queue = queue.Queue(maxsize=MAX_CONTROL)
+        self._control_thread = threading.Thread(target=self._control_loop, name="control", daemon=True)
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
     def start(self) -> FleetService:
-        s = self.session
-        self._declared += [
-            s.declare_subscriber(keys.every(keys.STATS), self._enqueue),
-            s.declare_subscriber(keys.every(keys.ACK), self._enqueue),
-            s.declare_subscriber(keys.every(keys.FACTORY), self._on_factory),
-            s.declare_queryable(keys.every(keys.COEFFICIENTS), self._on_coefficients_query),
-            s.declare_queryable(keys.every(keys.RECEIVED), self._on_received_query),
-            s.liveliness().declare_subscriber(keys.every(keys.ALIVE), self._on_alive, history=True),
-        ]
-        self._changed.update(d["id"] for d in self.store.devices())  # after a restart, look at everyone once
-        self._monitor_changed.update(self._changed)
+        self._control_thread.start()
+        # any process answers for any device from the shared history: an agent that starts asks for its set here
+        self._declared.append(
+            self.session.declare_queryable(keys.every(keys.COEFFICIENTS), self._handed(self._on_coefficients_query))
+        )
+        self.partitions.start()
+        if self.partitions.standalone:  # after a restart, look at everyone once (a cluster member: as it adopts)
+            self._changed.update(d["id"] for d in self.store.devices())
+            self._monitor_changed.update(self._changed)
         if self.monitor_interval_s > 0:
             self._monitor_thread = threading.Thread(target=self._monitor_loop, name="monitor", daemon=True)
             self._monitor_thread.start()
@@ -190,10 +202,13 @@ class FleetService:
         return self
 
     def stop(self) -> None:
+        self.partitions.stop_receiving()
         for entity in reversed(self._declared):
             entity.undeclare()
         self._declared.clear()
         self._stop.set()
+        self._control.put(None)
+        self._control_thread.join()
         if self._thread is not None:
             self._thread.join()
         self._inbox.put(None)  # the writer stores what is queued, then ends
@@ -201,6 +216,80 @@ class FleetService:
         if self._monitor_thread is not None:
             self._monitor_thread.join()
         self.monitor_pass()  # what the writer stored last is monitored too
+        self.partitions.release()  # only now: the partitions' last batch is written under their locks
+
+    # --- partitions (service/cluster.py) -----------------------------------------------------------
+
+    def _declare_partition(self, part: int | None) -> list:
+        """The Zenoh entities that serve one partition's devices (None: every partition). Callbacks run on Zenoh's
+        thread (no thread each): windows and acks go to the writer's queue, the rest to the control thread."""
+        s = self.session
+
+        def direct(fn):
+            return zenoh.handlers.Callback(fn, indirect=False)
+
+        return [
+            s.declare_subscriber(keys.every(keys.STATS, part), direct(self._enqueue)),
+            s.declare_subscriber(keys.every(keys.ACK, part), direct(self._enqueue)),
+            s.declare_subscriber(keys.every(keys.FACTORY, part), self._handed(self._on_factory)),
+            s.declare_queryable(keys.every(keys.RECEIVED, part), self._handed(self._on_received_query)),
+            s.liveliness().declare_subscriber(keys.every(keys.ALIVE, part), self._handed(self._on_alive), history=True),
+        ]
+
+    def _handed(self, handler: Callable) -> zenoh.handlers.Callback:
+        """A Zenoh callback that hands the sample or query to the control thread (never waiting: a query not
+        answered is asked again, a factory set announced again, a token seen at the next start)."""
+
+        def hand(item) -> None:
+            try:
+                self._control.put_nowait((handler, item))
+            except queue.Full:
+                with self._lock:
+                    self.counters.count("overloaded")
+                if isinstance(item, zenoh.Query):
+                    item.drop()
+
+        return zenoh.handlers.Callback(hand, indirect=False)
+
+    def _control_loop(self) -> None:
+        while (job := self._control.get()) is not None:
+            handler, item = job
+            try:
+                handler(item)
+            except Exception:
+                log.exception("%s failed on %s", handler.__name__, getattr(item, "key_expr", item))
+            finally:
+                if isinstance(item, zenoh.Query):
+                    item.drop()  # the query's final answer: replies end here
+
+    def forget_partitions(self, parts: set[int]) -> None:
+        """Drop what this process remembers of some partitions' devices: another process may write them now."""
+        with self._lock:
+            self._watermarks = {d: m for d, m in self._watermarks.items() if keys.partition(d) not in parts}
+            self._fitted_at = {d: t for d, t in self._fitted_at.items() if keys.partition(d) not in parts}
+        self.store.forget_partitions(parts)
+        self.monitor.reload(lambda device: keys.partition(device) in parts)
+
+    def cluster(self) -> dict:
+        """What this process serves among the live service processes (GET /cluster)."""
+        with self._lock:
+            stored = list(self.counters.stored_by_partition)
+        held = sorted(self.partitions.held)
+        return {
+            "member": self.partitions.member,
+            "members": self.partitions.members(),
+            "partitions": keys.PARTITIONS,
+            "served": [keys.partition_chunk(p) for p in held],
+            "leads_rollouts": self.partitions.leads(),
+            "stored_by_partition": {keys.partition_chunk(p): n for p, n in enumerate(stored) if n},
+        }
+
+    def adopt_partitions(self, parts: set[int]) -> None:
+        """Partitions just taken: their devices are looked at once, as after a restart."""
+        devices = [d for d in self.store.device_ids() if keys.partition(d) in parts]
+        with self._lock:
+            self._changed.update(devices)
+            self._monitor_changed.update(devices)
 
     def checks(self) -> dict[str, str]:
         """Component -> 'ok' or what is wrong (for /healthz and /readyz)."""
@@ -253,7 +342,8 @@ class FleetService:
             if not items:
                 continue
             try:
-                statuses = self.store.ingest_many(items)
+                with self.partitions.lock:  # a partition changes hands between batches, never inside one
+                    items, statuses = self._store_served(items)
             except Exception as exc:  # the disk, not the data: nothing of the batch was committed, so no watermark
                 log.exception("storing %d messages failed; the agents will resend them", len(items))
                 with self._lock:  # seen in /healthz and /metrics until a batch is stored again
@@ -268,15 +358,30 @@ class FleetService:
                 self.counters.storage_error = None
                 for (key, _), status in zip(items, statuses):
                     self.counters.count(status)
-                    if status == "stored" and key.endswith("/stats"):
-                        self._changed.add(wire.device_from_key(key))
-                        self._monitor_changed.add(wire.device_from_key(key))
-                    if status == "stored" and self._alive_unknown:
-                        device = wire.device_from_key(key)
-                        if self._alive_unknown.pop(device, None) is not None:
-                            came_alive.append(device)
+                    if status != "stored":
+                        continue
+                    device, suffix = keys.split(key)  # a stored message had a well-formed key
+                    self.counters.stored_by_partition[keys.partition(device)] += 1
+                    if suffix == keys.STATS:
+                        self._changed.add(device)
+                        self._monitor_changed.add(device)
+                    if self._alive_unknown and self._alive_unknown.pop(device, None) is not None:
+                        came_alive.append(device)
             for device in came_alive:  # its token came before its first valid message
                 self.store.set_online(device, True)
+
+    def _store_served(self, items: list[tuple[str, bytes]]) -> tuple[list, list[str]]:
+        """Store the messages of the partitions this process holds; the rest (queued before a hand-over) are
+        dropped and counted: their agents send them again, to the partition's new process."""
+        if not self.partitions.standalone:
+            held = self.partitions.held
+            served = [(k, p) for k, p in items if (parts := keys.split(k)) is None or keys.partition(parts[0]) in held]
+            if len(served) < len(items):
+                with self._lock:
+                    for _ in range(len(items) - len(served)):
+                        self.counters.count("not_served")
+            items = served
+        return items, (self.store.ingest_many(items) if items else [])
 
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""
@@ -292,8 +397,9 @@ class FleetService:
             self.store.dead_letter(key, exc.reason, str(exc), payload)
             return
         if self.store.current_coefficients(device) is None:
-            self.store.insert_coefficient_set(msg)
-            self.store.mark_published(device, 0)
+            with self.store.transaction():  # one commit: a fleet of agents starting at once announces many
+                self.store.insert_coefficient_set(msg)
+                self.store.mark_published(device, 0)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
@@ -331,7 +437,7 @@ class FleetService:
         with self._lock:
             changed, self._monitor_changed = sorted(self._monitor_changed), set()
         n = 0
-        for device in changed:
+        for device in filter(self.partitions.serves, changed):
             try:
                 n += len(self.monitor.process(device))
             except Exception:  # one device's failure must not stop the others
@@ -382,6 +488,8 @@ class FleetService:
     def _refit_loop(self) -> None:
         while not self._stop.wait(self.refit_interval_s):
             self.refit_all()
+            if not self.partitions.leads():
+                continue  # one process steps the rollouts; every process records and judges from the database
             try:
                 self.rollouts.step()
             except Exception:  # logged with its trace; the next pass tries again from what is stored
@@ -393,7 +501,7 @@ class FleetService:
         with self._lock:
             changed, self._changed = sorted(self._changed), set()
         published, later = [], set()
-        for device in changed:
+        for device in filter(self.partitions.serves, changed):
             if not self._refit_due(device):
                 later.add(device)
                 continue
@@ -609,8 +717,11 @@ class FleetService:
         return recent[0]["window_end"] if recent else 0.0
 
 
-def open_session(*, listen: list[str] | None = None, connect: list[str] | None = None, pki=None) -> zenoh.Session:
-    """The service's session: an embedded router on `listen`, or a client of external routers.
+def open_session(
+    *, listen: list[str] | None = None, connect: list[str] | None = None, mesh: list[str] | None = None, pki=None
+) -> zenoh.Session:
+    """The service's session: an embedded router on `listen` (connected to the routers on `mesh`, if any), or a
+    client of external routers.
     A router that cannot listen (a port taken, an endpoint malformed) raises InputError in one line.
     pki (a PKI folder): TLS with mutual authentication as the service's certificate; an embedded router
     also enforces the access control generated from the device registry (service/guard.py)."""
@@ -618,11 +729,11 @@ def open_session(*, listen: list[str] | None = None, connect: list[str] | None =
 
     from .guard import router_security
 
-    identity, acl = router_security(pki, listen=listen, connect=connect)
+    identity, acl = router_security(pki, listen=listen, connect=connect, mesh=mesh)
     try:
         if connect:
             return zenoh.open(session_config("client", connect=connect, identity=identity))
-        return zenoh.open(session_config("router", listen=listen, identity=identity, access_control=acl))
+        return zenoh.open(session_config("router", listen=listen, connect=mesh, identity=identity, access_control=acl))
     except zenoh.ZError as exc:
         where = ", ".join(connect or listen or [])
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -679,6 +790,8 @@ def run_service(
     db: str,
     listen: list[str] | None,
     connect: list[str] | None,
+    mesh: list[str] | None = None,
+    member: str | None = None,
     http_host: str = "127.0.0.1",
     http_port: int | None,
     refit_interval_s: float,
@@ -699,6 +812,10 @@ def run_service(
         if http_port:
             check_port_free(http_host, http_port, "REST")
         postgres = is_postgres(db)
+        if member is not None and not postgres:
+            raise InputError("--member shares the fleet through one PostgreSQL database; a SQLite file has one process")
+        if connect and mesh:
+            raise InputError("--mesh connects the embedded router to others; --connect means no embedded router")
         if postgres and db_max_mb is not None:
             raise InputError("--db-max-mb is a quota on a SQLite file; give PostgreSQL its own limits")
         try:
@@ -709,12 +826,12 @@ def run_service(
         horizon_s = band_horizon_h * 3600.0 if band_horizon_h else None
         store = Store.open(db, band_horizon_s=horizon_s, check_integrity=True, max_mb=db_max_mb)
         running.callback(store.close)
-        session = open_session(listen=listen, connect=connect, pki=pki)
+        session = open_session(listen=listen, connect=connect, mesh=mesh, pki=pki)
         running.callback(session.close)
         from .guard import service_security
 
         secured = service_security(store, pki)
-        service = FleetService(store, session, refit_interval_s=refit_interval_s, **secured).start()
+        service = FleetService(store, session, refit_interval_s=refit_interval_s, member=member, **secured).start()
         running.callback(service.stop)
         auth, written = None, None
         if rest_auth:
@@ -728,14 +845,18 @@ def run_service(
         stop = threading.Event()
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         signal.signal(signal.SIGINT, lambda *_: stop.set())
-        where = ", ".join(connect or listen)
+        where = ", ".join(connect or listen) + (f" meshed with {', '.join(mesh)}" if mesh else "")
         print(
-            f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {db}"
+            f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {redacted(db)}"
+            + (f"; member {member} of a shared fleet" if member else "")
             + (f"; REST http://{http_host}:{http_port}/docs" if http_port else ""),
             flush=True,
         )
         print(security_summary(pki, connect, auth, written), flush=True)
-        log.info("service started", extra={"zenoh": where, "database": db, "http_port": http_port or None})
+        log.info(
+            "service started",
+            extra={"zenoh": where, "database": redacted(db), "http_port": http_port or None, "member": member},
+        )
         stop.wait()
         log.info("service stopping")
     return 0

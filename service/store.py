@@ -1,8 +1,10 @@
 """The service's history in one SQLite file: every window, fit, coefficient set, ack and bad input.
 
-One connection guarded by a lock: Zenoh callbacks, FastAPI's worker threads and the refit loop
-all call in, and SQLite serialises writers anyway. WAL mode lets outside readers (sqlite3 CLI,
-backups) read while we write. Methods take and return wire-shaped dicts (fleet_wire.messages):
+One writing connection guarded by a lock: Zenoh callbacks, FastAPI's worker threads and the refit
+loop all call in, and SQLite serialises writers anyway. Reads from threads outside the transaction
+take a connection of a small read pool (service/db.py) and see the last commit without waiting for
+the batch being written; WAL mode lets them, and outside readers (sqlite3 CLI, backups), read while
+we write. The same holds on PostgreSQL (psycopg_pool). Methods take and return wire-shaped dicts (fleet_wire.messages):
 messages handed in must come from wire.decode or a wire builder, which have checked them.
 
 Clocks: devices' first_seen/last_seen, received_at and published_at are the service's clock
@@ -39,6 +41,8 @@ from . import db
 MIGRATIONS_DIR = resources.files("service.migrations")
 MIGRATION_NAME = re.compile(r"^(\d+)_[\w.-]*\.sql$")
 
+_READ = re.compile(r"^\s*(SELECT|WITH)\b", re.I)  # what the read pool may run (a PRAGMA goes to the writer)
+PARTITION_LOCKS = 0x454E43  # the advisory lock class of partitions ('ENC'); the partition is the object id
 DEAD_LETTER_KEEP = 64 * 1024  # bytes of a refused payload kept for audit (a whole window message fits)
 DEAD_LETTER_DETAIL = 1000  # characters of its reason text
 
@@ -132,6 +136,9 @@ class Store:
         self._conn = conn
         self._lock = threading.RLock()
         self._depth = 0  # open transactions: 0 none, 1 a transaction, more are savepoints inside it
+        self._writing: int | None = None  # the thread inside the transaction
+        # reads from threads not inside the transaction go to a pool and never wait behind a batch being written
+        self._read_pool = None
         self.path = path
         # a band's sum covers the windows that ended within this much drive time (s) of the band's newest,
         # so refits follow a drive as it ages; None keeps all history in the sum (every window is stored)
@@ -161,7 +168,13 @@ class Store:
                 conn = db.PgConnection(path)
             except db.database_errors() as exc:
                 raise StoreError("unavailable", f"database {db.redacted(path)} cannot be opened: {exc}") from None
-            return cls._migrated(conn, db.redacted(path), band_horizon_s, migrations)
+            store = cls._migrated(conn, db.redacted(path), band_horizon_s, migrations)
+            try:
+                store._read_pool = db.PgReadPool(path)
+            except db.database_errors() as exc:
+                store.close()
+                raise StoreError("unavailable", f"database {db.redacted(path)} cannot be opened: {exc}") from None
+            return store
         path = db.sqlite_path(path)
         try:
             # isolation_level=None: we issue BEGIN/COMMIT ourselves, so a transaction is exactly what we say
@@ -180,7 +193,9 @@ class Store:
             raise StoreError(
                 "unavailable", f"database {path} is corrupt ({' '.join(' '.join(problems).split())}); restore a backup"
             )
-        return cls._migrated(conn, str(path), band_horizon_s, migrations)
+        store = cls._migrated(conn, str(path), band_horizon_s, migrations)
+        store._read_pool = db.SqliteReadPool(str(path))
+        return store
 
     @classmethod
     def _migrated(cls, conn, path: str, band_horizon_s: float | None, migrations) -> Store:
@@ -194,6 +209,8 @@ class Store:
         return store
 
     def close(self) -> None:
+        if self._read_pool is not None:
+            self._read_pool.close()
         with self._lock:
             self._conn.close()
 
@@ -213,6 +230,7 @@ class Store:
             depth = self._depth
             self._conn.execute(f"SAVEPOINT sp{depth}" if depth else "BEGIN IMMEDIATE")
             self._depth += 1
+            self._writing = threading.get_ident()
             try:
                 yield self._conn
             except BaseException:
@@ -229,9 +247,13 @@ class Store:
                 raise
             finally:
                 self._depth -= 1
+                if not self._depth:
+                    self._writing = None
             self._conn.execute(f"RELEASE sp{depth}" if depth else "COMMIT")
 
     def _rows(self, sql: str, args=()) -> list[sqlite3.Row]:
+        if self._read_pool is not None and self._writing != threading.get_ident() and _READ.match(sql):
+            return self._read_pool.rows(sql, args)  # committed data, on a connection of its own
         with self._lock:
             return self._conn.execute(sql, args).fetchall()
 
@@ -268,6 +290,30 @@ class Store:
             + ("UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen)" if heard else "NOTHING"),
             (device, now, now),
         )
+
+    # --- partitions (service/cluster.py) ---------------------------------------------------------
+    #
+    # A partition's windows are written by one process at a time: it holds the partition's PostgreSQL advisory
+    # lock (on this connection, so the lock goes when the process does). A SQLite file has one process.
+
+    def claim_partition(self, part: int) -> bool:
+        if not isinstance(self._conn, db.PgConnection):
+            return True
+        with self._lock:
+            row = self._conn.execute("SELECT pg_try_advisory_lock(?, ?) AS taken", (PARTITION_LOCKS, part)).fetchone()
+            return bool(row["taken"])
+
+    def release_partition(self, part: int) -> None:
+        if isinstance(self._conn, db.PgConnection):
+            with self._lock:
+                self._conn.execute("SELECT pg_advisory_unlock(?, ?)", (PARTITION_LOCKS, part))
+
+    def forget_partitions(self, parts: set[int]) -> None:
+        """Drop the sums and seqs kept in memory for some partitions' devices: read again when next needed."""
+        with self._lock:
+            for cache in (self._bands, self._max_seq, self._max_end):
+                for device in [d for d in cache if keys.partition(d) in parts]:
+                    del cache[device]
 
     # --- ingest -----------------------------------------------------------------------------
     #
@@ -830,6 +876,9 @@ class Store:
 
     def devices(self) -> list[dict]:
         return [self._device_row(r) for r in self._rows(self._DEVICE_SQL + " ORDER BY d.id")]
+
+    def device_ids(self) -> list[str]:
+        return [r["id"] for r in self._rows("SELECT id FROM devices ORDER BY id")]
 
     def device(self, device: str) -> dict | None:
         rows = self._rows(self._DEVICE_SQL + " WHERE d.id = ?", (device,))

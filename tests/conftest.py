@@ -34,57 +34,21 @@ def foreign_pki(tmp_path_factory):
 # --- a throwaway PostgreSQL (issue 13): the machine's own server binaries, initdb into a temp dir ----------
 
 
-def _postgres_bindir():
-    import glob
-    import shutil
-    from pathlib import Path
-
-    found = shutil.which("initdb")
-    if found:
-        return Path(found).parent
-    versions = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"))
-    return Path(versions[-1]).parent if versions else None
-
-
 @pytest.fixture(scope="session")
 def postgres_server():
-    """A PostgreSQL server on a free loopback port for the session (fsync off: tests, not durability); as
-    root it runs as the `postgres` system user, as PostgreSQL requires. Yields the admin URL."""
-    import os
-    import shutil
-    import subprocess
-    import tempfile
+    """A PostgreSQL server on a free loopback port for the session (encoder_fleet/pgserver.py). Yields the admin URL."""
+    from encoder_fleet.pgserver import NoPostgres, throwaway_postgres
 
-    from fleet_wire.session import free_port
-
-    bindir = _postgres_bindir()
-    if bindir is None:
-        pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl) on this machine")
     pytest.importorskip("psycopg", reason="psycopg is installed by make (postgres extra)")
-    folder = tempfile.mkdtemp(prefix="encoder-fleet-pg-")
-    as_user = []
-    if os.geteuid() == 0:
-        import pwd
-
-        try:
-            pwd.getpwnam("postgres")
-        except KeyError:
-            pytest.skip("running as root with no `postgres` user to run the PostgreSQL server as")
-        shutil.chown(folder, "postgres", "postgres")
-        as_user = ["runuser", "-u", "postgres", "--"]
-    data, port = os.path.join(folder, "data"), free_port()
-
-    def run(*cmd):
-        subprocess.run([*as_user, *cmd], check=True, capture_output=True, timeout=120)
-
-    run(str(bindir / "initdb"), "-D", data, "-U", "fleet", "--auth=trust", "-E", "UTF8", "--no-instructions")
-    options = f"-p {port} -k {folder} -c listen_addresses=127.0.0.1 -c fsync=off -c max_connections=200"
-    run(str(bindir / "pg_ctl"), "-D", data, "-o", options, "-l", os.path.join(folder, "log"), "-w", "start")
     try:
-        yield f"postgresql://fleet@127.0.0.1:{port}/postgres"
+        server = throwaway_postgres()
+        url = server.__enter__()
+    except NoPostgres as exc:
+        pytest.skip(str(exc))
+    try:
+        yield url
     finally:
-        run(str(bindir / "pg_ctl"), "-D", data, "-m", "immediate", "stop")
-        shutil.rmtree(folder, ignore_errors=True)
+        server.__exit__(None, None, None)
 
 
 @pytest.fixture

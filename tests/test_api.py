@@ -8,6 +8,7 @@ from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 from wire_samples import ack, coefficients, window
 
+from fleet_wire import keys
 from fleet_wire import messages as wire
 from service.api import create_app
 from service.mcap_export import window_record
@@ -50,7 +51,7 @@ def history(store):
     store.insert_coefficient_set(coefficients(version=2, created_at=280.0, bands=(2, 3)))
     store.set_online(DEVICE, True, at=1006.0)
     store.insert_window(window("drive-002", 1))
-    store.dead_letter("encoders/drive-001/stats", "not_json", "window message: not JSON", b"\xffjunk")
+    store.dead_letter(keys.key("drive-001", keys.STATS), "not_json", "window message: not JSON", b"\xffjunk")
 
 
 def test_devices(client, history):
@@ -153,7 +154,7 @@ def test_export_mcap(client, history, store):
 
 
 def test_rejections(client, history, store):
-    store.ingest("encoders/drive-001/stats", b"{}")
+    store.ingest(keys.key("drive-001", keys.STATS), b"{}")
     got = client.get("/ingest/rejections").json()
     assert got["counts"] == {"not_json": 1, "schema": 1} and got["total"] == 2
     assert [d["reason"] for d in got["latest"]] == ["schema", "not_json"]
@@ -194,7 +195,7 @@ def test_healthz_readyz_and_metrics_over_a_real_service(tmp_path):
             "checks": {"process": "ok", "database": "ok", "router": "ok", "storage": "ok"},
         }
         assert client.get("/readyz").status_code == 200
-        store.ingest("encoders/drive-001/stats", wire.encode("window", window()))
+        store.ingest(keys.key("drive-001", keys.STATS), wire.encode("window", window()))
         service.counters.count("stored")
         service.counters.count("not_json")
         text = client.get("/metrics").text
@@ -241,7 +242,7 @@ def test_a_full_disk_shows_in_healthz_and_metrics_and_the_service_recovers_by_it
     client = TestClient(create_app(store, service))
 
     def send(seq):
-        agent.put("encoders/drive-001/stats", wire.encode("window", window(seq=seq, start=60.0 * seq)))
+        agent.put(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=seq, start=60.0 * seq)))
 
     def wait_for(predicate, what):
         deadline = time.monotonic() + 60

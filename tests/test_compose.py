@@ -13,7 +13,7 @@ def test_compose_services_use_commands_that_exist():
     compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
     services = compose["services"]
     assert services["zenohd"]["image"].startswith("eclipse/zenoh")
-    ours = {name: s for name, s in services.items() if s.get("image") == "encoder-fleet"}
+    ours = {name: s for name, s in services.items() if s.get("image") == "encoder-fleet" and "profiles" not in s}
     assert {"service", "agent-1", "agent-2", "agent-3"} <= set(ours)
     parser = build_parser()
     for name, svc in ours.items():
@@ -35,6 +35,45 @@ def test_compose_services_use_commands_that_exist():
     devices = [parser.parse_args(s["command"]).device for s in ours.values() if s["command"][0] == "agent"]
     assert len(set(devices)) == 3
     assert services["zenohd"]["command"][:2] == ["-c", "/pki/zenohd.json5"]
+
+
+def test_the_scale_profile_runs_three_members_on_postgresql_behind_two_meshed_routers(pki):
+    from encoder_fleet.pki import issue, router_config
+    from fleet_wire.security import ROLE_ROUTER
+
+    compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    scale = {name: s for name, s in compose["services"].items() if "scale" in s.get("profiles", [])}
+    parser = build_parser()
+    assert scale["postgres"]["image"].startswith("postgres:15")
+    routers = {n: s for n, s in scale.items() if s["image"].startswith("eclipse/zenoh")}
+    assert sorted(routers) == ["zenohd-a", "zenohd-b"]
+    ours = {n: parser.parse_args(s["command"]) for n, s in scale.items() if s["image"] == "encoder-fleet"}
+    members = [a for a in ours.values() if a.command == "service"]
+    assert len(members) == 3 and len({a.member for a in members}) == 3
+    for args in members:
+        assert args.db.startswith("postgresql://fleet@postgres:") and args.pki == "/pki" and not args.insecure
+    assert {a.connect[0] for a in members} == {"tls/zenohd-a:7447", "tls/zenohd-b:7447"}
+    agents = [a for a in ours.values() if a.command == "agent"]
+    assert {a.connect[0] for a in agents} == {"tls/zenohd-a:7447", "tls/zenohd-b:7447"}
+    # the routers' configs as the pki job writes them (its router-config lines), on a PKI of our own
+    script = compose["services"]["pki"]["command"][0].replace("\\\n", " ")
+    confs = {}
+    for line in script.splitlines():
+        if "router-config /pki --name zenohd-" in line:
+            args = parser.parse_args(line.split()[1:])
+            issue(pki, args.name, ROLE_ROUTER, force=True)
+            confs[args.name] = router_config(
+                pki, args.name, listen=["tls/0.0.0.0:7447"], connect=args.connect or [], peers=args.peer or []
+            )
+    assert confs["zenohd-b"]["connect"]["endpoints"] == ["tls/zenohd-a:7447"]  # meshed
+    for name, other in (("zenohd-a", "zenohd-b"), ("zenohd-b", "zenohd-a")):
+        trusted = confs[name]["access_control"]["subjects"][0]["cert_common_names"]
+        assert other in trusted  # each trusts the other's link as it trusts the service
+    for name, svc in scale.items():
+        assert svc["restart"] == "on-failure", name
+        assert all(p.startswith("127.0.0.1:") for p in svc.get("ports", [])), name
+        for needed, condition in svc.get("depends_on", {}).items():
+            assert needed == "pki" or (condition == {"condition": "service_healthy"} and "healthcheck" in scale[needed])
 
 
 def test_image_builds_from_the_project_files():

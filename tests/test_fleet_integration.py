@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 
 from encoder_core.stats import WindowStats
 from encoder_fleet.demo import applied_set, score
+from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import loopback_endpoint
 from service.api import create_app
@@ -125,10 +126,10 @@ def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):
     endpoint, store, service, session, pki = fleet
     agent = start_agent("drive-7", 7, endpoint, tmp_path / "ob7.sqlite", 2, pki)
     bad = [
-        ("encoders/drive-7/stats", b"{not json"),
-        ("encoders/drive-7/stats", b'{"schema": "encoder-fleet/window/1", "seq": NaN}'),
-        ("encoders/drive-7/stats", b"x" * (300 * 1024)),
-        ("encoders/drive-7/ack", b'{"schema": "encoder-fleet/ack/1"}'),
+        (keys.key("drive-7", keys.STATS), b"{not json"),
+        (keys.key("drive-7", keys.STATS), b'{"schema": "encoder-fleet/window/1", "seq": NaN}'),
+        (keys.key("drive-7", keys.STATS), b"x" * (300 * 1024)),
+        (keys.key("drive-7", keys.ACK), b'{"schema": "encoder-fleet/ack/1"}'),
     ]
     for key, payload in bad:
         session.put(key, payload)
@@ -146,7 +147,7 @@ def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):
         coefficients_version=0,
         angle_quality_deg=0.1,
     )
-    session.put("encoders/drive-8/stats", wire.encode("window", forged))
+    session.put(keys.key("drive-8", keys.STATS), wire.encode("window", forged))
     replay = wire.window_message(
         "drive-7",
         1,
@@ -157,7 +158,7 @@ def test_bad_messages_are_counted_and_harmless(fleet, tmp_path):
         coefficients_version=0,
         angle_quality_deg=0.1,
     )
-    session.put("encoders/drive-7/stats", wire.encode("window", replay))
+    session.put(keys.key("drive-7", keys.STATS), wire.encode("window", replay))
     time.sleep(0.5)
     counts = store.rejection_counts()
     assert sum(counts.values()) >= 6, counts

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from wire_samples import ack, coefficients, window
 
+from fleet_wire import keys
 from fleet_wire import messages as wire
 from service.store import Store, StoreError
 
@@ -84,7 +85,7 @@ def test_duplicate_window_is_dropped_and_changes_nothing(store):
 def test_reused_seq_with_other_content_is_a_conflict_not_a_duplicate(store):
     store.insert_window(window(seq=1))
     payload = wire.encode("window", window(seq=1, temp_c=30.0))
-    assert store.ingest("encoders/drive-001/stats", payload) == "seq_conflict"
+    assert store.ingest(keys.key("drive-001", keys.STATS), payload) == "seq_conflict"
     assert store.rejection_counts() == {"seq_conflict": 1}
     assert store.dead_letters()[0]["payload"] == payload
     assert len(store.windows("drive-001")) == 1
@@ -124,7 +125,7 @@ def test_window_with_other_normalisation_is_dead_lettered_atomically(store):
     store.insert_window(window(seq=1))
     other = window(seq=2)
     other["stats"]["scale"] = 1000.0
-    assert store.ingest("encoders/drive-001/stats", wire.encode("window", other)) == "normalisation_mismatch"
+    assert store.ingest(keys.key("drive-001", keys.STATS), wire.encode("window", other)) == "normalisation_mismatch"
     assert store.max_seq("drive-001") == 1  # the window insert was rolled back with the merge
     assert store.band_stats("drive-001")[2][1] == 1
 
@@ -132,14 +133,14 @@ def test_window_with_other_normalisation_is_dead_lettered_atomically(store):
 def test_ingest_keeps_every_bad_input(store):
     good = wire.encode_json("window", window(seq=1))  # JSON windows of older agents are still accepted
     outcomes = [
-        store.ingest("encoders/drive-001/stats", good),
-        store.ingest("encoders/drive-001/stats", good),
-        store.ingest("encoders/drive-002/stats", good),
-        store.ingest("encoders/drive-001/stats", b"\x00garbage"),
-        store.ingest("encoders/drive-001/stats", good.replace(b'"seq":1', b'"seq":-4')),
-        store.ingest("encoders/drive-001/ack", wire.encode("ack", ack())),
+        store.ingest(keys.key("drive-001", keys.STATS), good),
+        store.ingest(keys.key("drive-001", keys.STATS), good),
+        store.ingest(keys.key("drive-002", keys.STATS), good),
+        store.ingest(keys.key("drive-001", keys.STATS), b"\x00garbage"),
+        store.ingest(keys.key("drive-001", keys.STATS), good.replace(b'"seq":1', b'"seq":-4')),
+        store.ingest(keys.key("drive-001", keys.ACK), wire.encode("ack", ack())),
         store.ingest("encoders/drive-001/coefficients", wire.encode("coefficients", coefficients())),
-        store.ingest("encoders/drive-001/stats", b" " * (wire.MAX_PAYLOAD + 1)),
+        store.ingest(keys.key("drive-001", keys.STATS), b" " * (wire.MAX_PAYLOAD + 1)),
         store.ingest("sensors/x", b"{}"),
     ]
     assert outcomes == [
@@ -164,7 +165,7 @@ def test_ingest_keeps_every_bad_input(store):
     letters = store.dead_letters(limit=100)
     assert [d["reason"] for d in letters][:2] == ["bad_key", "too_large"]  # newest first
     garbage = next(d for d in letters if d["reason"] == "not_json")
-    assert garbage["payload"] == b"\x00garbage" and garbage["key_expr"] == "encoders/drive-001/stats"
+    assert garbage["payload"] == b"\x00garbage" and garbage["key_expr"] == keys.key("drive-001", keys.STATS)
     assert "$.seq" in next(d for d in letters if d["reason"] == "schema")["detail"]
 
 
@@ -257,7 +258,7 @@ def test_huge_refused_payloads_keep_a_bounded_head_with_size_and_hash(store, tmp
 
     huge = b"{" + b"x" * (10 * 1024 * 1024)
     for _ in range(5):
-        assert store.ingest("encoders/drive-001/stats", huge) == "too_large"
+        assert store.ingest(keys.key("drive-001", keys.STATS), huge) == "too_large"
     letters = store.dead_letters(10)
     assert len(letters) == 5
     for letter in letters:

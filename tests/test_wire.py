@@ -10,6 +10,9 @@ from wire_samples import ack, coefficients, window
 from encoder_core.stats import WindowStats
 from fleet_wire import messages as wire
 
+# blake2b-64 of the id, mod 64: changing it would move every device of every fleet to another process
+PINNED_PARTITIONS = [15, 7, 47, 13]
+
 BUILT = {"window": window, "coefficients": coefficients, "ack": ack}
 
 
@@ -230,19 +233,37 @@ def test_encode_refuses_what_decode_would_refuse():
 
 
 def test_keys():
-    assert wire.key_for("window", "drive-001") == "encoders/drive-001/stats"
-    assert wire.parse_key("encoders/drive-001/stats") == ("drive-001", "window")
-    assert wire.device_from_key("encoders/d.7_x/ack") == "d.7_x"
+    from fleet_wire import keys
+
+    part = keys.partition_chunk(keys.partition("drive-001"))
+    assert wire.key_for("window", "drive-001") == f"encoders/drive-001/stats/{part}"
+    assert wire.key_for("coefficients", "drive-001") == "encoders/drive-001/coefficients"  # from the service
+    assert wire.parse_key(f"encoders/drive-001/stats/{part}") == ("drive-001", "window")
+    assert wire.device_from_key(keys.key("d.7_x", keys.ACK)) == "d.7_x"
+    wrong = keys.partition_chunk((keys.partition("drive-001") + 1) % keys.PARTITIONS)
     for key in (
         "encoders/drive-001",
         "encoders/a/b/stats",
         "other/drive-001/ack",
         "encoders/drive-001/alive",
         "encoders/*/stats",
+        "encoders/drive-001/stats",  # no partition
+        f"encoders/drive-001/stats/{wrong}",  # another device's partition
+        f"encoders/drive-001/coefficients/{part}",  # the service's keys carry none
     ):
         with pytest.raises(wire.WireError) as exc:
             wire.parse_key(key)
         assert exc.value.reason == "bad_key"
+
+
+def test_partitions_are_stable_and_spread():
+    """The partition is part of the wire contract: agents and services on other machines, other Python builds
+    and other releases must agree on it, so it is pinned here, and a fleet spreads evenly over the partitions."""
+    from fleet_wire import keys
+
+    assert [keys.partition(d) for d in ("drive-001", "drive-002", "a", "Z" * 64)] == PINNED_PARTITIONS
+    counts = np.bincount([keys.partition(f"drive-{i:05d}") for i in range(6400)], minlength=keys.PARTITIONS)
+    assert counts.min() > 60 and counts.max() < 145  # 100 expected each
 
 
 def test_unknown_kind():
@@ -257,6 +278,6 @@ def test_device_id_rule_is_one_rule_in_code_and_schema_files():
     for kind in wire.KINDS:
         assert wire.load_schema(kind)["properties"]["device"]["pattern"] == keys.DEVICE_RE.pattern
     for bad in (".", "..", "-", "-x", "*", "a/b", "a" * 65, ""):
-        assert keys.split(f"encoders/{bad}/stats") is None, bad
+        assert keys.split(f"encoders/{bad}/stats/p00") is None, bad
     for good in ("d", "drive-001", "d.7_x", "A" * 64):
-        assert keys.split(f"encoders/{good}/stats") == (good, "stats")
+        assert keys.split(keys.key(good, keys.STATS)) == (good, "stats")

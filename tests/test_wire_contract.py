@@ -11,6 +11,7 @@ import pytest
 from jsonschema import Draft202012Validator
 from wire_samples import window
 
+from fleet_wire import keys
 from fleet_wire import messages as wire
 
 SCHEMA = wire.load_schema("window")
@@ -237,7 +238,7 @@ def test_every_refusal_is_counted(tmp_path):
 
     cases = named.pytestmark[0].args[1]
     with Store.open(tmp_path / "f.db") as store:
-        outcomes = [store.ingest("encoders/drive-001/stats", data) for data, _, _ in cases]
+        outcomes = [store.ingest(keys.key("drive-001", keys.STATS), data) for data, _, _ in cases]
         assert outcomes == [reason for _, reason, _ in cases]
         expected = {}
         for _, reason, _ in cases:

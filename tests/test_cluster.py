@@ -1,0 +1,201 @@
+"""Several service processes share one fleet (issue 13, service/cluster.py): real agent processes, a real
+router, a real PostgreSQL server; a second service process joins mid-run and is killed with SIGKILL later."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+
+from fleet_wire import keys
+from fleet_wire.session import free_port, loopback_endpoint
+from service.cluster import owner, shares
+from service.runtime import FleetService, open_session
+from service.store import Store
+
+
+def test_partitions_are_shared_out_and_a_newcomer_only_takes():
+    rng = np.random.default_rng(13)
+    members = [f"svc-{i}" for i in rng.choice(1000, size=4, replace=False)]
+    for n in range(1, 5):
+        shared = [shares(m, members[:n]) for m in members[:n]]
+        assert set().union(*shared) == set(range(keys.PARTITIONS))  # every partition served ...
+        assert sum(map(len, shared)) == keys.PARTITIONS  # ... by exactly one process
+        assert min(map(len, shared)) >= keys.PARTITIONS / n / 2.5  # none starved
+        if n > 1:  # the newcomer takes from the others; nothing moves between the others
+            before = {p: owner(p, members[: n - 1]) for p in range(keys.PARTITIONS)}
+            after = {p: owner(p, members[:n]) for p in range(keys.PARTITIONS)}
+            assert all(after[p] in (before[p], members[n - 1]) for p in range(keys.PARTITIONS))
+
+
+def devices_split(members, per_member):
+    """Device names whose partitions fall to each member (the test knows the hash; the service just serves)."""
+    picked = {m: [] for m in members}
+    i = 0
+    while any(len(v) < per_member for v in picked.values()):
+        name = f"drive-{i:03d}"
+        who = owner(keys.partition(name), members)
+        if len(picked[who]) < per_member:
+            picked[who].append(name)
+        i += 1
+    return picked
+
+
+def start_agent(name, endpoint, outbox, hours):
+    return subprocess.Popen(
+        [sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", name, "--connect", endpoint]
+        + ["--sim-hours", str(hours), "--real-time-factor", "300", "--outbox", str(outbox), "--insecure"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def get_json(url):
+    with urllib.request.urlopen(url, timeout=5) as reply:
+        return json.loads(reply.read())
+
+
+def wait_for(condition, timeout_s, what):
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.2)
+
+
+def test_a_process_joins_mid_run_takes_its_partitions_and_dies_without_a_window_lost_or_doubled(tmp_path, postgres_url):
+    endpoint = loopback_endpoint()
+    store = Store.open(postgres_url)  # band sums keep every window: their counts must equal the windows stored
+    session = open_session(listen=[endpoint])
+    a = FleetService(store, session, refit_interval_s=0.5, member="svc-a").start()
+    hours = 5  # 300 windows a drive, one every 0.2 s
+    fleet = devices_split(["svc-a", "svc-b"], per_member=3)
+    names = sorted(fleet["svc-a"] + fleet["svc-b"])
+    agents = [start_agent(n, endpoint, tmp_path / f"{n}.sqlite", hours) for n in names]
+    b, stopped = None, False
+    try:
+        wait_for(lambda: a.partitions.held == frozenset(range(keys.PARTITIONS)), 10, "svc-a to serve everything")
+        wait_for(lambda: len(store.device_ids()) == len(names), 30, "every drive to be heard")
+        time.sleep(3)
+
+        http = free_port()
+        b = subprocess.Popen(
+            [sys.executable, "-m", "encoder_fleet.cli", "service", "--member", "svc-b", "--connect", endpoint]
+            + ["--db", postgres_url, "--insecure", "--http-port", str(http), "--refit-interval", "0.5"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        mine = shares("svc-a", ["svc-a", "svc-b"])
+        wait_for(lambda: a.partitions.held == frozenset(mine), 30, "svc-a to hand svc-b its partitions")
+        wait_for(lambda: _served(http) == sorted(map(keys.partition_chunk, set(range(64)) - mine)), 30, "svc-b")
+        stored_by_a = dict(a.cluster()["stored_by_partition"])
+        time.sleep(4)  # both serve; each receives only its own partitions' windows
+        on_b = get_json(f"http://127.0.0.1:{http}/cluster")
+        assert on_b["member"] == "svc-b" and on_b["members"] == ["svc-a", "svc-b"]
+        b_parts = {keys.partition_chunk(keys.partition(n)) for n in fleet["svc-b"]}
+        assert set(on_b["stored_by_partition"]) == b_parts  # svc-b stored windows of its drives only ...
+        now_a = a.cluster()["stored_by_partition"]
+        assert all(now_a[p] == stored_by_a[p] for p in b_parts)  # ... and svc-a none of them meanwhile
+        assert any(now_a[p] > stored_by_a.get(p, 0) for p in now_a if p not in b_parts)  # but of its own
+
+        b.send_signal(signal.SIGKILL)  # mid-run: its partitions come back to svc-a
+        b.wait(timeout=10)
+        wait_for(lambda: a.partitions.held == frozenset(range(keys.PARTITIONS)), 30, "svc-a to take everything back")
+        outputs = [agent.communicate(timeout=180)[0] for agent in agents]
+        assert all(agent.returncode == 0 for agent in agents), outputs
+        a.stop()  # what is queued is stored, then we count
+        stopped = True
+        for name in names:
+            seqs = [w["seq"] for w in store.windows(name, limit=10_000)]
+            assert sorted(seqs) == list(range(1, hours * 60 + 1)), name  # none lost, none twice
+            in_bands = sum(windows for _, windows, _ in store.band_stats(name).values())
+            assert in_bands == hours * 60, name  # every window in its band's sum exactly once, across hand-overs
+    finally:
+        if b is not None and b.poll() is None:
+            b.kill()
+        for agent in agents:
+            if agent.poll() is None:
+                agent.kill()
+        if not stopped:
+            a.stop()
+        session.close()
+        store.close()
+
+
+def _served(http):
+    try:
+        return get_json(f"http://127.0.0.1:{http}/cluster")["served"]
+    except OSError:
+        return None
+
+
+def test_meshed_routers_carry_each_drive_to_the_process_serving_it(tmp_path, pki, postgres_url):
+    """compose's scale profile in one process: two routers from `pki router-config` (TLS, client certificates,
+    the registry's ACL, one connected to the other; the Python package's router stands in for zenohd), two
+    service members each a client of its own router, and drives on either router."""
+    import wire_samples as ws
+    import zenoh
+    from conftest import DEVICES
+
+    from encoder_fleet.pki import issue, router_config
+    from fleet_wire import messages as wire
+    from fleet_wire.security import ROLE_DEVICE, ROLE_ROUTER, Identity
+    from fleet_wire.session import session_config
+    from service.guard import service_security
+
+    for name in ("router-1", "router-2"):
+        issue(pki, name, ROLE_ROUTER, force=True)
+    one, two = (loopback_endpoint().replace("tcp/", "tls/") for _ in range(2))
+    routers = [
+        zenoh.open(
+            zenoh.Config.from_json5(json.dumps(router_config(pki, "router-1", listen=[one], peers=["router-2"])))
+        ),
+        zenoh.open(
+            zenoh.Config.from_json5(
+                json.dumps(router_config(pki, "router-2", listen=[two], connect=[one], peers=["router-1"]))
+            )
+        ),
+    ]
+    members = ["svc-1", "svc-2"]
+    stores = [Store.open(postgres_url) for _ in members]
+    sessions = [open_session(connect=[endpoint], pki=pki) for endpoint in (one, two)]
+    services = [
+        FleetService(store, session, refit_interval_s=0, member=m, **service_security(store, pki)).start()
+        for store, session, m in zip(stores, sessions, members)
+    ]
+    drives = {}
+    try:
+        wait_for(lambda: all(s.cluster()["members"] == members for s in services), 20, "the members to see each other")
+        wait_for(lambda: sum(len(s.partitions.held) for s in services) == keys.PARTITIONS, 20, "the partitions shared")
+        by_member = {m: [d for d in DEVICES if owner(keys.partition(d), members) == m][:2] for m in members}
+        names = by_member["svc-1"] + by_member["svc-2"]  # two of each; svc-1's on router-1, then router-2, ...
+        for i, name in enumerate(names):  # half the drives on each router, whoever serves them
+            identity = Identity.load(pki, name, ROLE_DEVICE)
+            drives[name] = zenoh.open(session_config("client", connect=[(one, two)[i % 2]], identity=identity))
+        time.sleep(0.5)
+        for name, session in drives.items():
+            for seq in (1, 2, 3):
+                session.put(keys.key(name, keys.STATS), wire.encode("window", ws.window(name, seq)))
+        wait_for(lambda: all((stores[0].device(n) or {}).get("windows") == 3 for n in names), 20, "every window")
+        for name, session in drives.items():  # the watermark comes back across the mesh from the serving process
+            replies = [r.ok.payload.to_bytes() for r in session.get(keys.key(name, keys.RECEIVED), timeout=3) if r.ok]
+            assert [wire.parse_watermark(p, name) for p in replies] == [3], name
+        for service, member in zip(services, members):
+            stored = service.cluster()["stored_by_partition"]
+            expected = {keys.partition_chunk(keys.partition(n)): 0 for n in by_member[member]}
+            for n in by_member[member]:
+                expected[keys.partition_chunk(keys.partition(n))] += 3
+            assert stored == expected  # its drives' windows, whichever router they came through, and nobody else's
+    finally:
+        for session in drives.values():
+            session.close()
+        for service in services:
+            service.stop()
+        for session in sessions + routers[::-1]:
+            session.close()
+        for store in stores:
+            store.close()
