@@ -38,6 +38,7 @@ from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import free_port, loopback_endpoint, session_config
 
+STALL_S = 15.0  # no window stored for this long: the drives send what the watermarks do not cover again
 REFIT_BUDGET_S = 60.0  # how long a row waits for the refit pass before it extrapolates
 INGEST_TIMEOUT_S = 1800.0
 
@@ -51,8 +52,9 @@ def windows_for(devices: int) -> int:
 
 
 def publish(endpoint: str, devices: int, windows: int) -> None:
-    """Factory sets; a line on stdin (they are stored); minute after minute of windows for every drive; then
-    wait for stdin to close (a session closed early drops what it has not sent)."""
+    """Factory sets; a line on stdin (they are stored); minute after minute of windows for every drive. Then,
+    for each `resend` line, what the service's watermarks do not cover is sent again, as agents do from their
+    outboxes (an overloaded service or router drops what it cannot take). Ends when stdin closes."""
     import msgspec
     import zenoh
 
@@ -61,35 +63,60 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
 
     block = zenoh.CongestionControl.BLOCK
     session = zenoh.open(session_config("client", connect=[endpoint]))
+    encoder = msgspec.msgpack.Encoder()
+
+    def put(name: str, win) -> None:
+        payload = encoder.encode(msgspec.structs.replace(win, device=name))
+        session.put(keys.key(name, keys.STATS), payload, congestion_control=block)
+
     try:
         names = [f"scale-{i:06d}" for i in range(devices)]
         factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
         for name in names:
             payload = wire.encode("coefficients", factory_message(name, factory))
             session.put(keys.key(name, keys.FACTORY), payload, congestion_control=block)
-        encoder = msgspec.msgpack.Encoder()
-        templates = template_windows(windows)
+        wins = [
+            wire.window_from_dict(
+                wire.window_message(
+                    names[0],
+                    seq,
+                    stats,
+                    window_start=start,
+                    window_end=start + 60.0,
+                    temp_rate_c_per_s=0.0,
+                    coefficients_version=0,
+                    angle_quality_deg=0.5,
+                )
+            )
+            for seq, (stats, start) in enumerate(template_windows(windows), start=1)
+        ]
         print("factory sets sent", flush=True)
         sys.stdin.readline()
-        for seq, (stats, start) in enumerate(templates, start=1):
-            msg = wire.window_message(
-                names[0],
-                seq,
-                stats,
-                window_start=start,
-                window_end=start + 60.0,
-                temp_rate_c_per_s=0.0,
-                coefficients_version=0,
-                angle_quality_deg=0.5,
-            )
-            win = wire.window_from_dict(msg)
+        for win in wins:  # minute after minute, every drive
             for name in names:
-                payload = encoder.encode(msgspec.structs.replace(win, device=name))
-                session.put(keys.key(name, keys.STATS), payload, congestion_control=block)
+                put(name, win)
         print("sent", flush=True)
-        sys.stdin.read()
+        for line in sys.stdin:
+            if line.strip() == "resend":
+                marks = _watermarks(session, names)
+                for name in names:
+                    for win in wins[marks.get(name, 0) :]:
+                        put(name, win)
+                print("sent", flush=True)
     finally:
         session.close()
+
+
+def _watermarks(session, names: list[str], in_flight: int = 500) -> dict[str, int]:
+    """Each drive's watermark, asked `in_flight` drives at a time (the gets run concurrently)."""
+    marks = {}
+    for i in range(0, len(names), in_flight):
+        asked = [(name, session.get(keys.key(name, keys.RECEIVED), timeout=10)) for name in names[i : i + in_flight]]
+        for name, replies in asked:
+            for reply in replies:
+                if reply.ok is not None:
+                    marks[name] = max(marks.get(name, 0), wire.parse_watermark(reply.ok.payload.to_bytes(), name))
+    return marks
 
 
 # --- one row --------------------------------------------------------------------------------------------
@@ -187,11 +214,19 @@ def run_row(devices: int, processes: int, store: str, workdir: Path, postgres: s
         rest = threading.Thread(target=_rest_load, args=(ports, names, stop_rest, latencies), daemon=True)
         rest.start()
         deadline = time.monotonic() + INGEST_TIMEOUT_S
-        stored, first_at = 0, None
+        stored, first_at, resends = 0, None, 0
+        progress_at, progress = time.monotonic(), 0
         while stored < expected and time.monotonic() < deadline and publisher.poll() is None:
             stored = counter()
             if first_at is None and stored:
                 first_at = time.perf_counter()
+            if stored > progress:
+                progress_at, progress = time.monotonic(), stored
+            elif time.monotonic() - progress_at > STALL_S:  # windows were dropped on the way: as agents would
+                publisher.stdin.write("resend\n")
+                publisher.stdin.flush()
+                resends += 1
+                progress_at = time.monotonic() + STALL_S * resends  # its watermark pass takes a while
             time.sleep(0.2)
         last_at = time.perf_counter()
         stop_rest.set()
@@ -207,6 +242,7 @@ def run_row(devices: int, processes: int, store: str, workdir: Path, postgres: s
             "windows": stored,
             "expected": expected,
             "factory_sets_s": factory_s,
+            "resend_passes": resends,
             "ingest_s": last_at - (first_at or last_at),
             "windows_per_s": stored / (last_at - first_at) if first_at and last_at > first_at else float("nan"),
             "refit_lag_s": refit_lag,
@@ -264,15 +300,19 @@ def _stop(proc: subprocess.Popen) -> None:
 # --- the table ------------------------------------------------------------------------------------------
 
 
-def run_bench(sizes: list[int], processes: list[int], postgres: str | None, json_path=None) -> int:
+def run_bench(
+    sizes: list[int], processes: list[int], postgres: str | None, json_path=None, stores=("sqlite", "postgresql")
+) -> int:
     from encoder_fleet.pgserver import throwaway_postgres
 
     rows = []
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # stopped: the services and the server stop too
     with ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
-        if postgres is None:
+        if postgres is None and "postgresql" in stores:
             postgres = stack.enter_context(throwaway_postgres(fsync=True))
             print("… a throwaway PostgreSQL server (fsync on) from this machine's binaries", file=sys.stderr)
-        plan = [(n, 1, "sqlite") for n in sizes] + [(n, k, "postgresql") for n in sizes for k in processes]
+        plan = [(n, 1, "sqlite") for n in sizes if "sqlite" in stores]
+        plan += [(n, k, "postgresql") for n in sizes for k in processes if "postgresql" in stores]
         plan.sort(key=lambda r: (r[0], r[2] == "postgresql", r[1]))
         for i, (n, k, store) in enumerate(plan, start=1):
             print(
@@ -280,13 +320,13 @@ def run_bench(sizes: list[int], processes: list[int], postgres: str | None, json
             )
             rows.append(run_row(n, k, store, Path(tmp), postgres))
             _print_row(rows[-1], header=i == 1)
+            if json_path:  # after every row: a long run stopped halfway keeps what it measured
+                Path(json_path).write_text(json.dumps({"rows": rows}, indent=1) + "\n")
     print(
         "\nwindows/s: stored, counted in the database, first to last window; refit lag: from the last window stored"
         "\nuntil every drive was refit on its windows (~: extrapolated from the rate over the last 5 s of a 60 s"
         "\nbudget); REST: GET /devices/{id}/health round-robin over the processes while ingesting."
     )
-    if json_path:
-        Path(json_path).write_text(json.dumps({"rows": rows}, indent=1) + "\n")
     return 0
 
 

@@ -204,7 +204,7 @@ def cmd_bench_scale(args) -> int:
     from encoder_fleet.pgserver import NoPostgres
 
     try:
-        return run_scale_bench(args.sizes, args.processes, args.postgres, json_path=args.json)
+        return run_scale_bench(args.sizes, args.processes, args.postgres, json_path=args.json, stores=args.stores)
     except NoPostgres as exc:
         raise InputError(f"bench-scale needs PostgreSQL: {exc}; give --postgres URL") from None
 
@@ -346,7 +346,13 @@ def register(sub) -> None:
         help="an admin URL that may create and drop a database per row (default: a throwaway server started "
         "from this machine's PostgreSQL binaries)",
     )
-    p.add_argument("--json", metavar="FILE", help='also write {"rows": [...]} to FILE')
+    p.add_argument(
+        "--stores",
+        type=lambda text: [w for w in text.split(",") if w],
+        default=["sqlite", "postgresql"],
+        help="sqlite,postgresql (default both; SQLite runs one process)",
+    )
+    p.add_argument("--json", metavar="FILE", help='also write {"rows": [...]} to FILE (after every row)')
     p.set_defaults(func=cmd_bench_scale)
 
     p = sub.add_parser(
