@@ -134,8 +134,22 @@ class Partitions:
                 log.exception("rebalancing partitions failed")
             self._wake.wait(REBALANCE_S)
 
+    def connection_renewed(self) -> None:
+        """The database session was lost and opened again: its advisory locks went with it, so this process holds
+        no partition until it has taken each one again (the next rebalance). Called with `lock` free."""
+        if self.standalone:
+            return
+        with self.lock:
+            lost, self.held = self.held, frozenset()
+        self.service.forget_partitions(set(lost))
+        log.warning("database session renewed: the partitions' locks were lost and are taken again")
+        self._wake.set()
+
     def rebalance(self) -> None:
         """Let go of the partitions another member now serves, then take the ones this member now serves."""
+        self.service._renew_if_lost()
+        for part in [p for p in self._entities if p not in self.held]:
+            self._undeclare(part)  # held no more (a lost session): stop receiving until it is taken again
         want = shares(self.member, self.members())
         lost = sorted(self.held - want)
         for part in lost:

@@ -147,15 +147,29 @@ class PgConnection:
         import psycopg
 
         self._psycopg = psycopg
-        if conn is None:
-            conn = psycopg.connect(url, autocommit=True)
-            _configure(conn)
-        self._conn = conn
+        self._url = url
+        self._conn = conn if conn is not None else self._connect()
         self._has_id: dict[str, bool] = {}
+
+    def _connect(self):
+        conn = self._psycopg.connect(self._url, autocommit=True)
+        _configure(conn)
+        return conn
+
+    @property
+    def lost(self) -> bool:
+        """The server closed the connection (restarted, failed over, or ended the session)."""
+        return self._conn.closed
+
+    def reconnect(self) -> None:
+        """A new session in place of a lost one: nothing of the old session (its advisory locks) carries over."""
+        self._conn = self._connect()
+        self._has_id.clear()
 
     @property
     def in_transaction(self) -> bool:
-        return self._conn.info.transaction_status != self._psycopg.pq.TransactionStatus.IDLE
+        # a lost connection has no transaction left to end: the server rolled it back
+        return not self._conn.closed and self._conn.info.transaction_status != self._psycopg.pq.TransactionStatus.IDLE
 
     def _table_has_id(self, table: str) -> bool:
         if table not in self._has_id:
@@ -226,7 +240,13 @@ class PgReadPool:
         from psycopg_pool import ConnectionPool
 
         self._pool = ConnectionPool(
-            url, min_size=1, max_size=max_size, kwargs={"autocommit": True}, configure=_configure, open=True
+            url,
+            min_size=1,
+            max_size=max_size,
+            kwargs={"autocommit": True},
+            configure=_configure,
+            check=ConnectionPool.check_connection,  # a connection the server dropped is replaced, not lent
+            open=True,
         )
 
     def rows(self, sql: str, args: Sequence = ()) -> list:

@@ -342,6 +342,7 @@ class FleetService:
             if not items:
                 continue
             try:
+                self._renew_if_lost()
                 with self.partitions.lock:  # a partition changes hands between batches, never inside one
                     items, statuses = self._store_served(items)
             except Exception as exc:  # the disk, not the data: nothing of the batch was committed, so no watermark
@@ -369,6 +370,16 @@ class FleetService:
                         came_alive.append(device)
             for device in came_alive:  # its token came before its first valid message
                 self.store.set_online(device, True)
+
+    def _renew_if_lost(self) -> None:
+        """PostgreSQL dropped the session (restarted, failed over): open it again, and take the partitions again
+        (their locks went with the session). Called outside the partitions' lock, from the loops that write."""
+        try:
+            if self.store.reconnect_if_lost():
+                log.warning("the database connection was lost and is open again")
+                self.partitions.connection_renewed()
+        except Exception:
+            log.exception("reopening the database connection failed")
 
     def _store_served(self, items: list[tuple[str, bytes]]) -> tuple[list, list[str]]:
         """Store the messages of the partitions this process holds; the rest (queued before a hand-over) are
@@ -430,6 +441,7 @@ class FleetService:
 
     def _monitor_loop(self) -> None:
         while not self._stop.wait(self.monitor_interval_s):
+            self._renew_if_lost()  # also when no window comes to make the writer notice
             self.monitor_pass()
 
     def monitor_pass(self) -> int:
@@ -487,6 +499,7 @@ class FleetService:
 
     def _refit_loop(self) -> None:
         while not self._stop.wait(self.refit_interval_s):
+            self._renew_if_lost()
             self.refit_all()
             if not self.partitions.leads():
                 continue  # one process steps the rollouts; every process records and judges from the database

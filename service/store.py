@@ -304,9 +304,26 @@ class Store:
             return bool(row["taken"])
 
     def release_partition(self, part: int) -> None:
-        if isinstance(self._conn, db.PgConnection):
+        if isinstance(self._conn, db.PgConnection) and not self._conn.lost:  # a lost session took its locks along
             with self._lock:
                 self._conn.execute("SELECT pg_advisory_unlock(?, ?)", (PARTITION_LOCKS, part))
+
+    def reconnect_if_lost(self) -> bool:
+        """PostgreSQL: open the writer's connection again if the server dropped it; True when it did. What the
+        old session held (the partitions' advisory locks) is gone: the caller takes its partitions again."""
+        if not isinstance(self._conn, db.PgConnection):
+            return False
+        with self._lock:
+            if self._depth or not self._conn.lost:
+                return False
+            try:
+                self._conn.reconnect()
+            except db.database_errors():
+                return False  # the server is not back yet: the next call tries again
+            self._max_seq.clear()
+            self._max_end.clear()
+            self._bands.clear()
+            return True
 
     def forget_partitions(self, parts: set[int]) -> None:
         """Drop the sums and seqs kept in memory for some partitions' devices: read again when next needed."""

@@ -199,3 +199,63 @@ def test_meshed_routers_carry_each_drive_to_the_process_serving_it(tmp_path, pki
             session.close()
         for store in stores:
             store.close()
+
+
+def _drop_sessions(url):
+    """What a PostgreSQL restart or failover does to the service: every session but ours ended by the server."""
+    import psycopg
+
+    with psycopg.connect(url, autocommit=True) as admin:
+        return admin.execute(
+            "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
+            "WHERE datname = current_database() AND pid <> pg_backend_pid()"
+        ).fetchone()[0]
+
+
+def _partition_locks(url):
+    import psycopg
+
+    from service.store import PARTITION_LOCKS
+
+    with psycopg.connect(url, autocommit=True) as admin:
+        return admin.execute(
+            "SELECT count(*) FROM pg_locks WHERE locktype = 'advisory' AND classid = %s AND granted",
+            (PARTITION_LOCKS,),
+        ).fetchone()[0]
+
+
+def test_sessions_dropped_by_the_database_mid_run_lose_and_double_nothing(tmp_path, postgres_url):
+    endpoint = loopback_endpoint()
+    store = Store.open(postgres_url)
+    session = open_session(listen=[endpoint])
+    a = FleetService(store, session, refit_interval_s=0.5, member="svc-a").start()
+    hours, names = 3, ["drive-000", "drive-001", "drive-002"]
+    agents = [start_agent(n, endpoint, tmp_path / f"{n}.sqlite", hours) for n in names]
+    stopped = False
+    try:
+        wait_for(lambda: _partition_locks(postgres_url) == keys.PARTITIONS, 20, "svc-a to lock every partition")
+        wait_for(lambda: len(store.device_ids()) == len(names), 30, "every drive to be heard")
+        dropped = 0
+        for _ in range(2):  # twice, mid-run
+            time.sleep(3)
+            dropped += _drop_sessions(postgres_url)
+        assert dropped >= 2  # the writer's session and the read pool's at least
+        wait_for(lambda: _partition_locks(postgres_url) == keys.PARTITIONS, 30, "the partitions locked again")
+        assert a.partitions.held == frozenset(range(keys.PARTITIONS))
+        outputs = [agent.communicate(timeout=180)[0] for agent in agents]
+        assert all(agent.returncode == 0 for agent in agents), outputs
+        a.stop()
+        stopped = True
+        for name in names:
+            seqs = [w["seq"] for w in store.windows(name, limit=10_000)]
+            assert sorted(seqs) == list(range(1, hours * 60 + 1)), name  # none lost, none twice
+            in_bands = sum(windows for _, windows, _ in store.band_stats(name).values())
+            assert in_bands == hours * 60, name  # the sums read again after the lost session, not doubled
+    finally:
+        for agent in agents:
+            if agent.poll() is None:
+                agent.kill()
+        if not stopped:
+            a.stop()
+        session.close()
+        store.close()
