@@ -13,7 +13,8 @@ import queue
 import re
 import sqlite3
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
@@ -35,10 +36,23 @@ def redacted(url: str) -> str:
     return re.sub(r"//([^:/@]+):[^@]*@", r"//\1:***@", url)
 
 
-def migration_lock(conn) -> None:
-    """Inside a migration's transaction: one process migrates at a time (SQLite's BEGIN IMMEDIATE already is)."""
-    if isinstance(conn, PgConnection):
-        conn.execute("LOCK TABLE schema_migrations IN EXCLUSIVE MODE")
+MIGRATION_LOCK = 0x454E4301  # the advisory lock held while a process migrates (PostgreSQL)
+
+
+@contextmanager
+def migrating(conn) -> Iterator[None]:
+    """One process migrates at a time, from its first statement on: PostgreSQL's `CREATE TABLE IF NOT EXISTS` is
+    not safe against another process running it at the same moment (several members starting together), so a
+    session advisory lock covers the whole run. SQLite's BEGIN IMMEDIATE already serialises each migration."""
+    if not isinstance(conn, PgConnection):
+        yield
+        return
+    conn.execute("SELECT pg_advisory_lock(?)", (MIGRATION_LOCK,))
+    try:
+        yield
+    finally:
+        if not conn.lost:
+            conn.execute("SELECT pg_advisory_unlock(?)", (MIGRATION_LOCK,))
 
 
 def database_errors() -> tuple[type[BaseException], ...]:

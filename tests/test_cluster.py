@@ -259,3 +259,30 @@ def test_sessions_dropped_by_the_database_mid_run_lose_and_double_nothing(tmp_pa
             a.stop()
         session.close()
         store.close()
+
+
+def test_members_starting_together_migrate_a_new_database_once(postgres_url):
+    """Several members start at once on an empty database (compose's scale profile, bench-scale): PostgreSQL's
+    CREATE TABLE IF NOT EXISTS is not safe against itself, so migrating is serialised by an advisory lock."""
+    import threading
+
+    opened, failed = [], []
+
+    def open_store():
+        try:
+            opened.append(Store.open(postgres_url))
+        except Exception as exc:  # what the member would have died of
+            failed.append(exc)
+
+    threads = [threading.Thread(target=open_store) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    try:
+        assert failed == [] and len(opened) == 6
+        versions = [v for v, _ in opened[0].migrations()]
+        assert versions == sorted(set(versions))  # each migration applied once
+    finally:
+        for store in opened:
+            store.close()
