@@ -258,22 +258,22 @@ class Store:
             return self._conn.execute(sql, args).fetchall()
 
     def _migrate(self, migrations: list[tuple[int, Traversable]]) -> None:
-        try:
-            with self._lock, db.migrating(self._conn):
+        with self._lock, db.migrating(self._conn):
+            try:
                 self._conn.execute(
                     "CREATE TABLE IF NOT EXISTS schema_migrations "
                     "(version INTEGER PRIMARY KEY, name TEXT NOT NULL, applied_at REAL NOT NULL)"
                 )
-                for version, path in migrations:
-                    # check inside the write transaction: another process may be migrating the same file
-                    with self._tx() as c:
-                        if c.execute("SELECT 1 FROM schema_migrations WHERE version = ?", (version,)).fetchone():
-                            continue
-                        for statement in _statements(path.read_text(encoding="utf-8")):
-                            c.execute(statement)
-                        c.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", (version, path.name, time.time()))
-        except db.database_errors() as exc:  # not a database, corrupt, read-only when new, ...
-            raise StoreError("unavailable", f"database {self.path} cannot be used: {exc}") from None
+            except db.database_errors() as exc:  # not a database, corrupt, read-only when new, ...
+                raise StoreError("unavailable", f"database {self.path} cannot be used: {exc}") from None
+            for version, path in migrations:
+                # check inside the write transaction: another process may be migrating the same file
+                with self._tx() as c:
+                    if c.execute("SELECT 1 FROM schema_migrations WHERE version = ?", (version,)).fetchone():
+                        continue
+                    for statement in _statements(path.read_text(encoding="utf-8")):
+                        c.execute(statement)
+                    c.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", (version, path.name, time.time()))
 
     def migrations(self) -> list[tuple[int, str]]:
         return [
