@@ -62,6 +62,7 @@ class ServiceCounters:
     rollbacks: int = 0
     storage_failures: int = 0  # batches the database refused (disk full, read-only, I/O): agents resend them
     storage_error: str | None = None  # the last refusal, until a batch is stored again (/healthz fails meanwhile)
+    database_reconnects: int = 0  # PostgreSQL sessions lost (server restart, failover) and opened again
     # windows and acks this process stored, by the device's partition (GET /cluster: who served what)
     stored_by_partition: list[int] = field(default_factory=lambda: [0] * keys.PARTITIONS)
     # seconds from a message's arrival to its commit, and of one device's refit (read by service.observability)
@@ -92,6 +93,7 @@ class ServiceCounters:
             "rollouts": self.rollouts,
             "rollbacks": self.rollbacks,
             "storage_failures": self.storage_failures,
+            "database_reconnects": self.database_reconnects,
         }
 
 
@@ -377,6 +379,8 @@ class FleetService:
         try:
             if self.store.reconnect_if_lost():
                 log.warning("the database connection was lost and is open again")
+                with self._lock:
+                    self.counters.database_reconnects += 1
                 self.partitions.connection_renewed()
         except Exception:
             log.exception("reopening the database connection failed")

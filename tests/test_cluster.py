@@ -240,8 +240,15 @@ def test_sessions_dropped_by_the_database_mid_run_lose_and_double_nothing(tmp_pa
             time.sleep(3)
             dropped += _drop_sessions(postgres_url)
         assert dropped >= 2  # the writer's session and the read pool's at least
-        wait_for(lambda: _partition_locks(postgres_url) == keys.PARTITIONS, 30, "the partitions locked again")
-        assert a.partitions.held == frozenset(range(keys.PARTITIONS))
+        wait_for(lambda: a.counters.database_reconnects >= 1, 30, "the service to open its session again")
+        wait_for(
+            lambda: (
+                a.partitions.held == frozenset(range(keys.PARTITIONS))
+                and _partition_locks(postgres_url) == keys.PARTITIONS
+            ),
+            30,
+            "the partitions taken and locked again",
+        )
         outputs = [agent.communicate(timeout=180)[0] for agent in agents]
         assert all(agent.returncode == 0 for agent in agents), outputs
         a.stop()
@@ -285,4 +292,54 @@ def test_members_starting_together_migrate_a_new_database_once(postgres_url):
         assert versions == sorted(set(versions))  # each migration applied once
     finally:
         for store in opened:
+            store.close()
+
+
+def test_members_with_embedded_routers_mesh_them_with_mesh(postgres_url):
+    """`service --mesh`: each member embeds a router and the second connects it to the first's; a drive on either
+    router reaches the member that serves it, and its watermark comes back."""
+    import wire_samples as ws
+    import zenoh
+
+    from fleet_wire import messages as wire
+    from fleet_wire.session import session_config
+
+    one, two = loopback_endpoint(), loopback_endpoint()
+    members = ["svc-1", "svc-2"]
+    stores = [Store.open(postgres_url) for _ in members]
+    sessions = [open_session(listen=[one]), open_session(listen=[two], mesh=[one])]
+    services = [
+        FleetService(store, session, refit_interval_s=0, member=m).start()
+        for store, session, m in zip(stores, sessions, members)
+    ]
+    drives = []
+    try:
+        wait_for(lambda: all(s.cluster()["members"] == members for s in services), 20, "the members to see each other")
+        wait_for(lambda: sum(len(s.partitions.held) for s in services) == keys.PARTITIONS, 20, "the partitions shared")
+        names = devices_split(members, per_member=2)
+        crossed = [
+            (names["svc-1"][0], two),
+            (names["svc-2"][0], one),
+            (names["svc-1"][1], one),
+            (names["svc-2"][1], two),
+        ]
+        for name, endpoint in crossed:
+            drives.append((name, zenoh.open(session_config("client", connect=[endpoint]))))
+        time.sleep(0.5)
+        for name, session in drives:
+            session.put(keys.key(name, keys.STATS), wire.encode("window", ws.window(name, 1)))
+        wait_for(lambda: all((stores[0].device(n) or {}).get("windows") == 1 for n, _ in drives), 20, "every window")
+        for name, session in drives:
+            replies = [r.ok.payload.to_bytes() for r in session.get(keys.key(name, keys.RECEIVED), timeout=3) if r.ok]
+            assert [wire.parse_watermark(p, name) for p in replies] == [1], name
+        for service, member in zip(services, members):
+            assert sum(service.cluster()["stored_by_partition"].values()) == 2, member  # its own two drives
+    finally:
+        for _, session in drives:
+            session.close()
+        for service in services:
+            service.stop()
+        for session in sessions[::-1]:
+            session.close()
+        for store in stores:
             store.close()
