@@ -42,31 +42,22 @@ def template_windows(count: int, samples_per_window: int = 3000) -> list[tuple[W
     return out
 
 
-def publish(endpoint: str, devices: int, windows: int, pki: str | None = None) -> None:
-    """The publisher process: factory sets, then every device's windows, round-robin."""
-
+def announce_factory_sets(session, names: list[str]) -> None:
+    """Every drive's factory set, as an agent announces it at its first start."""
     import zenoh
 
-    block = zenoh.CongestionControl.BLOCK  # like the agents: wait for room rather than drop
-    templates = template_windows(windows)
-    identity = None
-    if pki:
-        from fleet_wire.security import ROLE_DEVICE, Identity
+    factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
+    for name in names:
+        payload = wire.encode("coefficients", factory_message(name, factory))
+        session.put(keys.key(name, keys.FACTORY), payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
-        identity = Identity.load(pki, PUBLISHER, ROLE_DEVICE)
-    session = zenoh.open(session_config("client", connect=[endpoint], identity=identity))
-    try:
-        names = [f"bench-{i:05d}" for i in range(devices)]
-        factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
-        for name in names:
-            payload = wire.encode("coefficients", factory_message(name, factory))
-            session.put(keys.key(name, keys.FACTORY), payload, congestion_control=block)
-        # pre-encoded MessagePack windows (as wire.encode makes them): the bench times the service, not the encoder
-        encoder = msgspec.msgpack.Encoder()
-        puts = []
-        for seq, (stats, start) in enumerate(templates, start=1):
-            msg = wire.window_message(
-                names[0],
+
+def template_messages(count: int) -> list[wire.Window]:
+    """template_windows as wire window structs, one a drive-minute; each drive's copy only changes `device`."""
+    return [
+        wire.window_from_dict(
+            wire.window_message(
+                "template",
                 seq,
                 stats,
                 window_start=start,
@@ -75,7 +66,31 @@ def publish(endpoint: str, devices: int, windows: int, pki: str | None = None) -
                 coefficients_version=0,
                 angle_quality_deg=0.5,
             )
-            win = wire.window_from_dict(msg)
+        )
+        for seq, (stats, start) in enumerate(template_windows(count), start=1)
+    ]
+
+
+def publish(endpoint: str, devices: int, windows: int, pki: str | None = None) -> None:
+    """The publisher process: factory sets, then every device's windows, round-robin."""
+
+    import zenoh
+
+    block = zenoh.CongestionControl.BLOCK  # like the agents: wait for room rather than drop
+    templates = template_messages(windows)
+    identity = None
+    if pki:
+        from fleet_wire.security import ROLE_DEVICE, Identity
+
+        identity = Identity.load(pki, PUBLISHER, ROLE_DEVICE)
+    session = zenoh.open(session_config("client", connect=[endpoint], identity=identity))
+    try:
+        names = [f"bench-{i:05d}" for i in range(devices)]
+        announce_factory_sets(session, names)
+        # pre-encoded MessagePack windows (as wire.encode makes them): the bench times the service, not the encoder
+        encoder = msgspec.msgpack.Encoder()
+        puts = []
+        for win in templates:
             for name in names:
                 puts.append((keys.key(name, keys.STATS), encoder.encode(msgspec.structs.replace(win, device=name))))
         put = session.put

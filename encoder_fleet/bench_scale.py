@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from encoder_fleet.bench_fleet import TEMPLATE_SEED, bench_database, template_windows
+from encoder_fleet.bench_fleet import announce_factory_sets, bench_database, template_messages
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import free_port, loopback_endpoint, session_config
@@ -58,9 +58,6 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
     import msgspec
     import zenoh
 
-    from edge_agent.agent import factory_message
-    from edge_agent.sources import drive_model, factory_calibration
-
     block = zenoh.CongestionControl.BLOCK
     session = zenoh.open(session_config("client", connect=[endpoint]))
     encoder = msgspec.msgpack.Encoder()
@@ -71,25 +68,8 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
 
     try:
         names = [f"scale-{i:06d}" for i in range(devices)]
-        factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
-        for name in names:
-            payload = wire.encode("coefficients", factory_message(name, factory))
-            session.put(keys.key(name, keys.FACTORY), payload, congestion_control=block)
-        wins = [
-            wire.window_from_dict(
-                wire.window_message(
-                    names[0],
-                    seq,
-                    stats,
-                    window_start=start,
-                    window_end=start + 60.0,
-                    temp_rate_c_per_s=0.0,
-                    coefficients_version=0,
-                    angle_quality_deg=0.5,
-                )
-            )
-            for seq, (stats, start) in enumerate(template_windows(windows), start=1)
-        ]
+        announce_factory_sets(session, names)
+        wins = template_messages(windows)
         print("factory sets sent", flush=True)
         sys.stdin.readline()
         for win in wins:  # minute after minute, every drive
