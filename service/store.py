@@ -1043,8 +1043,10 @@ class Store:
 
     def save_monitor(self, device: str, state: dict, last_seq: int, events: list[dict]) -> list[dict]:
         """The monitor's state and the alarms it raised or cleared, in one transaction. events: {"kind":
-        "raise" | "clear", "cause", "at", "parameters", "evidence"}; returns the alarms written (as listed)."""
-        written = []
+        "raise" | "clear", "cause", "at", "parameters", "evidence"}; returns one alarm (as listed) per event
+        written, in order, as it stood after that event: an alarm raised and cleared in the same call is
+        returned twice, open and then cleared, so its listeners hear both."""
+        written = []  # (alarm id, "raise" | "clear")
         now = time.time()
         with self._tx() as c:
             self._touch(c, device, now, heard=False)
@@ -1060,7 +1062,7 @@ class Store:
                         " VALUES (?, ?, ?, ?, ?, ?)",
                         (device, e["cause"], _json(e["parameters"]), e["evidence"], e["at"], now),
                     )
-                    written.append(cur.lastrowid)
+                    written.append((cur.lastrowid, "raise"))
                 else:
                     rows = c.execute(
                         "SELECT id FROM alarms WHERE device = ? AND cause = ? AND cleared_at IS NULL",
@@ -1071,14 +1073,17 @@ class Store:
                         " AND cleared_at IS NULL",
                         (max(e["at"], 0.0), e["evidence"], device, e["cause"]),
                     )
-                    written += [r["id"] for r in rows]
+                    written += [(r["id"], "clear") for r in rows]
             c.execute(
                 "INSERT INTO monitor_state (device, state_json, last_seq, updated_at) VALUES (?, ?, ?, ?) "
                 "ON CONFLICT(device) DO UPDATE SET state_json = excluded.state_json, last_seq = excluded.last_seq,"
                 " updated_at = excluded.updated_at",
                 (device, _json(state), last_seq, now),
             )
-        return self.alarms(ids=written) if written else []
+        if not written:
+            return []
+        rows = {a["id"]: a for a in self.alarms(ids=[i for i, _ in written])}
+        return [rows[i] if kind == "clear" else {**rows[i], "cleared_at": None} for i, kind in written]
 
     @staticmethod
     def _alarm(r: sqlite3.Row, with_created_at: bool = False) -> dict:

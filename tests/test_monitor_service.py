@@ -138,3 +138,23 @@ def test_a_burst_of_10000_windows_and_an_absurd_one(tmp_path):
         assert monitor.process(spec.name) == []
         assert monitor.devices[spec.name].absurd == 1
     assert elapsed < 60, elapsed
+
+
+def test_an_alarm_raised_and_cleared_in_one_pass_is_heard_twice(tmp_path):
+    """A monitor that falls behind can raise an alarm and clear it in the same pass (the refit already
+    followed the step): what is published for it must still say raised, then cleared, with the times of each."""
+    step = {"cause": "offset_step", "parameters": {}, "evidence": "the offsets jumped (planted)"}
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        written = store.save_monitor(
+            "drive-9",
+            {},
+            5,
+            [{**step, "kind": "raise", "at": 100.0}, {**step, "kind": "clear", "at": 400.0, "evidence": "refit"}],
+        )
+        listed = store.alarms("drive-9")
+    published = [alarm_wire.decode(alarm_wire.encode(a)[1]) for a in written]
+    assert [(a["event"], a["raised_at"], a["cleared_at"]) for a in published] == [
+        ("raised", 100.0, None),
+        ("cleared", 100.0, 400.0),
+    ]
+    assert [(a["raised_at"], a["cleared_at"]) for a in listed] == [(100.0, 400.0)]  # one alarm, stored once
