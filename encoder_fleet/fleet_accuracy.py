@@ -5,9 +5,10 @@ the end of the line by `encoder-fleet calibrate` on its own +20 °C bench sweep,
 the field. The fleet loop runs in this process through the same code as the real parts: the agent's
 usable-sample mask and window statistics (edge_agent.agent.EdgeAgent), the window's band as the wire
 message computes it, band sums with the store's drive-time horizon, the drift monitor restarting every
-band's memory after an offset step (as service.runtime does), `service.refit.refit_device` on a refit
+band's memory after an offset step (as service.runtime does), the watch of the running set against the factory's
+every quarter of a drive-hour (service.trial.watch_against_factory), `service.refit.refit_device` on a refit
 cadence with what the service passes it, the agent's plausibility check before applying a set, and the
-set applied from the next window on. The service's guard (trial and rollback) is not in this loop.
+set applied from the next window on, and the guard's trials as service.runtime judges them.
 Only the transport (Zenoh, SQLite) is left out, so that a fleet of drives × days × rates runs in
 minutes.
 
@@ -36,8 +37,8 @@ from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from service.refit import STEP_OPEN_S, refit_device
-from service.runtime import BAND_HORIZON_H, REFIT_EVERY_S, TRIAL_MAX_S
-from service.trial import TrialEvidence, changed_bands, judge
+from service.runtime import BAND_HORIZON_H, REFIT_EVERY_S, TRIAL_MAX_S, WATCH_EVERY_S
+from service.trial import WATCH_S, TrialEvidence, changed_bands, judge, watch_against_factory
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
 BAND_HORIZON_S = BAND_HORIZON_H * 3600.0  # drive time a band's sum remembers, as the service's store
@@ -135,6 +136,15 @@ class BandSums:
         if self.horizon_s:
             self._forget(band, lambda end: end < end_s - self.horizon_s)
 
+    def recent(self, after_s: float) -> dict[int, WindowStats]:
+        """Each band's sum of the windows that ended after `after_s`."""
+        out = {}
+        for band, kept in self.windows.items():
+            for end, stats in kept:
+                if end > after_s:
+                    out[band] = out[band].merge(stats) if band in out else stats
+        return out
+
     def restart(self, after_s: float) -> None:
         """Forget the windows that ended at or before `after_s` in every band (Store.restart_band_memory)."""
         for band in list(self.windows):
@@ -179,6 +189,8 @@ def fleet_loop(
     horizon_s: float | None = BAND_HORIZON_S,
     monitor: bool = True,
     guard: bool = True,
+    watch_factory: bool = True,
+    watch_every_s: float = WATCH_EVERY_S,
 ) -> list[tuple[float, BandedCorrection]]:
     """The agent's windows, the service's band sums and refits, the drift monitor restarting band memory
     after a step, the guard holding each new set on trial until the soak judges it (service.runtime), the
@@ -190,7 +202,7 @@ def fleet_loop(
     confirmed, trial = factory_msg, None  # trial: [set message, soak band -> stats, bands it changed]
     running = factory
     timeline = [(float(samples.t[0]), factory)]
-    next_refit = float(samples.t[0]) + refit_every_s
+    next_refit = next_watch = float(samples.t[0]) + refit_every_s
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
     for start, end in windows_of(samples.t, window_s):
@@ -213,6 +225,16 @@ def fleet_loop(
                 if event.cause == "offset_step" and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
+        if watch_factory and pending is None and end_s >= next_watch:
+            next_watch = end_s + watch_every_s
+            if watch_against_factory(sums.recent(end_s - WATCH_S), running, factory_msg):
+                # the first rule: the running set is worse than the factory's: the factory's again, and the drive
+                # learnt from what it is now
+                pending = {"bands": factory_msg["bands"], "basis": "rollback", "version": len(timeline)}
+                confirmed, trial = pending, None
+                sums.restart(after_s=end_s - WATCH_S)
+                next_refit = end_s + refit_every_s
+                continue
         if end_s < next_refit:
             continue
         next_refit += refit_every_s

@@ -28,7 +28,7 @@ from service.monitor import Monitor
 from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, RefitResult, refit_device
 from service.rollout import Rollouts
 from service.store import Store
-from service.trial import TrialEvidence, Verdict, changed_bands
+from service.trial import WATCH_S, TrialEvidence, Verdict, changed_bands, watch_against_factory
 from service.trial import judge as default_judge
 
 log = logging.getLogger("service")
@@ -52,6 +52,10 @@ TRIAL_MAX_S = 3600.0
 # keeps the refit loop ahead of the fleet (a refit costs ~75 ms; once per window it would be 1,000 drives per core,
 # once per drive-hour ~48,000). A set on trial is judged at every pass, and an offset step refits at once.
 REFIT_EVERY_S = 3600.0
+# drive time between two watches of one device's running set against its factory set (service/trial.py): a step
+# the monitor does not name (gain, axis) is caught within this, not at the next refit (bench-fleet-accuracy at
+# 0.5 Hz: hourly 17 worse hours of 1728, every 15 minutes 16, without the watch 21)
+WATCH_EVERY_S = 900.0
 
 
 @dataclass
@@ -163,6 +167,7 @@ class FleetService:
         self._changed: set[str] = set()  # devices with windows stored since their last refit
         self.refit_every_s = refit_every_s
         self._fitted_at: dict[str, float] = {}  # device -> drive time of its last refit
+        self._watched_at: dict[str, float] = {}  # device -> drive time of its last watch against the factory
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
@@ -269,6 +274,7 @@ class FleetService:
         with self._lock:
             self._watermarks = {d: m for d, m in self._watermarks.items() if keys.partition(d) not in parts}
             self._fitted_at = {d: t for d, t in self._fitted_at.items() if keys.partition(d) not in parts}
+            self._watched_at = {d: t for d, t in self._watched_at.items() if keys.partition(d) not in parts}
         self.store.forget_partitions(parts)
         self.monitor.reload(lambda device: keys.partition(device) in parts)
 
@@ -519,6 +525,14 @@ class FleetService:
             changed, self._changed = sorted(self._changed), set()
         published, later = [], set()
         for device in filter(self.partitions.serves, changed):
+            try:
+                version = self.watch(device) if self._watch_due(device) else None
+            except Exception:
+                log.exception("%s: watch failed", device)
+                version = None
+            if version is not None:
+                published.append(version)
+                continue
             if not self._refit_due(device):
                 later.add(device)
                 continue
@@ -543,6 +557,48 @@ class FleetService:
         if last is None or self.store.set_on_trial(device) is not None:
             return True
         return self._drive_now(device) - last >= self.refit_every_s
+
+    def _watch_due(self, device: str) -> bool:
+        last = self._watched_at.get(device)
+        return last is None or self._drive_now(device) - last >= WATCH_EVERY_S
+
+    def watch(self, device: str) -> int | None:
+        """The first rule between refits: where the newest drive-hour of windows shows the running set worse than
+        the factory's (service/trial.py: watch_against_factory), the factory set again (basis rollback, restores
+        v0, confirmed: it is the reference-measured set), a set on trial rolled back with it, and band memory
+        restarted at that hour, so the next refit learns the drive as it is now. Returns the version published."""
+        drive_now = self._drive_now(device)
+        self._watched_at[device] = drive_now
+        running_version = self.store.published_version(device)
+        if not running_version or self.rollouts.holds(device):
+            return None  # the factory set itself runs (or nothing yet), or a rollout has the device
+        factory = self.store.coefficient_set(device, 0)
+        running = self._correction(device, running_version)
+        if factory is None or running is None:
+            return None
+        found = watch_against_factory(self.store.stats_since(device, drive_now - WATCH_S), running, factory)
+        if not found:
+            return None
+        reason = "worse than the factory set: " + "; ".join(f.reason for f in found)
+        trial = self.store.set_on_trial(device)
+
+        def end_trial(_: int, at: float) -> None:
+            if trial is not None:
+                self.store.set_state(device, trial["version"], "rolled_back", at=at, reason=reason)
+
+        version = self._issue_set(
+            device,
+            "rollback",
+            [dict(b) for b in factory["bands"]],
+            state="confirmed",
+            reason=f"restores v0: {reason}",
+            restores_version=0,
+            before=end_trial,
+        )
+        self.store.restart_band_memory(device, after=drive_now - WATCH_S)
+        self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
+        log.warning("factory set restored", extra={"device": device, "version": version, "reason": reason})
+        return version
 
     def _correction(self, device: str, version: int) -> BandedCorrection | None:
         """A stored set, decoded once: (device, version) never changes content (insert refuses a reuse)."""

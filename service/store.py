@@ -819,6 +819,16 @@ class Store:
                 out[r["band"]] = out[r["band"]].merge(stats) if r["band"] in out else stats
         return out
 
+    def stats_since(self, device: str, after: float) -> dict[int, WindowStats]:
+        """band -> the summed statistics of the device's windows that ended after `after` (drive clock)."""
+        out: dict[int, WindowStats] = {}
+        for r in self._rows(
+            "SELECT band, stats, stats_json FROM windows WHERE device = ? AND window_end > ?", (device, after)
+        ):
+            stats = self._stats_of(r).window_stats()
+            out[r["band"]] = out[r["band"]].merge(stats) if r["band"] in out else stats
+        return out
+
     def set_on_trial(self, device: str) -> dict | None:
         """The newest published set, when it is on trial: {version, message}."""
         rows = self._rows(

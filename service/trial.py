@@ -104,3 +104,46 @@ def judge_by_ellipse(evidence: TrialEvidence) -> Verdict:
     if evidence.soak_samples >= MAX_SOAK_SAMPLES:
         return Verdict("confirm", "outcome not measurable (too little of the circle seen); kept on the refit's")
     return Verdict("wait", "outcome not measurable yet")
+
+
+WATCH_S = 3600.0  # drive time of the newest windows the watch compares the running set with the factory's on
+MIN_WATCH_SAMPLES = 1000  # per band
+WATCH_SIGMAS = 3.0  # the watch asks at every pass, not once per set: a stricter bar against false alarms
+WATCH_TOLERANCE_DEG = 0.005
+
+
+@dataclass
+class WatchFinding:
+    band: int
+    temp_c: float
+    reason: str
+
+
+def watch_against_factory(
+    recent: dict[int, WindowStats], running: BandedCorrection, factory: dict
+) -> list[WatchFinding]:
+    """The first rule, checked on the newest windows: bands where the set the drive runs is worse than its
+    factory set by more than the comparison's own uncertainty (the guard's rule). A trial judges a set once,
+    against the set before; this watch keeps judging what runs against the factory, so a drive that changes
+    after its set was confirmed (a gain or axis step the monitor does not name) is not left worse than the
+    factory until its band memory has relearned it."""
+    anchors = bench_anchors(BandedCorrection.from_dict({"bands": factory["bands"]}))
+    if not anchors:
+        return []
+    found = []
+    for band, stats in sorted(recent.items()):
+        if stats.n < MIN_WATCH_SAMPLES:
+            continue
+        temp = stats.temp_mean
+        fband, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp))
+        c = compare_sets(stats, running.at(temp), fband, fband, locus)
+        if c.difference_deg is not None and c.difference_deg > WATCH_SIGMAS * c.difference_se_deg + WATCH_TOLERANCE_DEG:
+            found.append(
+                WatchFinding(
+                    band,
+                    temp,
+                    f"band {band}: the running set leaves {c.trial.angle_error_deg:.4f}° against the factory's "
+                    f"{c.before.angle_error_deg:.4f}° (worse by {c.difference_deg:.4f}° ± {c.difference_se_deg:.4f}°)",
+                )
+            )
+    return found

@@ -212,3 +212,61 @@ def test_a_device_is_refit_once_per_drive_hour_not_once_per_window(fleet):
     assert refit_pass() == 2  # less than an hour since the step's refit
     run_on(store, 0, hours=1.0, after_s=7200.0)
     assert refit_pass() == 3
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_the_watch_restores_the_factory_set_where_the_running_one_is_worse(fleet, seed):
+    """The first rule after a set was confirmed: the drive changed under it (a hidden error, its size and sign
+    drawn from the seed, put into a confirmed set as a step would put it into the drive), so the newest hour of
+    windows shows the running set worse than the factory's. The watch publishes the factory set again (basis
+    rollback, restores v0, confirmed) and restarts band memory; on the truth, the restored set is the better one.
+    A confirmed set that only differs from the factory's by nothing the data can see is left alone."""
+    import numpy as np
+
+    from encoder_core.correction import BandedCorrection
+    from encoder_fleet import fieldsim
+    from encoder_fleet.calibrate import calibrate, factory_set
+
+    store, service = fleet
+    rng = np.random.default_rng(seed)
+    phys = fieldsim.draw_drive(rng)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    msg = factory_set(DEVICE, factory)
+    store.insert_coefficient_set(msg)
+    store.mark_published(DEVICE, 0)
+    hidden = float(rng.choice([-1, 1]) * rng.uniform(0.02, 0.04)) if seed == 31 else 0.0  # normalised offset
+    bands = [dict(b) for b in msg["bands"]]
+    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + hidden, *bands[0]["w"][2:]]}
+    bands[0]["zero_offset_rad"] = bands[0]["zero_offset_rad"] + 1e-6  # a set of its own even when nothing moved
+    store.insert_coefficient_set(wire.coefficients_message(DEVICE, 1, 0.0, "fit", bands), state="confirmed")
+    store.mark_published(DEVICE, 1)
+    run = fieldsim.field_run(phys, days=0.08, rate_hz=20.0, regime="even", rng=rng, low_c=18.0, high_c=28.0)
+    scale = normalisation_scale(factory)
+    t = run.samples.t
+    ends = []
+    for seq, start in enumerate(np.arange(t[0], t[-1], 60.0), start=1):
+        block = run.samples.subset((t >= start) & (t < start + 60.0))
+        stats = window_stats(block, scale)
+        ends.append(float(block.t[-1]))
+        store.insert_window(
+            wire.window_message(
+                DEVICE, seq, stats, window_start=max(float(block.t[0]), 0.0), window_end=float(block.t[-1]),
+                temp_rate_c_per_s=0.0, coefficients_version=1, angle_quality_deg=0.1,
+            )
+        )  # fmt: skip
+    service._changed.add(DEVICE)
+    published = service.refit_all()
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    if hidden == 0.0:
+        assert 2 not in history or history[2]["basis"] != "rollback", history[2]
+        return
+    assert published and history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
+    assert history[2]["state"] == "confirmed" and "worse than the factory set" in history[2]["state_reason"]
+    assert [b["w"] for b in store.coefficient_set(DEVICE, 2)["bands"]] == [b["w"] for b in msg["bands"]]
+    remembered = sum(windows for _, windows, _ in store.band_stats(DEVICE).values())
+    assert remembered == sum(1 for end in ends if end > ends[-1] - 3600.0)  # band memory restarted at that hour
+    ran = BandedCorrection.from_dict({"bands": bands})
+    restored = BandedCorrection.from_dict({"bands": store.coefficient_set(DEVICE, 2)["bands"]})
+    truth_ran = np.sqrt(np.mean(fieldsim.true_error_deg(ran, run) ** 2))
+    truth_restored = np.sqrt(np.mean(fieldsim.true_error_deg(restored, run) ** 2))
+    assert truth_restored < truth_ran, (truth_restored, truth_ran)
