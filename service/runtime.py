@@ -581,23 +581,9 @@ class FleetService:
             return None
         reason = "worse than the factory set: " + "; ".join(f.reason for f in found)
         trial = self.store.set_on_trial(device)
-
-        def end_trial(_: int, at: float) -> None:
-            if trial is not None:
-                self.store.set_state(device, trial["version"], "rolled_back", at=at, reason=reason)
-
-        version = self._issue_set(
-            device,
-            "rollback",
-            [dict(b) for b in factory["bands"]],
-            state="confirmed",
-            reason=f"restores v0: {reason}",
-            restores_version=0,
-            before=end_trial,
-        )
+        version = self.roll_back(device, trial["version"] if trial is not None else None, factory, reason)
         self.store.restart_band_memory(device, after=drive_now - WATCH_S)
         self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
-        log.warning("factory set restored", extra={"device": device, "version": version, "reason": reason})
         return version
 
     def _correction(self, device: str, version: int) -> BandedCorrection | None:
@@ -739,13 +725,14 @@ class FleetService:
         return self.judge(TrialEvidence(trial, before, soak, factory=self.store.coefficient_set(device, 0)))
 
     def roll_back(
-        self, device: str, version: int, before: dict, reason: str, then: Callable[[], None] | None = None
+        self, device: str, version: int | None, before: dict, reason: str, then: Callable[[], None] | None = None
     ) -> int:
-        """Mark set `version` rolled back and publish `before`'s bands again (basis rollback, confirmed);
-        `then()` runs inside that transaction."""
+        """Mark set `version` rolled back (None: a confirmed set runs, nothing to mark) and publish `before`'s bands
+        again (basis rollback, confirmed); `then()` runs inside that transaction."""
 
         def mark_rolled_back(_: int, drive_now: float) -> None:
-            self.store.set_state(device, version, "rolled_back", at=drive_now, reason=reason)
+            if version is not None:
+                self.store.set_state(device, version, "rolled_back", at=drive_now, reason=reason)
 
         new_version = self._issue_set(
             device,

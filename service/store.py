@@ -809,22 +809,20 @@ class Store:
 
     def stats_run_on(self, device: str, version: int, bands: set[int] | None = None) -> dict[int, WindowStats]:
         """band -> the summed statistics of the windows the agent ran on coefficient set `version`."""
-        out: dict[int, WindowStats] = {}
-        for r in self._rows(
+        rows = self._rows(
             "SELECT band, stats, stats_json FROM windows WHERE device = ? AND coefficients_version = ?",
             (device, version),
-        ):
-            if bands is None or r["band"] in bands:
-                stats = self._stats_of(r).window_stats()
-                out[r["band"]] = out[r["band"]].merge(stats) if r["band"] in out else stats
-        return out
+        )
+        return self._sum_by_band(r for r in rows if bands is None or r["band"] in bands)
 
     def stats_since(self, device: str, after: float) -> dict[int, WindowStats]:
         """band -> the summed statistics of the device's windows that ended after `after` (drive clock)."""
+        sql = "SELECT band, stats, stats_json FROM windows WHERE device = ? AND window_end > ?"
+        return self._sum_by_band(self._rows(sql, (device, after)))
+
+    def _sum_by_band(self, rows) -> dict[int, WindowStats]:
         out: dict[int, WindowStats] = {}
-        for r in self._rows(
-            "SELECT band, stats, stats_json FROM windows WHERE device = ? AND window_end > ?", (device, after)
-        ):
+        for r in rows:
             stats = self._stats_of(r).window_stats()
             out[r["band"]] = out[r["band"]].merge(stats) if r["band"] in out else stats
         return out
