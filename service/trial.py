@@ -108,8 +108,8 @@ def judge_by_ellipse(evidence: TrialEvidence) -> Verdict:
 
 WATCH_S = 3600.0  # drive time of the newest windows the watch compares the running set with the factory's on
 MIN_WATCH_SAMPLES = 1000  # per band
-WATCH_SIGMAS = 3.0  # the watch asks at every pass, not once per set: a stricter bar against false alarms
-WATCH_TOLERANCE_DEG = 0.005
+WATCH_SIGMAS = 5.0  # the watch asks at every pass, not once per set: a stricter bar against false alarms
+WATCH_TOLERANCE_DEG = 0.01
 
 
 @dataclass
