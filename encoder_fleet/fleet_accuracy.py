@@ -20,10 +20,10 @@ reference-free floor (`floor_set`): the best any refit without a reference could
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
-from multiprocessing import Pool
 
 import numpy as np
 
@@ -356,7 +356,9 @@ def run_bench(
         for spec in fleet_specs(seed, drives, days, rate, windows.get(rate, default_window(rate)), events)
     ]
     started = time.monotonic()
-    with Pool(processes) as pool:
+    # spawned, not forked: the caller may hold a Zenoh session (a test run, the service), and a forked child of a
+    # process with Zenoh's threads can hang on a lock one of them held
+    with multiprocessing.get_context("spawn").Pool(processes) as pool:
         results = pool.map(run_drive, specs, chunksize=1)
     report = {"elapsed_s": time.monotonic() - started, "regimes": {}, "drives": []}
     for rate in rates:

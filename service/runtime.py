@@ -53,8 +53,8 @@ TRIAL_MAX_S = 3600.0
 # once per drive-hour ~48,000). A set on trial is judged at every pass, and an offset step refits at once.
 REFIT_EVERY_S = 3600.0
 # drive time between two watches of one device's running set against its factory set (service/trial.py): a step
-# the monitor does not name (gain, axis) is caught within this, not at the next refit (bench-fleet-accuracy at
-# 0.5 Hz: hourly 17 worse hours of 1728, every 15 minutes 16, without the watch 21)
+# the monitor does not name (gain, axis) is caught within this, not at the next refit (bench-fleet-accuracy, 48
+# drives: worse hours 21 -> 16 at 0.5 Hz and 52 -> 40 at 20 Hz)
 WATCH_EVERY_S = 900.0
 
 
