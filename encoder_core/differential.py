@@ -229,7 +229,8 @@ def _polar_of(d: bytes, q: bytes) -> PolarLocus:
 
 
 def _drift_of(x: np.ndarray, bench_center: np.ndarray) -> Drift:
-    shape = np.array([[np.exp(x[2]), 0.0], [x[3], np.exp(x[4])]])
+    with np.errstate(over="ignore"):  # a fit that ran away gives inf here, and its terms say so
+        shape = np.array([[np.exp(x[2]), 0.0], [x[3], np.exp(x[4])]])
     return Drift(field_center=x[:2].copy(), bench_center=bench_center, shape=shape)
 
 
@@ -294,9 +295,10 @@ def _solve(polar: PolarLocus, points, weights, x, iterations: int):
         """(m, 5) parameter sets -> (m, n) residuals, in one pass: polar.unit(drift.apply(p)) is one 2x2 map
         per set, because the drift's bench centre is the locus's centre."""
         shapes = np.zeros((len(xs), 2, 2))
-        shapes[:, 0, 0], shapes[:, 1, 0], shapes[:, 1, 1] = np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4])
-        u = (polar.to_unit @ shapes) @ (field[None] - xs[:, :2, None])  # (m, 2, n)
-        return polar.residual_of_unit(np.moveaxis(u, 1, 0))
+        with np.errstate(over="ignore", invalid="ignore"):  # a run-away step: non-finite terms, gated out later
+            shapes[:, 0, 0], shapes[:, 1, 0], shapes[:, 1, 1] = np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4])
+            u = (polar.to_unit @ shapes) @ (field[None] - xs[:, :2, None])  # (m, 2, n)
+            return polar.residual_of_unit(np.moveaxis(u, 1, 0))
 
     for _ in range(iterations):
         r = residuals(x + probes)

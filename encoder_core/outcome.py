@@ -188,7 +188,8 @@ def compare_sets(
     # err = sqrt(Σ gap²/2) with gap = seen - set: the fit's error enters both through `seen`, so the
     # difference's error is the gradient of err_t - err_b against the seen terms times their errors
     grad = np.array([gap_t[t] / (2 * max(err_t, ci)) - gap_b[t] / (2 * max(err_b, ci)) for t in TERMS])
-    diff_se = float(np.sqrt(np.sum((grad * se) ** 2)))
+    # a term the fit cannot pin (infinite error) leaves the difference unknown, not NaN
+    diff_se = float(np.sqrt(np.sum((grad * se) ** 2))) if np.all(np.isfinite(se)) else float("inf")
     return Comparison(
         AngleErrorEstimate(float(np.degrees(err_t)), float(np.degrees(ci)), stats.n, "locus"),
         AngleErrorEstimate(float(np.degrees(err_b)), float(np.degrees(ci)), stats.n, "locus"),
