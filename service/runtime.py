@@ -525,15 +525,16 @@ class FleetService:
             changed, self._changed = sorted(self._changed), set()
         published, later = [], set()
         for device in filter(self.partitions.serves, changed):
+            drive_now = self._drive_now(device)
             try:
-                version = self.watch(device) if self._watch_due(device) else None
+                version = self.watch(device, drive_now) if self._watch_due(device, drive_now) else None
             except Exception:
                 log.exception("%s: watch failed", device)
                 version = None
             if version is not None:
                 published.append(version)
                 continue
-            if not self._refit_due(device):
+            if not self._refit_due(device, drive_now):
                 later.add(device)
                 continue
             try:
@@ -548,7 +549,7 @@ class FleetService:
             self._changed |= later
         return published
 
-    def _refit_due(self, device: str) -> bool:
+    def _refit_due(self, device: str, drive_now: float) -> bool:
         with self._lock:
             if device in self._refit_now:
                 self._refit_now.discard(device)
@@ -556,18 +557,17 @@ class FleetService:
         last = self._fitted_at.get(device)
         if last is None or self.store.set_on_trial(device) is not None:
             return True
-        return self._drive_now(device) - last >= self.refit_every_s
+        return drive_now - last >= self.refit_every_s
 
-    def _watch_due(self, device: str) -> bool:
+    def _watch_due(self, device: str, drive_now: float) -> bool:
         last = self._watched_at.get(device)
-        return last is None or self._drive_now(device) - last >= WATCH_EVERY_S
+        return last is None or drive_now - last >= WATCH_EVERY_S
 
-    def watch(self, device: str) -> int | None:
+    def watch(self, device: str, drive_now: float) -> int | None:
         """The first rule between refits: where the newest drive-hour of windows shows the running set worse than
         the factory's (service/trial.py: watch_against_factory), the factory set again (basis rollback, restores
         v0, confirmed: it is the reference-measured set), a set on trial rolled back with it, and band memory
         restarted at that hour, so the next refit learns the drive as it is now. Returns the version published."""
-        drive_now = self._drive_now(device)
         self._watched_at[device] = drive_now
         running_version = self.store.published_version(device)
         if not running_version or self.rollouts.holds(device):
