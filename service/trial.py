@@ -70,7 +70,9 @@ def judge_against_bench(evidence: TrialEvidence, anchors) -> Verdict:
         temp = stats.temp_mean
         factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp))
         comparisons.append(compare_sets(stats, trial.at(temp), before.at(temp), factory, locus))
-    decision = guard_decision(comparisons, soak_samples=evidence.soak_samples)
+    decision = guard_decision(
+        comparisons, soak_samples=evidence.soak_samples, sigmas=SIGMAS, tolerance_deg=TOLERANCE_DEG
+    )
     return Verdict(decision.action, decision.reason)
 
 
