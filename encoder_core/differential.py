@@ -508,7 +508,8 @@ class DriftModel:
                 chi2 = float(np.sum(((rows @ coef - values) * w) ** 2) / dof)
                 cov = cov * max(chi2, 1.0)
             models[name] = TermModel(coef=coef, cov=cov, bench_c=bench_c)
-        return cls(terms=models, temps=np.array([t for t, _ in fits]))
+        # the bench is a point of the curve when it is in the fit: the model reaches the bands around it too
+        return cls(terms=models, temps=np.array([t for t, _ in fits] + ([bench_c] if bench else [])))
 
     def reaches(self, temp_c: float) -> bool:
         return self.temps.min() - MODEL_REACH_C <= temp_c <= self.temps.max() + MODEL_REACH_C
