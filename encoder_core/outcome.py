@@ -164,6 +164,10 @@ class Comparison:
     difference_deg: float | None  # trial - before
     difference_se_deg: float
 
+    def worse(self, sigmas: float, tolerance_deg: float) -> bool:
+        """The trial set is worse than the one before by more than `sigmas` standard errors and the tolerance."""
+        return self.difference_deg is not None and self.difference_deg > sigmas * self.difference_se_deg + tolerance_deg
+
 
 def compare_sets(
     stats: WindowStats,
@@ -222,11 +226,7 @@ def guard_decision(
     errors of the difference and the tolerance; confirm once the soak has min_soak_samples and no band is
     worse; a set whose outcome cannot be measured (the drive showed too little of the circle) is confirmed
     at max_soak_samples on the refit's own uncertainty, and says so."""
-    worse = [
-        c
-        for c in comparisons
-        if c.difference_deg is not None and c.difference_deg > sigmas * c.difference_se_deg + tolerance_deg
-    ]
+    worse = [c for c in comparisons if c.worse(sigmas, tolerance_deg)]
     if worse:
         c = max(worse, key=lambda c: c.difference_deg)
         return GuardDecision(

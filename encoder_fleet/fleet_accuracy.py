@@ -227,7 +227,7 @@ def fleet_loop(
                     step_at = event.at
         if watch_factory and pending is None and end_s >= next_watch:
             next_watch = end_s + watch_every_s
-            if watch_against_factory(sums.recent(end_s - WATCH_S), running, factory_msg):
+            if watch_against_factory(sums.recent(end_s - WATCH_S), running, factory):
                 # the first rule: the running set is worse than the factory's: the factory's again, and the drive
                 # learnt from what it is now
                 pending = {"bands": factory_msg["bands"], "basis": "rollback", "version": len(timeline)}

@@ -572,8 +572,7 @@ class FleetService:
         running_version = self.store.published_version(device)
         if not running_version or self.rollouts.holds(device):
             return None  # the factory set itself runs (or nothing yet), or a rollout has the device
-        factory = self.store.coefficient_set(device, 0)
-        running = self._correction(device, running_version)
+        factory, running = self._correction(device, 0), self._correction(device, running_version)
         if factory is None or running is None:
             return None
         found = watch_against_factory(self.store.stats_since(device, drive_now - WATCH_S), running, factory)
@@ -581,7 +580,8 @@ class FleetService:
             return None
         reason = "worse than the factory set: " + "; ".join(f.reason for f in found)
         trial = self.store.set_on_trial(device)
-        version = self.roll_back(device, trial["version"] if trial is not None else None, factory, reason)
+        factory_msg = self.store.coefficient_set(device, 0)
+        version = self.roll_back(device, trial["version"] if trial is not None else None, factory_msg, reason)
         self.store.restart_band_memory(device, after=drive_now - WATCH_S)
         self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
         return version

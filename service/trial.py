@@ -122,14 +122,14 @@ class WatchFinding:
 
 
 def watch_against_factory(
-    recent: dict[int, WindowStats], running: BandedCorrection, factory: dict
+    recent: dict[int, WindowStats], running: BandedCorrection, factory: BandedCorrection
 ) -> list[WatchFinding]:
     """The first rule, checked on the newest windows: bands where the set the drive runs is worse than its
     factory set by more than the comparison's own uncertainty (the guard's rule). A trial judges a set once,
     against the set before; this watch keeps judging what runs against the factory, so a drive that changes
     after its set was confirmed (a gain or axis step the monitor does not name) is not left worse than the
     factory until its band memory has relearned it."""
-    anchors = bench_anchors(BandedCorrection.from_dict({"bands": factory["bands"]}))
+    anchors = bench_anchors(factory)
     if not anchors:
         return []
     found = []
@@ -139,7 +139,7 @@ def watch_against_factory(
         temp = stats.temp_mean
         fband, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp))
         c = compare_sets(stats, running.at(temp), fband, fband, locus)
-        if c.difference_deg is not None and c.difference_deg > WATCH_SIGMAS * c.difference_se_deg + WATCH_TOLERANCE_DEG:
+        if c.worse(WATCH_SIGMAS, WATCH_TOLERANCE_DEG):
             found.append(
                 WatchFinding(
                     band,
