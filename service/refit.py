@@ -44,6 +44,7 @@ LEGACY_MIN_SAMPLES = 20000  # without a bench locus the density harmonics need m
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
 MIN_GAIN_DEG = 0.01  # … and by at least this much
 ZERO_ANCHOR_REACH_C = 10.0  # the factory's zero is trusted this close to its bench temperature
+UNBOUNDED_ERROR_DEG = 180.0  # a candidate whose drift the data cannot bound (the wire's largest error)
 STEP_OPEN_S = 86400.0  # drive time after an offset step in which bands with no data since may be moved
 
 
@@ -282,8 +283,12 @@ def drift_candidate(
     drift = Drift.from_terms(kept, np.array([locus.d[0], locus.q[0]]), radius)
     corr = anchor_zero(compose(factory, drift), factory, locus, drift)
     corr.temp_c = float(temp_c)
-    adopted = [t for t in TERMS if kept[t] != 0.0]
-    err = float(np.degrees(np.sqrt(sum(errors[t] ** 2 for t in adopted)))) if adopted else 0.0
+    # the uncertainty of the whole drift the band's data measured, not only of the terms that passed the gate: a
+    # term held at the factory's value is as uncertain as its estimate, and a fit that cannot pin one term (an arc,
+    # a few held positions) has correlated, understated errors in the rest. Counting only the adopted terms made
+    # "nothing measurable" a candidate of zero uncertainty (bench-fleet-accuracy 20 Hz: worse hours 37 -> 17)
+    err = float(np.degrees(np.sqrt(sum(errors[t] ** 2 for t in TERMS))))
+    err = err if np.isfinite(err) else UNBOUNDED_ERROR_DEG
     quality = {
         "drift_terms": {t: kept[t] for t in TERMS},
         "drift_errors": {t: errors[t] if np.isfinite(errors[t]) else None for t in TERMS},
