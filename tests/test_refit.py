@@ -1,12 +1,16 @@
 """The service's refit, fed the agent's window statistics of a simulated drive (no transport here)."""
 
+import numpy as np
 import pytest
 
 from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection, Correction
 from encoder_core.physics import band_of, error_summary
-from encoder_core.stats import window_stats
-from service.refit import LEGACY_MIN_SAMPLES, MIN_BAND_SAMPLES, refit_device
+from encoder_core.samples import Samples
+from encoder_core.stats import normalisation_scale, window_stats
+from encoder_fleet import fieldsim
+from encoder_fleet.calibrate import calibrate
+from service.refit import CONFIDENCE, LEGACY_MIN_SAMPLES, MIN_BAND_SAMPLES, MIN_GAIN_DEG, refit_device
 
 
 def band_stats_of(seed, hours, scale):
@@ -80,3 +84,33 @@ def test_bands_the_refit_says_nothing_about_stay_as_the_device_runs_them(bench_l
         band = int(band_of(corr.temp_c))
         if band != fitted:
             assert by_band[band]["w"] == corr.to_dict()["w"] and by_band[band]["temp_c"] == corr.temp_c
+
+
+def test_a_band_its_data_cannot_bound_is_not_taken_back_to_the_factory():
+    """A reversing drive's hot band seen over one arc: the fit cannot pin the drift, so its candidate (the factory's
+    terms, every one gated out) has no known error. It must not replace a set fitted on the whole circle there
+    (a candidate of gated-out terms once counted as zero uncertainty and was adopted; independent simulator)."""
+    rng = np.random.default_rng(8)
+    phys = fieldsim.draw_drive(rng, event=None, days=1)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    scale = normalisation_scale(factory)
+
+    def stats_at(theta, temp_c):
+        t = np.arange(theta.size) * 0.05
+        d, q = phys.measure(theta, np.full(theta.size, temp_c), t, rng)
+        return window_stats(Samples(t=t, d=d, q=q, temp_c=np.full(theta.size, temp_c)), scale)
+
+    hot = 62.0
+    band = band_of(hot)
+    circle = stats_at(rng.uniform(0, 2 * np.pi, 40000), hot)
+    first = refit_device({band: circle}, factory, factory)
+    assert [d.adopted for d in first.decisions if d.band == band] == [True]
+    running = BandedCorrection.from_dict({"bands": first.bands})
+
+    sweep = np.abs((np.arange(40000) * 0.002) % 2 - 1)  # back and forth over one arc of ~95°
+    arc = stats_at(np.radians(60 + 95 * sweep), hot)
+    again = refit_device({band: arc}, running, factory)
+    (decision,) = [d for d in again.decisions if d.band == band]
+    assert decision.running_error_deg > MIN_GAIN_DEG  # the arc's candidate differs from what runs …
+    assert decision.candidate_error_deg * CONFIDENCE > decision.running_error_deg  # … by less than it can know
+    assert not decision.adopted and not again.changed
