@@ -258,81 +258,167 @@ def fit_drift(
     when the model fits worse than the scatter says) and a jackknife over the circle's quarters, which
     sees what the scatter cannot: bins seen at different times disagreeing (a drive that reverses over
     arcs while the band warms). `adjust` may move the bin points first (see `temperature_adjust`)."""
+    (fit,) = fit_drifts([field], locus, adjusts=[adjust], min_bins=min_bins, iterations=iterations, jackknife=jackknife)
+    if isinstance(fit, InputError):
+        raise fit
+    return fit
+
+
+def fit_drifts(
+    fields: list[WindowStats],
+    locus: BenchLocus,
+    *,
+    adjusts: list[Callable[[BinPoints], np.ndarray] | None] | None = None,
+    min_bins: int = 16,
+    iterations: int = 8,
+    jackknife: bool = True,
+) -> list[DriftFit | InputError]:
+    """`fit_drift` of several statistics (a refit's bands) against one bench locus, as one batch: the
+    Gauss-Newton steps and the jackknife's refits of all of them run as a few array operations, so a
+    dozen bands cost little more than one. Each entry is its fit, or the InputError that fit would raise."""
     polar = polar_locus(locus)
     radius = locus.radius
-    x = np.array([polar.center[0], polar.center[1], 0.0, 0.0, 0.0])
+    adjusts = adjusts or [None] * len(fields)
+    out: list[DriftFit | InputError | None] = [None] * len(fields)
+    x = np.tile([polar.center[0], polar.center[1], 0.0, 0.0, 0.0], (len(fields), 1))
+    pts: list = [None] * len(fields)
+    weights: list = [None] * len(fields)
+    info, resid = {}, {}
+    live = list(range(len(fields)))
     for _ in range(2):  # the bin points' outward shift depends on the centre: settle it once
-        pts = bin_points(field, x[:2])
-        if adjust is not None:
-            pts.points = adjust(pts)
-        if pts.counts.size < min_bins:
-            raise InputError(f"too few angle bins with samples for a drift fit: {pts.counts.size}, need {min_bins}")
-        # a bin's weight: its mean's variance plus the bench curve's own; counts capped at the median so
-        # that a few positions a servo holds for hours do not outvote the rest of the circle
-        capped = np.minimum(pts.counts, np.median(pts.counts))
-        weights = radius**2 / (pts.sigma**2 / capped + locus.precision**2)
-        x, info, r = _solve(polar, pts.points, weights, x, iterations)
-    dof = max(pts.counts.size - 5, 1)
-    chi2_dof = float(np.sum(weights * r * r) / dof)
-    errors = _term_errors(x, info, max(chi2_dof, 1.0), polar.center, radius)
-    if jackknife:
-        spread = _jackknife(polar, pts, weights, x, radius, min_bins // 2)
-        errors = {t: max(errors[t], spread[t]) for t in TERMS}
-    return DriftFit(_drift_of(x, polar.center), errors, chi2_dof, pts.counts.size)
+        batch = []
+        for i in live:
+            p = bin_points(fields[i], x[i, :2])
+            if adjusts[i] is not None:
+                p.points = adjusts[i](p)
+            if p.counts.size < min_bins:
+                out[i] = InputError(
+                    f"too few angle bins with samples for a drift fit: {p.counts.size}, need {min_bins}"
+                )
+                continue
+            # a bin's weight: its mean's variance plus the bench curve's own; counts capped at the median so
+            # that a few positions a servo holds for hours do not outvote the rest of the circle
+            capped = np.minimum(p.counts, np.median(p.counts))
+            pts[i], weights[i] = p, radius**2 / (p.sigma**2 / capped + locus.precision**2)
+            batch.append(i)
+        solved = _solve(polar, [pts[i].points for i in batch], [weights[i] for i in batch], x[batch], iterations)
+        live = []
+        for i, result in zip(batch, solved):
+            if isinstance(result, InputError):
+                out[i] = result
+                continue
+            x[i], info[i], resid[i] = result
+            live.append(i)
+    spreads = (
+        _jackknife(polar, [pts[i] for i in live], [weights[i] for i in live], x[live], radius, min_bins // 2)
+        if jackknife
+        else [None] * len(live)
+    )
+    for i, spread in zip(live, spreads):
+        dof = max(pts[i].counts.size - 5, 1)
+        chi2_dof = float(np.sum(weights[i] * resid[i] * resid[i]) / dof)
+        errors = _term_errors(x[i], info[i], max(chi2_dof, 1.0), polar.center, radius)
+        if spread is not None:
+            errors = {t: max(errors[t], spread[t]) for t in TERMS}
+        out[i] = DriftFit(_drift_of(x[i], polar.center), errors, chi2_dof, pts[i].counts.size)
+    return out
 
 
 STEPS = np.array([1e-3, 1e-3, 1e-5, 1e-5, 1e-5])  # finite-difference steps: centre (× radius), shape
 
 
-def _solve(polar: PolarLocus, points, weights, x, iterations: int):
-    """Gauss-Newton on the radial residuals; returns the parameters, their information matrix, the residuals."""
+def _solve(polar: PolarLocus, points: list[np.ndarray], weights: list[np.ndarray], x0: np.ndarray, iterations: int):
+    """Gauss-Newton on the radial residuals of several problems at once (each stops when its own step is
+    negligible); per problem its parameters, their information matrix and its residuals, or an InputError."""
+    if not points:
+        return []
     radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
     steps = STEPS * np.array([radius, radius, 1, 1, 1])
     probes = np.vstack([np.zeros(5), np.diag(steps)])  # the point and its five finite-difference neighbours
-    field = np.ascontiguousarray(points.T)  # (2, n)
+    # the problems side by side, padded to the longest with a real point of weight zero
+    sizes = [len(p) for p in points]
+    field = np.empty((len(points), 2, max(sizes)))
+    w = np.zeros((len(points), max(sizes)))
+    for k, (p, wk) in enumerate(zip(points, weights)):
+        field[k] = p[np.minimum(np.arange(max(sizes)), len(p) - 1)].T
+        w[k, : len(p)] = wk
 
-    def residuals(xs: np.ndarray) -> np.ndarray:
-        """(m, 5) parameter sets -> (m, n) residuals, in one pass: polar.unit(drift.apply(p)) is one 2x2 map
-        per set, because the drift's bench centre is the locus's centre."""
-        shapes = np.zeros((len(xs), 2, 2))
+    def residuals(xs: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(a, m, 5) parameter sets of problems `rows` -> (a, m, n) residuals: polar.unit(drift.apply(p)) is
+        one 2x2 map per set, because the drift's bench centre is the locus's centre."""
+        shapes = np.zeros(xs.shape[:2] + (2, 2))
         with np.errstate(over="ignore", invalid="ignore"):  # a run-away step: non-finite terms, gated out later
-            shapes[:, 0, 0], shapes[:, 1, 0], shapes[:, 1, 1] = np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4])
-            u = (polar.to_unit @ shapes) @ (field[None] - xs[:, :2, None])  # (m, 2, n)
-            return polar.residual_of_unit(np.moveaxis(u, 1, 0))
+            shapes[..., 0, 0], shapes[..., 1, 0], shapes[..., 1, 1] = np.exp(xs[..., 2]), xs[..., 3], np.exp(xs[..., 4])
+            u = (polar.to_unit @ shapes) @ (field[rows, None] - xs[..., :2, None])  # (a, m, 2, n)
+            return polar.residual_of_unit(np.moveaxis(u, -2, 0))
 
+    x = np.array(x0, float)
+    info = np.zeros((len(points), 5, 5))
+    active = np.ones(len(points), bool)
+    failed = np.zeros(len(points), bool)
     for _ in range(iterations):
-        r = residuals(x + probes)
-        r0 = r[0]
-        jac = ((r[1:] - r0) / steps[:, None]).T
-        info = jac.T @ (jac * weights[:, None])
-        try:
-            step = np.linalg.solve(info, -jac.T @ (weights * r0))
-        except np.linalg.LinAlgError as exc:
-            raise InputError("drift fit: the bins do not constrain the drift") from exc
-        x = x + step
-        if np.all(np.abs(step) < steps * 1e-3):
+        rows = np.flatnonzero(active)
+        if rows.size == 0:
             break
-    return x, info, residuals(x[None])[0]
+        r = residuals(x[rows, None, :] + probes, rows)
+        r0 = r[:, 0]
+        jac = np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2)  # (a, n, 5)
+        info[rows] = np.swapaxes(jac, 1, 2) @ (jac * w[rows, :, None])
+        rhs = -np.einsum("ank,an->ak", jac, w[rows] * r0)
+        step = _solve_each(info[rows], rhs)
+        bad = np.isnan(step[:, 0]) & np.all(np.isfinite(info[rows]), axis=(1, 2))
+        failed[rows[bad]] = True
+        x[rows] += np.where(bad[:, None], 0.0, step)
+        done = bad | np.all(np.abs(step) < steps * 1e-3, axis=1)
+        active[rows[done]] = False
+    final = residuals(x[:, None, :], np.arange(len(points)))[:, 0]
+    return [
+        InputError("drift fit: the bins do not constrain the drift") if failed[k] else (x[k], info[k], final[k, :n])
+        for k, n in enumerate(sizes)
+    ]
 
 
-def _jackknife(polar: PolarLocus, pts: BinPoints, weights, x, radius: float, min_bins: int) -> dict[str, float]:
-    """Standard error of each term from the four fits that each leave one quarter of the circle out."""
-    quarter = pts.index * 4 // N_BINS
-    estimates = []
-    for k in range(4):
-        keep = quarter != k
-        if keep.sum() < max(min_bins, 6):
-            return {t: float("inf") for t in TERMS}
-        try:
-            xk, _, _ = _solve(polar, pts.points[keep], weights[keep], x.copy(), 4)
-        except InputError:
-            return {t: float("inf") for t in TERMS}
-        estimates.append(_drift_of(xk, polar.center).terms(radius))
-    values = np.array([[e[t] for t in TERMS] for e in estimates])
-    if not np.all(np.isfinite(values)):  # a quarter left out and the fit ran away: the circle does not pin it
-        return {t: float("inf") for t in TERMS}
-    spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
-    return {t: float(v) for t, v in zip(TERMS, spread)}
+def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """np.linalg.solve of a stack, with NaN rows for the singular matrices instead of one error for all."""
+    try:
+        return np.linalg.solve(matrices, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.full(rhs.shape, np.nan)
+        for k in range(len(matrices)):
+            try:
+                out[k] = np.linalg.solve(matrices[k], rhs[k])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def _jackknife(polar: PolarLocus, pts_list, weights_list, xs, radius: float, min_bins: int) -> list[dict[str, float]]:
+    """Standard error of each term, per problem, from the four fits that each leave one quarter of the circle
+    out (all problems' quarters in one batch)."""
+    unknown = {t: float("inf") for t in TERMS}
+    out: list[dict[str, float]] = [unknown] * len(pts_list)
+    owners, points, weights, starts = [], [], [], []
+    for i, (pts, w) in enumerate(zip(pts_list, weights_list)):
+        quarter = pts.index * 4 // N_BINS
+        keeps = [quarter != k for k in range(4)]
+        if any(keep.sum() < max(min_bins, 6) for keep in keeps):
+            continue  # a quarter left out leaves too little of the circle: the spread is unknown
+        for keep in keeps:
+            owners.append(i)
+            points.append(pts.points[keep])
+            weights.append(w[keep])
+            starts.append(xs[i])
+    solved = _solve(polar, points, weights, np.array(starts).reshape(-1, 5), 4)
+    for i in sorted(set(owners)):
+        mine = [solved[k] for k, owner in enumerate(owners) if owner == i]
+        if any(isinstance(m, InputError) for m in mine):
+            continue
+        values = np.array([[e[t] for t in TERMS] for e in (_drift_of(m[0], polar.center).terms(radius) for m in mine)])
+        if not np.all(np.isfinite(values)):  # a quarter left out and the fit ran away: the circle does not pin it
+            continue
+        spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
+        out[i] = {t: float(v) for t, v in zip(TERMS, spread)}
+    return out
 
 
 def _term_errors(x, info, inflate: float, bench_center, radius: float) -> dict[str, float]:
@@ -381,14 +467,20 @@ def compose(factory: Correction, drift: Drift) -> Correction:
     )
 
 
+@lru_cache(maxsize=8)
+def _whole_degrees(order: int) -> np.ndarray:
+    """The Fourier design at every whole degree, built once per order (anchor_zero runs for every band)."""
+    return fourier_design(np.arange(360) * (2 * np.pi / 360), order)
+
+
 def anchor_zero(candidate: Correction, factory: Correction, locus: BenchLocus, drift: Drift) -> Correction:
     """Give the candidate the factory's zero: no rotation between them on average around the field's locus.
 
     The field cannot see a rotation of both axes together; whatever part of it the drift map carries is a
     convention (S lower triangular keeps the d axis). Anchored, the candidate's mean angle error is the
     factory's at the same temperature, whatever the axes did."""
-    theta = np.arange(360) * (2 * np.pi / 360)
-    d, q = drift.inverse(*locus.points(theta))
+    design = _whole_degrees(locus.order)
+    d, q = drift.inverse(design @ locus.d, design @ locus.q)
     diff = factory.angle(d, q) - candidate.angle(d, q)
     out = Correction(**{**candidate.__dict__, "harmonics": dict(candidate.harmonics)})
     shift = np.angle(np.mean(np.exp(1j * diff)))

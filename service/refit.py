@@ -29,7 +29,7 @@ from encoder_core.differential import (
     anchor_zero,
     compose,
     drift_slope,
-    fit_drift,
+    fit_drifts,
     gate,
     temperature_adjust,
 )
@@ -209,30 +209,43 @@ def band_fits(
 ) -> dict[int, tuple[DriftFit, WindowStats, Correction, BenchLocus]]:
     """Each band's drift fit (bands whose statistics do not pin it down are left out); a second pass takes
     the bins to the band's temperature when their temperatures are known."""
-    fits = {}
+    chosen = {
+        band: (stats, *min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean)))
+        for band, stats in sorted(band_stats.items())
+        if stats.n >= min_samples
+    }
     final = not bin_temps  # a first pass only feeds the second: its errors are not needed
-    for band, stats in sorted(band_stats.items()):
-        if stats.n < min_samples:
-            continue
-        factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean))
-        try:
-            fits[band] = (fit_drift(stats, locus, jackknife=errors and final), stats, factory, locus)
-        except InputError:
-            continue  # too few angles seen in this band yet
+    fits = fit_bands(chosen, jackknife=errors and final)
     if final:
         return fits
     first = {band: (f.drift, stats.temp_mean) for band, (f, stats, _, _) in fits.items()}
-    for band, (fit, stats, factory, locus) in list(fits.items()):
-        adjust = None
+    adjusts = {}
+    for band, (fit, stats, _, locus) in fits.items():
         if band in bin_temps:
             lo, hi = neighbours(band, first, locus)
             slope = drift_slope(fit.drift, stats.temp_mean, lo, hi)
-            adjust = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
-        try:
-            fits[band] = (fit_drift(stats, locus, adjust=adjust, jackknife=errors), stats, factory, locus)
-        except InputError:
-            del fits[band]
-    return fits
+            adjusts[band] = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
+    return fit_bands({band: chosen[band] for band in fits}, adjusts, jackknife=errors)
+
+
+def fit_bands(chosen: dict, adjusts: dict | None = None, *, jackknife: bool) -> dict:
+    """band -> (statistics, factory band, bench locus) fitted in one batch per bench locus (`fit_drifts`);
+    bands too little of the circle pins are left out."""
+    adjusts = adjusts or {}
+    by_locus: dict[int, list[int]] = {}
+    for band, (_, _, locus) in chosen.items():
+        by_locus.setdefault(id(locus), []).append(band)
+    fits = {}
+    for bands in by_locus.values():
+        locus = chosen[bands[0]][2]
+        found = fit_drifts(
+            [chosen[b][0] for b in bands], locus, adjusts=[adjusts.get(b) for b in bands], jackknife=jackknife
+        )
+        for band, fit in zip(bands, found):
+            if not isinstance(fit, InputError):
+                stats, factory, locus = chosen[band]
+                fits[band] = (fit, stats, factory, locus)
+    return dict(sorted(fits.items()))
 
 
 def neighbours(band: int, first: dict[int, tuple[Drift, float]], locus: BenchLocus):
