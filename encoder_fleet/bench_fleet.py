@@ -250,7 +250,8 @@ def run_bench(
         )
     print(
         "\nwindows/s: validated, deduplicated and stored (with the band sums) through a real router and the store;"
-        "\nrefits/s: one refit pass over every device (ellipse, pooled harmonics, zero anchor, rollout decision)."
+        "\nrefits/s: one refit pass over every device (drift fit per band against the bench locus, drift curve,"
+        " adoption, rollout: guard, signed set, stored and published)."
         "\nmTLS+ACL+signed: TLS with client certificates, the router's ACL of the whole fleet, the service's guard,"
         "\nand every rolled-out set signed (Ed25519)."
     )
