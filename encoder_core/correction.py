@@ -107,7 +107,7 @@ def harmonic_sum(theta0, harmonics: dict[int, tuple[float, float]]) -> np.ndarra
     cosine and a sine per order (3x faster for a dozen orders; the refit evaluates sets on every band)."""
     theta0 = np.asarray(theta0, dtype=float)
     total = np.zeros_like(theta0)
-    if any(m < 1 for m in harmonics):  # not a harmonic order: term by term
+    if not all(isinstance(m, (int, np.integer)) and m >= 1 for m in harmonics):  # not harmonic orders: term by term
         for m, (a, b) in harmonics.items():
             total = total + a * np.cos(m * theta0) + b * np.sin(m * theta0)
         return total
@@ -117,7 +117,7 @@ def harmonic_sum(theta0, harmonics: dict[int, tuple[float, float]]) -> np.ndarra
         power = power * z
         if m in harmonics:
             a, b = harmonics[m]
-            total += a * power.real + b * power.imag
+            total = total + a * power.real + b * power.imag
     return total
 
 

@@ -234,7 +234,8 @@ def guard_decision(
             f"worse than the set before by {c.difference_deg:.4f}° (± {c.difference_se_deg:.4f}°): "
             f"{c.trial.angle_error_deg:.4f}° against {c.before.angle_error_deg:.4f}°",
         )
-    measured = [c for c in comparisons if c.difference_deg is not None]
+    # a comparison whose difference has no finite error (a term the soak cannot pin) measured nothing
+    measured = [c for c in comparisons if c.difference_deg is not None and np.isfinite(c.difference_se_deg)]
     if soak_samples < min_soak_samples:
         return GuardDecision("wait", f"soak {soak_samples} of {min_soak_samples} samples")
     if measured:

@@ -301,7 +301,7 @@ def drift_candidate(
     # a few held positions) has correlated, understated errors in the rest. Counting only the adopted terms made
     # "nothing measurable" a candidate of zero uncertainty (bench-fleet-accuracy 20 Hz: worse hours 37 -> 17)
     err = float(np.degrees(np.sqrt(sum(errors[t] ** 2 for t in TERMS))))
-    err = err if np.isfinite(err) else UNBOUNDED_ERROR_DEG
+    err = min(err, UNBOUNDED_ERROR_DEG) if np.isfinite(err) else UNBOUNDED_ERROR_DEG
     quality = {
         "drift_terms": {t: kept[t] for t in TERMS},
         "drift_errors": {t: errors[t] if np.isfinite(errors[t]) else None for t in TERMS},

@@ -270,3 +270,18 @@ def test_the_watch_restores_the_factory_set_where_the_running_one_is_worse(fleet
     truth_ran = np.sqrt(np.mean(fieldsim.true_error_deg(ran, run) ** 2))
     truth_restored = np.sqrt(np.mean(fieldsim.true_error_deg(restored, run) ** 2))
     assert truth_restored < truth_ran, (truth_restored, truth_ran)
+
+
+def test_a_comparison_with_no_finite_error_is_not_counted_as_measured():
+    """A soak whose fit cannot pin a term gives a difference of unknown error: the trial waits (and is kept on
+    the refit's word at the end), it is not confirmed as 'not worse in 1 band measured'."""
+    from encoder_core.outcome import AngleErrorEstimate, Comparison, guard_decision
+
+    def comparison(se):
+        trial, before = AngleErrorEstimate(0.05, se, 30000, "locus"), AngleErrorEstimate(0.06, se, 30000, "locus")
+        return Comparison(trial, before, -0.01, se)
+
+    unknown = guard_decision([comparison(float("inf"))], soak_samples=30000)
+    assert unknown.action == "wait" and "not measurable" in unknown.reason
+    known = guard_decision([comparison(0.001)], soak_samples=30000)
+    assert known.action == "confirm" and "1 band(s) measured" in known.reason
