@@ -38,6 +38,10 @@ HOUR_S = 3600.0
 HARMONIC_CYCLES = (3, 4, 5, 6)  # radius ripple cycles per turn; order n = cycles + 1
 N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbalance, harmonics (cos, sin)
 MIN_FIT_SAMPLES = 100
+# a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
+# ellipse through one arc puts its centre anywhere along the arc's axis, and a reversing drive's windows then
+# read as offset steps (bench-fleet-accuracy: false offset_step alarms that moved every band of a good set)
+MAX_GAP_BINS = N_BINS // 4
 
 
 @dataclass
@@ -126,6 +130,14 @@ def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
     return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
 
 
+def largest_gap_bins(stats: WindowStats) -> int:
+    """The longest run of empty angle bins around the circle (N_BINS when the window saw nothing)."""
+    seen = np.flatnonzero(stats.bins[:, 0] > 0)
+    if seen.size == 0:
+        return N_BINS
+    return int(np.max(np.diff(np.append(seen, seen[0] + N_BINS))) - 1)
+
+
 def window_features(
     stats: WindowStats, *, t: float, temp_c: float, band: int, rejected_by_reason: dict | None = None
 ) -> Features:
@@ -137,7 +149,7 @@ def window_features(
     f = Features(
         t=float(t), temp_c=float(temp_c), band=int(band), samples=n, seen=n + int(stats.rejected), rejected=rejected
     )
-    if n < MIN_FIT_SAMPLES:
+    if n < MIN_FIT_SAMPLES or largest_gap_bins(stats) > MAX_GAP_BINS:
         return f
     fit = _ellipse(stats)
     if fit is None:
