@@ -114,3 +114,42 @@ def test_a_band_its_data_cannot_bound_is_not_taken_back_to_the_factory():
     assert decision.running_error_deg > MIN_GAIN_DEG  # the arc's candidate differs from what runs …
     assert decision.candidate_error_deg * CONFIDENCE > decision.running_error_deg  # … by less than it can know
     assert not decision.adopted and not again.changed
+
+
+def test_band_fits_in_one_batch_equal_each_band_fitted_alone():
+    """fit_drifts pads the bands to one array and stops each on its own step: a band's fit must not depend on
+    the others in its batch (a full circle, arcs of different lengths, and one with too few bins)."""
+    from encoder_core.differential import TERMS, BenchLocus, fit_drift, fit_drifts
+    from encoder_core.samples import InputError
+
+    rng = np.random.default_rng(12)
+    phys = fieldsim.draw_drive(rng, event=None, days=1)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    scale = normalisation_scale(factory)
+    locus = BenchLocus.from_dict(factory.bands[0].bench_locus)
+
+    def stats_at(theta, temp_c):
+        t = np.arange(theta.size) * 0.05
+        d, q = phys.measure(theta, np.full(theta.size, temp_c), t, rng)
+        return window_stats(Samples(t=t, d=d, q=q, temp_c=np.full(theta.size, temp_c)), scale)
+
+    sweep = np.abs((np.arange(20000) * 0.002) % 2 - 1)
+    fields = [
+        stats_at(rng.uniform(0, 2 * np.pi, 20000), -10.0),
+        stats_at(np.radians(40 + 200 * sweep), 45.0),
+        stats_at(np.radians(300 + 100 * sweep), 60.0),
+        stats_at(np.radians(10 + 30 * sweep), 30.0),  # a few bins: no fit
+    ]
+    together = fit_drifts(fields, locus)
+    for field, batched in zip(fields, together):
+        try:
+            alone = fit_drift(field, locus)
+        except InputError as exc:
+            assert isinstance(batched, InputError) and str(batched) == str(exc)
+            continue
+        assert not isinstance(batched, InputError)
+        want, got = alone.drift.terms(locus.radius), batched.drift.terms(locus.radius)
+        for term in TERMS:
+            assert got[term] == pytest.approx(want[term], rel=1e-7, abs=1e-12)
+            assert batched.errors[term] == pytest.approx(alone.errors[term], rel=1e-6, abs=1e-12)
+    assert sum(isinstance(f, InputError) for f in together) == 1
