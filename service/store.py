@@ -522,7 +522,8 @@ class Store:
             (device, band, first_seq, cutoff),
         ).fetchall()
         old = [(r["seq"], r["samples"], self._stats_of(r).window_stats()) for r in rows]
-        old += [p[:3] for p in pending if p[0] >= first_seq and p[3] < cutoff]
+        stored = {r["seq"] for r in rows}  # an ack in the batch writes the windows staged before it: count each once
+        old += [p[:3] for p in pending if p[0] >= first_seq and p[3] < cutoff and p[0] not in stored]
         if not old:
             return entry
         for _, _, stats in old:

@@ -312,3 +312,25 @@ def test_restarting_band_memory_keeps_only_windows_after_the_step(store):
         == len([m for m in msgs if m["band"] == 2 and m["window_end"] > step_at]) + 1
     )
     assert store.restart_band_memory("drive-001", after=1e12) == [2, 3] and store.band_stats("drive-001") == {}
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+def test_a_band_sum_with_a_horizon_forgets_each_window_once_when_an_ack_shares_the_batch(backend, tmp_path, request):
+    """An ack writes the windows staged before it; a later window of the same band that pushes them past the
+    horizon must take each out of the sum once (it was taken out twice: sums went negative, bands unfittable)."""
+    from encoder_core.stats import WindowStats
+
+    target = tmp_path / "fleet.db" if backend == "sqlite" else request.getfixturevalue("postgres_url")
+    horizon_s = 150.0  # 60 s windows: a band keeps its newest two or three
+    msgs = [window(seq=seq, temp_c=23.0) for seq in range(1, 9)]
+    items = [(keys.key("drive-001", keys.STATS), wire.encode("window", m)) for m in msgs]
+    items.insert(3, (keys.key("drive-001", keys.ACK), wire.encode("ack", ack(at=170.0))))
+    with Store.open(target, band_horizon_s=horizon_s) as store:
+        assert store.ingest_many(items) == ["stored"] * len(items)
+        total, windows, samples = store.band_stats("drive-001")[2]
+    mine = [m for m in msgs if m["window_end"] >= msgs[-1]["window_end"] - horizon_s]
+    expected = WindowStats.from_dict(mine[0]["stats"])
+    for m in mine[1:]:
+        expected = expected.merge(WindowStats.from_dict(m["stats"]))
+    assert windows == len(mine) and samples == sum(m["samples"] for m in mine) == total.n
+    np.testing.assert_allclose(total.moments, expected.moments, rtol=1e-9)
