@@ -442,8 +442,8 @@ class Store:
         stats = win.stats.window_stats()
         entry = bands.get(band)
         pending = batch.by_band.setdefault((device, band), [])
-        if entry is None:
-            entry = [stats, 1, win.samples, 1]
+        if entry is None:  # a band's sum starts here; its stored windows, if any, were forgotten by a restart
+            entry = [stats, 1, win.samples, self._first_seq_of_new_band(device, band)]
         elif seq >= entry[3]:  # older ones are past the band's horizon: kept, not summed
             try:
                 total = entry[0].merge(stats)
@@ -474,6 +474,14 @@ class Store:
             bands[band] = entry
             batch.dirty.add((device, band))
         return True
+
+    def _first_seq_of_new_band(self, device: str, band: int) -> int:
+        """Windows a band's sum may hold: none of those stored before it started (a restart after a step forgot
+        them and deleted the sum), any that arrive later, catch-up windows with a lower seq included."""
+        row = self._conn.execute(
+            "SELECT max(seq) AS seq FROM windows WHERE device = ? AND band = ?", (device, band)
+        ).fetchone()
+        return 1 if row is None or row["seq"] is None else row["seq"] + 1
 
     def restart_band_memory(self, device: str, after: float) -> list[int]:
         """Forget, in every band's sum, the windows that ended at or before `after` (drive clock): after an

@@ -334,3 +334,26 @@ def test_a_band_sum_with_a_horizon_forgets_each_window_once_when_an_ack_shares_t
         expected = expected.merge(WindowStats.from_dict(m["stats"]))
     assert windows == len(mine) and samples == sum(m["samples"] for m in mine) == total.n
     np.testing.assert_allclose(total.moments, expected.moments, rtol=1e-9)
+
+
+def test_a_band_restarted_to_nothing_starts_again_from_its_new_windows(tmp_path):
+    """After a step forgets every window of a band, its new sum must not take the forgotten ones out again when
+    they fall past the horizon (it did: the sum went negative, and the knocked drive was never refitted)."""
+    from encoder_core.stats import WindowStats
+
+    horizon_s = 150.0
+    msgs = [window(seq=seq, temp_c=23.0) for seq in range(1, 13)]
+    with Store.open(tmp_path / "fleet.db", band_horizon_s=horizon_s) as store:
+        for m in msgs[:6]:
+            store.insert_window(m)
+        assert store.restart_band_memory("drive-001", after=msgs[5]["window_end"]) == [2]
+        assert store.band_stats("drive-001") == {}
+        for m in msgs[6:]:
+            store.insert_window(m)
+        total, windows, samples = store.band_stats("drive-001")[2]
+    mine = [m for m in msgs[6:] if m["window_end"] >= msgs[-1]["window_end"] - horizon_s]
+    expected = WindowStats.from_dict(mine[0]["stats"])
+    for m in mine[1:]:
+        expected = expected.merge(WindowStats.from_dict(m["stats"]))
+    assert windows == len(mine) and samples == sum(m["samples"] for m in mine) == total.n
+    np.testing.assert_allclose(total.moments, expected.moments, rtol=1e-9)
