@@ -51,9 +51,9 @@ def test_refit_leaves_a_right_set_alone():
     assert all(d.running_error_deg < 1e-6 for d in again.decisions if d.band in adopted_first)
 
 
-@pytest.mark.parametrize("bench_locus, hours", [(True, 0.02), (False, 0.1)])
+@pytest.mark.parametrize("bench_locus, hours", [(True, 0.005), (False, 0.1)])
 def test_too_few_samples_gives_no_fit(bench_locus, hours):
-    # with the bench locus a band needs MIN_BAND_SAMPLES (one minute at 20 Hz is fewer); without it, the density
+    # with the bench locus a band needs MIN_BAND_SAMPLES (18 s at 20 Hz are fewer); without it, the density
     # harmonics need LEGACY_MIN_SAMPLES (six minutes are fewer)
     seed = 2
     factory = factory_calibration(drive_model(seed), seed)
