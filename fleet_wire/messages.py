@@ -41,6 +41,9 @@ class WireError(InputError):
         super().__init__(message)
         self.reason = reason
 
+    def __reduce__(self):  # pickled with both arguments: a worker process's error reaches its pool intact
+        return type(self), (self.reason, str(self))
+
 
 def schema_bytes(kind: str) -> bytes:
     """The published JSON Schema file of a message kind (package data: schemas/ in the repository)."""

@@ -87,6 +87,9 @@ class RolloutError(ValueError):
         super().__init__(message)
         self.status = status
 
+    def __reduce__(self):  # pickled with both arguments: a worker process's error reaches its pool intact
+        return type(self), (self.status, str(self))
+
 
 def wave_sizes(total: int, base: int, factor: float) -> list[int]:
     sizes = []

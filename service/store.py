@@ -72,6 +72,9 @@ class StoreError(InputError):
         super().__init__(message)
         self.reason = reason
 
+    def __reduce__(self):  # pickled with both arguments: a worker process's error reaches its pool intact
+        return type(self), (self.reason, str(self))
+
 
 def _json(value) -> str:
     return json.dumps(value, separators=(",", ":"), allow_nan=False)

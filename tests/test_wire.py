@@ -281,3 +281,18 @@ def test_device_id_rule_is_one_rule_in_code_and_schema_files():
         assert keys.split(f"encoders/{bad}/stats/p00") is None, bad
     for good in ("d", "drive-001", "d.7_x", "A" * 64):
         assert keys.split(keys.key(good, keys.STATS)) == (good, "stats")
+
+
+def test_errors_with_a_reason_survive_pickling():
+    """A pool worker's error is pickled back to the parent; an error that cannot be rebuilt from its args
+    (reason, message) leaves multiprocessing's pool waiting forever (the accuracy bench hung that way)."""
+    import pickle
+
+    from service.rollout import RolloutError
+    from service.store import StoreError
+
+    for err in (wire.WireError("schema", "window: $.seq"), StoreError("seq_conflict", "#4"), RolloutError(409, "x")):
+        back = pickle.loads(pickle.dumps(err))
+        assert type(back) is type(err) and str(back) == str(err)
+        assert getattr(back, "reason", None) == getattr(err, "reason", None)
+        assert getattr(back, "status", None) == getattr(err, "status", None)
