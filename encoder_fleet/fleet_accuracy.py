@@ -9,8 +9,8 @@ band's memory after an offset step (as service.runtime does), the watch of the r
 every quarter of a drive-hour (service.trial.watch_against_factory), `service.refit.refit_device` on a refit
 cadence with what the service passes it, the agent's plausibility check before applying a set, and the
 set applied from the next window on, and the guard's trials as service.runtime judges them.
-Only the transport (Zenoh, SQLite) is left out, so that a fleet of drives × days × rates runs in
-minutes.
+The windows and band sums go through the service's own store (a SQLite file per drive). Only the transport
+(Zenoh) is left out, so that a fleet of drives × days × rates runs in minutes.
 
 Scoring uses the simulator's truth, which the loop never sees: the true angle error of what each drive
 ran (the factory set, then every applied set from the window after its refit), on noise-free signals
@@ -21,9 +21,10 @@ reference-free floor (`floor_set`): the best any refit without a reference could
 from __future__ import annotations
 
 import multiprocessing
+import tempfile
 import time
-from collections import deque
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -36,8 +37,11 @@ from encoder_core.samples import InputError, Samples
 from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
+from fleet_wire import keys
+from fleet_wire import messages as wire
 from service.refit import STEP_OPEN_S, refit_device
 from service.runtime import BAND_HORIZON_H, REFIT_EVERY_S, TRIAL_MAX_S, WATCH_EVERY_S
+from service.store import Store
 from service.trial import WATCH_S, TrialEvidence, changed_bands, judge, watch_against_factory
 
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
@@ -120,44 +124,55 @@ def windows_of(t: np.ndarray, window_s: float) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(starts, ends) if b > a]
 
 
-class BandSums:
-    """Each band's sum of the windows that ended within `horizon_s` of its newest (what service/store.py keeps
-    for the refit), and the store's restart of every band's memory after a detected step."""
+class StoreSums:
+    """The drive's windows in the service's own store (service/store.py, a SQLite file): its band sums with
+    the drive-time horizon, its restart of band memory after a step, and its windows since a time for the
+    watch. The bench once kept its own copy of these sums and so never saw two bugs the store had."""
 
-    def __init__(self, horizon_s: float | None = BAND_HORIZON_S):
-        self.horizon_s = horizon_s
-        self.windows: dict[int, deque] = {}
-        self.sums: dict[int, WindowStats] = {}
+    DEVICE = "drive"
 
-    def add(self, band: int, stats: WindowStats, end_s: float) -> None:
-        kept = self.windows.setdefault(band, deque())
-        kept.append((end_s, stats))
-        self.sums[band] = self.sums[band].merge(stats) if band in self.sums else stats
-        if self.horizon_s:
-            self._forget(band, lambda end: end < end_s - self.horizon_s)
+    def __init__(self, path, origin_s: float, horizon_s: float | None = BAND_HORIZON_S):
+        self.store = Store.open(path, band_horizon_s=horizon_s)
+        self.origin_s = origin_s  # the agent's clock starts at 0; the simulator's first sample may be jittered below
+        self.seq = 0
+        self.pending: list[tuple[str, bytes]] = []
+
+    def add(self, stats: WindowStats, start_s: float, end_s: float) -> None:
+        """A window, sent as the agent sends it; stored with the others in one batch when the sums are read."""
+        self.seq += 1
+        message = wire.window_message(
+            self.DEVICE,
+            self.seq,
+            stats,
+            window_start=start_s - self.origin_s,
+            window_end=end_s - self.origin_s,
+            temp_rate_c_per_s=0.0,
+            coefficients_version=0,
+            angle_quality_deg=0.0,
+        )
+        self.pending.append((keys.key(self.DEVICE, keys.STATS), wire.encode("window", message)))
+
+    def _ingest(self) -> None:
+        if self.pending:
+            statuses = self.store.ingest_many(self.pending)
+            refused = [s for s in statuses if s != "stored"]
+            if refused:
+                raise RuntimeError(f"the store refused {len(refused)} of the bench's windows: {refused[0]}")
+            self.pending = []
+
+    def band_sums(self) -> dict[int, WindowStats]:
+        self._ingest()
+        return {band: stats for band, (stats, _, _) in self.store.band_stats(self.DEVICE).items()}
 
     def recent(self, after_s: float) -> dict[int, WindowStats]:
         """Each band's sum of the windows that ended after `after_s`."""
-        out = {}
-        for band, kept in self.windows.items():
-            for end, stats in kept:
-                if end > after_s:
-                    out[band] = out[band].merge(stats) if band in out else stats
-        return out
+        self._ingest()
+        return self.store.stats_since(self.DEVICE, after_s - self.origin_s)
 
     def restart(self, after_s: float) -> None:
-        """Forget the windows that ended at or before `after_s` in every band (Store.restart_band_memory)."""
-        for band in list(self.windows):
-            self._forget(band, lambda end: end <= after_s)
-
-    def _forget(self, band: int, old) -> None:
-        kept = self.windows[band]
-        while kept and old(kept[0][0]):
-            _, stats = kept.popleft()
-            if not kept:
-                del self.windows[band], self.sums[band]
-                return
-            self.sums[band] = self.sums[band].subtract(stats)
+        """Forget the windows that ended at or before `after_s` in every band."""
+        self._ingest()
+        self.store.restart_band_memory(self.DEVICE, after=after_s - self.origin_s)
 
 
 def run_drive(spec: DriveSpec) -> DriveResult:
@@ -195,8 +210,18 @@ def fleet_loop(
     """The agent's windows, the service's band sums and refits, the drift monitor restarting band memory
     after a step, the guard holding each new set on trial until the soak judges it (service.runtime), the
     agent applying sets: returns the timeline of what the drive ran, as (from drive time, set)."""
+    with tempfile.TemporaryDirectory(prefix="fleet-accuracy-") as tmp:
+        sums = StoreSums(Path(tmp) / "fleet.sqlite", float(samples.t[0]), horizon_s)
+        try:
+            return _fleet_loop(
+                samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s
+            )
+        finally:
+            sums.store.close()
+
+
+def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s):
     scale = normalisation_scale(factory)  # the agent's normalisation
-    sums = BandSums(horizon_s)
     watch = DeviceMonitor("drive") if monitor else None
     factory_msg = factory_message("drive", factory)
     confirmed, trial = factory_msg, None  # trial: [set message, soak band -> stats, bands it changed]
@@ -217,7 +242,7 @@ def fleet_loop(
         if stats.temp_n == 0:
             continue
         band, end_s = band_of(stats.temp_mean), float(block.t[-1])
-        sums.add(band, stats, end_s)
+        sums.add(stats, float(block.t[0]), end_s)
         if trial is not None and band in trial[2]:  # the soak: what the drive ran on the trial set
             trial[1][band] = trial[1][band].merge(stats) if band in trial[1] else stats
         if watch is not None:
@@ -247,9 +272,10 @@ def fleet_loop(
             elif verdict.action == "rollback":
                 pending, trial = {**confirmed, "basis": "rollback"}, None
             continue
-        bin_temps = {b: s.bin_temps() for b, s in sums.sums.items()}  # what service.runtime passes
+        band_sums = sums.band_sums()
+        bin_temps = {b: s.bin_temps() for b, s in band_sums.items()}  # what service.runtime passes
         after_step = step_at is not None and end_s - step_at < STEP_OPEN_S
-        result = refit_device(sums.sums, running, factory, bin_temps=bin_temps, after_step=after_step)
+        result = refit_device(band_sums, running, factory, bin_temps=bin_temps, after_step=after_step)
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})
             try:
