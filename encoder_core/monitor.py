@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .held import held_points
 from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C
 from .stats import MONOMIALS, N_BINS, WindowStats
@@ -38,6 +39,8 @@ HOUR_S = 3600.0
 HARMONIC_CYCLES = (3, 4, 5, 6)  # radius ripple cycles per turn; order n = cycles + 1
 N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbalance, harmonics (cos, sin)
 MIN_FIT_SAMPLES = 100
+_SAME = math.radians(1.0)  # held positions closer than this along the circle are one
+_HELD_MEMORY_S = 12 * HOUR_S  # a held position not visited for this long is forgotten
 # a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
 # ellipse through one arc puts its centre anywhere along the arc's axis, and a reversing drive's windows then
 # read as offset steps (bench-fleet-accuracy: false offset_step alarms that moved every band of a good set)
@@ -54,6 +57,14 @@ class Settings:
     level_tau_s: float = 3 * HOUR_S  # the device's offset level follows slow drift with this time constant
     step_min: float = 0.008  # smallest offset jump worth an alarm, fraction of amplitude (CUSUM reference = half)
     step_h: float = 12.0  # CUSUM threshold, in standard deviations
+    held_step_min: float = 0.003  # a jump of the held positions worth an alarm, fraction of amplitude (they move
+    # ~0.0004 per °C, and up to 0.002 in minutes with the die's lag: a jump is judged against a visit within
+    # held_match_c and held_match_s; at 0.0015, clean 0.5 Hz drives raised an alarm every few hours)
+    held_step_z: float = 8.0  # ... and this many standard deviations at every position that shows it
+    held_step_max: float = 0.012  # ... and no larger (the planted steps: 0.003-0.01): two positions a few degrees
+    # apart can share an angle bin, and a drive switching between them moves the bin's point by 0.01-0.07
+    held_match_c: float = 2.0  # a held position is compared with its last visit this close in temperature
+    held_match_s: float = 180.0  # ... and this recent: over minutes the die's lag moves it by up to 0.002
     rate_tau_s: float = 3 * HOUR_S  # memory of the rate regressions (drive time)
     rates_after_s: float = 12 * HOUR_S  # rates are judged once the device has been judged this long
     rate_min_span_s: float = 3 * HOUR_S  # a rate is judged once its regression spans this much drive time
@@ -89,6 +100,7 @@ class Features:
     rejected: dict[str, int]
     y: np.ndarray | None = None  # N_FEATURES values (None when the window cannot be fitted)
     sigma: np.ndarray | None = None  # their uncertainties
+    held: list | None = None  # [x, y, sd] of each position the window held (normalised)
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -149,6 +161,10 @@ def window_features(
     f = Features(
         t=float(t), temp_c=float(temp_c), band=int(band), samples=n, seen=n + int(stats.rejected), rejected=rejected
     )
+    held = held_points(stats)
+    if held:
+        centre = np.array([stats.center_d, stats.center_q])
+        f.held = [[*((p - centre) / stats.scale).tolist(), math.sqrt(v) / stats.scale] for p, v in held]
     if n < MIN_FIT_SAMPLES or largest_gap_bins(stats) > MAX_GAP_BINS:
         return f
     fit = _ellipse(stats)
@@ -439,6 +455,7 @@ class DeviceMonitor:
     last_absurd_t: float | None = None
     amp_ref: float | None = None  # log amplitude of the last accepted window (gate for unlearned bands)
     online: bool = True
+    held_last: list = field(default_factory=list)  # [x, y, sd, temp_c, t] of each held position at its last visit
 
     def __post_init__(self):
         s = self.settings
@@ -482,6 +499,7 @@ class DeviceMonitor:
             "last_absurd_t": self.last_absurd_t,
             "amp_ref": self.amp_ref,
             "online": self.online,
+            "held_last": self.held_last,
         }
 
     @classmethod
@@ -512,6 +530,7 @@ class DeviceMonitor:
             last_absurd_t=d["last_absurd_t"],
             amp_ref=d["amp_ref"],
             online=d.get("online", True),
+            held_last=d.get("held_last", []),
         )
 
     # --- state for users ---------------------------------------------------------------------------
@@ -553,6 +572,8 @@ class DeviceMonitor:
             self.last_absurd_t = f.t
             return events
         self._fractions(f, dt, events)
+        if f.held:
+            self._held_step(f, events)
         if f.y is not None:
             self._shape(f, fleet, events)
         return events
@@ -720,6 +741,47 @@ class DeviceMonitor:
             level[_IMB] += w * (e[_IMB] - level[_IMB])
             self.level = list(level)
         self.level_t = f.t
+
+    def _held_step(self, f: Features, events) -> None:
+        """An offset step seen where the drive holds positions (a servo drive that never shows the circle, whose
+        windows the ellipse cannot judge): every position it comes back to at the temperature of its last visit
+        has moved, and by the same vector."""
+        s = self.settings
+        moves = []
+        for x, y, sd in f.held:
+            # the same position: the last one visited within a degree along the circle (a step is far smaller)
+            angle = math.atan2(y, x)
+            near = [p for p in self.held_last if abs(math.remainder(math.atan2(p[1], p[0]) - angle, math.tau)) < _SAME]
+            last = max(near, key=lambda p: p[4]) if near else None
+            if last is not None and abs(f.temp_c - last[3]) <= s.held_match_c and f.t - last[4] <= s.held_match_s:
+                move = np.array([x - last[0], y - last[1]])
+                if float(np.hypot(*move)) <= s.held_step_max:
+                    moves.append((move, math.hypot(sd, last[2])))
+            for p in near:
+                self.held_last.remove(p)
+            self.held_last.append([x, y, sd, f.temp_c, f.t])
+        self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
+        if not moves:
+            return
+        jumps = np.array([m for m, _ in moves])
+        delta = jumps.mean(axis=0)
+        size = float(np.hypot(*delta))
+        clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd in moves)
+        alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
+        if size < s.held_step_min or not (clear and alike):
+            return
+        self._raise(
+            events,
+            "offset_step",
+            f.t,
+            {"delta_d": round(float(delta[0]), 6), "delta_q": round(float(delta[1]), 6)},
+            f"the {len(moves)} positions the drive holds moved by {_pct(delta[0])} (d) and {_pct(delta[1])} (q) of "
+            f"the amplitude since their last visit at the same temperature, each over {s.held_step_z:g}× its "
+            f"uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
+        )
+        for last in self.held_last:  # positions not seen in this window: where they sit after the step
+            if last[4] != f.t:
+                last[0], last[1] = last[0] + float(delta[0]), last[1] + float(delta[1])
 
     def _rates(self, f: Features, e: np.ndarray, fleet: FleetRates | None, events) -> None:
         s = self.settings
