@@ -41,6 +41,7 @@ N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbala
 MIN_FIT_SAMPLES = 100
 _SAME = math.radians(1.0)  # held positions closer than this along the circle are one
 _HELD_MEMORY_S = 12 * HOUR_S  # a held position not visited for this long is forgotten
+_JUMP_PENDING_S = 1800.0  # a jump of the held positions waits this long to be seen still again
 # a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
 # ellipse through one arc puts its centre anywhere along the arc's axis, and a reversing drive's windows then
 # read as offset steps (bench-fleet-accuracy: false offset_step alarms that moved every band of a good set)
@@ -456,6 +457,7 @@ class DeviceMonitor:
     amp_ref: float | None = None  # log amplitude of the last accepted window (gate for unlearned bands)
     online: bool = True
     held_last: list = field(default_factory=list)  # [x, y, sd, temp_c, t] of each held position at its last visit
+    held_jump: list | None = None  # [Δx, Δy, t, windows]: the held positions jumped, not yet seen still again
 
     def __post_init__(self):
         s = self.settings
@@ -500,6 +502,7 @@ class DeviceMonitor:
             "amp_ref": self.amp_ref,
             "online": self.online,
             "held_last": self.held_last,
+            "held_jump": self.held_jump,
         }
 
     @classmethod
@@ -531,6 +534,7 @@ class DeviceMonitor:
             amp_ref=d["amp_ref"],
             online=d.get("online", True),
             held_last=d.get("held_last", []),
+            held_jump=d.get("held_jump"),
         )
 
     # --- state for users ---------------------------------------------------------------------------
@@ -761,6 +765,8 @@ class DeviceMonitor:
                 self.held_last.remove(p)
             self.held_last.append([x, y, sd, f.temp_c, f.t])
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
+        if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
+            self.held_jump = None  # never seen held again: no evidence either way
         if not moves:
             return
         jumps = np.array([m for m, _ in moves])
@@ -768,20 +774,27 @@ class DeviceMonitor:
         size = float(np.hypot(*delta))
         clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd in moves)
         alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
-        if size < s.held_step_min or not (clear and alike):
+        if size >= s.held_step_min and clear and alike:
+            # a jump; a step is one (or two, when it fell inside a window), a shaft creeping along keeps jumping
+            dx, dy, since, count = self.held_jump or [0.0, 0.0, f.t, 0]
+            self.held_jump = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1] if count < 2 else None
             return
+        if self.held_jump is None or size >= s.held_step_min / 2:
+            return
+        dx, dy, since, count = self.held_jump  # the positions are still again: it was a step
+        self.held_jump = None
         self._raise(
             events,
             "offset_step",
             f.t,
-            {"delta_d": round(float(delta[0]), 6), "delta_q": round(float(delta[1]), 6)},
-            f"the {len(moves)} positions the drive holds moved by {_pct(delta[0])} (d) and {_pct(delta[1])} (q) of "
-            f"the amplitude since their last visit at the same temperature, each over {s.held_step_z:g}× its "
-            f"uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
+            {"delta_d": round(dx, 6), "delta_q": round(dy, 6)},
+            f"the positions the drive holds moved by {_pct(dx)} (d) and {_pct(dy)} (q) of the amplitude against "
+            f"their last visit at the same temperature, each over {s.held_step_z:g}× its uncertainty, and stayed "
+            f"there; at {f.temp_c:.1f} °C (band {f.band}).",
         )
-        for last in self.held_last:  # positions not seen in this window: where they sit after the step
-            if last[4] != f.t:
-                last[0], last[1] = last[0] + float(delta[0]), last[1] + float(delta[1])
+        for last in self.held_last:  # positions not seen since the jump: where they sit after the step
+            if last[4] < since:
+                last[0], last[1] = last[0] + dx, last[1] + dy
 
     def _rates(self, f: Features, e: np.ndarray, fleet: FleetRates | None, events) -> None:
         s = self.settings

@@ -10,6 +10,7 @@ import numpy as np
 from encoder_core.held import held_points
 from encoder_core.monitor import DeviceMonitor, window_features
 from encoder_core.physics import band_of
+from encoder_core.samples import Samples
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
@@ -98,3 +99,25 @@ def test_a_0_5_hz_drive_is_not_judged_on_its_held_positions():
             raised += [e for e in monitor.update(features) if e.kind == "raise"]
     assert with_held > 0.8 * windows  # the positions are found
     assert raised == [] and monitor.held_last  # remembered, never compared
+
+
+def test_a_shaft_creeping_along_is_not_a_step():
+    """A shaft that creeps (a fraction of a degree a minute, drawn from the seed) looks held in every window and its
+    position moves between windows as a step would; but it keeps moving, and a step moves once."""
+    rng = np.random.default_rng([404, 99])
+    phys = fieldsim.draw_drive(rng, event=None, days=0.25)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    t = fieldsim.sample_times(0.25, 20.0, rng)
+    temp = fieldsim.reported_temperature(t, rng)
+    theta = rng.uniform(0, 2 * np.pi) + np.radians(rng.uniform(0.25, 0.6) / 60.0) * t
+    d, q = phys.measure(theta % (2 * np.pi), fieldsim.lagged_fast(temp, t, phys.die_lag_s), t, rng)
+    samples = Samples(t=t, d=d, q=q, temp_c=temp)
+    scale = normalisation_scale(factory)
+    monitor, jumped, raised = DeviceMonitor("creeping"), 0, []
+    for start, end in windows_of(t, 60.0):
+        stats = window_stats(samples.subset(slice(start, end)), scale)
+        features = window_features(stats, t=float(t[end - 1]), temp_c=stats.temp_mean, band=band_of(stats.temp_mean))
+        raised += [e.cause for e in monitor.update(features) if e.kind == "raise"]
+        jumped += monitor.held_jump is not None
+    assert jumped > 30  # its moves between windows are jumps a step would make
+    assert "offset_step" not in raised
