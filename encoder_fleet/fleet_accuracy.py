@@ -235,6 +235,9 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
         if pending is not None:  # the agent applies what arrived before this window
             running = BandedCorrection.from_dict({"bands": pending["bands"]})
             timeline.append((float(block.t[0]), running))
+            if watch is not None and step_at is not None and pending["created_at"] >= step_at:
+                # service.monitor: the step is cleared once a set made after it is applied (the next can be named)
+                watch.clear("offset_step", float(block.t[0]), "a set made after the step was applied")
             if guard and pending["basis"] != "rollback":
                 trial = [pending, {}, changed_bands(pending, confirmed), float(block.t[0])]
             pending = None
@@ -255,7 +258,12 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             if watch_against_factory(sums.recent(end_s - WATCH_S), running, factory):
                 # the first rule: the running set is worse than the factory's: the factory's again, and the drive
                 # learnt from what it is now
-                pending = {"bands": factory_msg["bands"], "basis": "rollback", "version": len(timeline)}
+                pending = {
+                    "bands": factory_msg["bands"],
+                    "basis": "rollback",
+                    "version": len(timeline),
+                    "created_at": end_s,
+                }
                 confirmed, trial = pending, None
                 sums.restart(after_s=end_s - WATCH_S)
                 next_refit = end_s + refit_every_s
@@ -270,7 +278,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             if verdict.action == "confirm":
                 confirmed, trial = trial[0], None
             elif verdict.action == "rollback":
-                pending, trial = {**confirmed, "basis": "rollback"}, None
+                pending, trial = {**confirmed, "basis": "rollback", "created_at": end_s}, None
             continue
         band_sums = sums.band_sums()
         bin_temps = {b: s.bin_temps() for b, s in band_sums.items()}  # what service.runtime passes
@@ -282,7 +290,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 check_plausible(candidate, factory)
             except InputError:
                 continue  # the agent refuses it and keeps running what it has
-            pending = {"bands": result.bands, "basis": "fit", "version": len(timeline)}
+            pending = {"bands": result.bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
     return timeline
 
 
