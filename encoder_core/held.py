@@ -21,30 +21,22 @@ def held_points(stats: WindowStats) -> list[tuple[np.ndarray, float]]:
     point), and scattered along the circle no more than a held position is (two positions a few degrees apart,
     or a bin a move crosses, scatter wider)."""
     full = stats.bins[:, 0] >= MIN_HELD_COUNT
-    if not full.any():
-        return []
-    if full.all():
-        return []  # a drive that turns: every bin is full, nothing is held
-    start = int(np.flatnonzero(~full)[0])  # walk the circle from an empty bin, so no run wraps
-    runs, run = [], []
-    for k in [(start + i) % len(full) for i in range(len(full))]:
-        if full[k]:
-            run.append(k)
-        elif run:
-            runs, run = runs + [run], []
-    runs += [run] if run else []
-    out = []
-    for run in runs:
-        sums = stats.bins[run].sum(axis=0)
-        n = sums[0]
-        mean = sums[1:3] / n
-        sxx, sxy, syy = sums[3:6] / n - np.array([mean[0] ** 2, mean[0] * mean[1], mean[1] ** 2])
-        r2 = float(mean @ mean)
-        if r2 <= 0:
-            continue
-        tangential = (mean[1] ** 2 * sxx - 2 * mean[0] * mean[1] * sxy + mean[0] ** 2 * syy) / r2
-        if not np.sqrt(max(tangential, 0.0) / r2) < MAX_SPREAD_RAD:
-            continue
-        point = np.array([stats.center_d, stats.center_q]) + stats.scale * mean
-        out.append((point, max((sxx + syy) / 2, 1e-12) * stats.scale**2 / n))
-    return out
+    if full.all() or not full.any():
+        return []  # nothing held, or a drive that turns: every bin is full
+    # the circle walked from an empty bin (so no run wraps), the other bins emptied: each run's sums in one reduceat
+    order = np.roll(np.arange(full.size), -int(np.flatnonzero(~full)[0]))
+    kept = full[order]
+    starts = np.flatnonzero(kept & ~np.concatenate(([False], kept[:-1])))
+    sums = np.add.reduceat(np.where(kept[:, None], stats.bins[order], 0.0), starts)
+    n = sums[:, 0]
+    mean = sums[:, 1:3] / n[:, None]
+    sxx, sxy, syy = (
+        sums[:, 3:6] / n[:, None] - np.column_stack([mean[:, 0] ** 2, mean[:, 0] * mean[:, 1], mean[:, 1] ** 2])
+    ).T
+    r2 = np.einsum("ij,ij->i", mean, mean)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tangential = (mean[:, 1] ** 2 * sxx - 2 * mean[:, 0] * mean[:, 1] * sxy + mean[:, 0] ** 2 * syy) / r2
+        held = (r2 > 0) & (np.sqrt(np.maximum(tangential, 0.0) / r2) < MAX_SPREAD_RAD)
+    centre = np.array([stats.center_d, stats.center_q])
+    var = np.maximum((sxx + syy) / 2, 1e-12) * stats.scale**2 / n
+    return [(centre + stats.scale * mean[k], float(var[k])) for k in np.flatnonzero(held)]
