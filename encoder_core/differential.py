@@ -22,7 +22,6 @@ field: the lower-triangular S fixes the d axis, as the factory's correction form
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -214,8 +213,11 @@ class PolarLocus:
 
     def residual_of_unit(self, u: np.ndarray) -> np.ndarray:
         """The same for points already in the locus's unit frame: u[0], u[1] of any shape."""
-        rho = np.interp(np.arctan2(u[1], u[0]), self._psi_closed, self._rho_closed)
-        return np.hypot(u[0], u[1]) - rho
+        return np.hypot(u[0], u[1]) - self.rho_of_unit(u)
+
+    def rho_of_unit(self, u: np.ndarray) -> np.ndarray:
+        """The curve's radius at the polar angle of points in the unit frame."""
+        return np.interp(np.arctan2(u[1], u[0]), self._psi_closed, self._rho_closed)
 
 
 def polar_locus(locus: BenchLocus) -> PolarLocus:
@@ -246,19 +248,21 @@ def fit_drift(
     field: WindowStats,
     locus: BenchLocus,
     *,
-    adjust: Callable[[BinPoints], np.ndarray] | None = None,
+    bin_dtemps: np.ndarray | None = None,
     min_bins: int = 16,
     iterations: int = 8,
     jackknife: bool = True,
 ) -> DriftFit:
     """Δ by weighted least squares: the field's bin points, taken back through Δ, on the bench locus.
 
-    Five parameters (field centre, lower-triangular shape); weights are the bins' counts over the
+    Five parameters (field centre, lower-triangular shape), and with the bins' temperatures a sixth, the
+    locus's common scale per kelvin inside the band (see fit_drifts); weights are the bins' counts over the
     sample scatter. A term's standard error is the larger of two: the scatter's (scaled up by the misfit
     when the model fits worse than the scatter says) and a jackknife over the circle's quarters, which
-    sees what the scatter cannot: bins seen at different times disagreeing (a drive that reverses over
-    arcs while the band warms). `adjust` may move the bin points first (see `temperature_adjust`)."""
-    (fit,) = fit_drifts([field], locus, adjusts=[adjust], min_bins=min_bins, iterations=iterations, jackknife=jackknife)
+    sees what the scatter cannot: bins seen at different times disagreeing."""
+    (fit,) = fit_drifts(
+        [field], locus, bin_dtemps=[bin_dtemps], min_bins=min_bins, iterations=iterations, jackknife=jackknife
+    )
     if isinstance(fit, InputError):
         raise fit
     return fit
@@ -268,20 +272,28 @@ def fit_drifts(
     fields: list[WindowStats],
     locus: BenchLocus,
     *,
-    adjusts: list[Callable[[BinPoints], np.ndarray] | None] | None = None,
+    bin_dtemps: list[np.ndarray | None] | None = None,
     min_bins: int = 16,
     iterations: int = 8,
     jackknife: bool = True,
 ) -> list[DriftFit | InputError]:
     """`fit_drift` of several statistics (a refit's bands) against one bench locus, as one batch: the
     Gauss-Newton steps and the jackknife's refits of all of them run as a few array operations, so a
-    dozen bands cost little more than one. Each entry is its fit, or the InputError that fit would raise."""
+    dozen bands cost little more than one. Each entry is its fit, or the InputError that fit would raise.
+
+    bin_dtemps (optional, per field): each angle bin's mean temperature minus the band's (N_BINS values). With
+    it the fit has a sixth parameter, the locus's common scale per kelvin inside the band (`GAIN_SLOPE_PRIOR`):
+    a drive that reverses over arcs or dwells while the band warms sees some angles only warm and others only
+    cool, and the gains' common temperature coefficient (~0.1 %/K, ten times every other drift of a band)
+    then reads as an offset or an imbalance. The scale leaves the angle alone, so it is fitted and set aside;
+    where it cannot be told from the terms the errors say so."""
     polar = polar_locus(locus)
     radius = locus.radius
-    adjusts = adjusts or [None] * len(fields)
+    bin_dtemps = bin_dtemps or [None] * len(fields)
     out: list[DriftFit | InputError | None] = [None] * len(fields)
-    x = np.tile([polar.center[0], polar.center[1], 0.0, 0.0, 0.0], (len(fields), 1))
+    x = np.tile([polar.center[0], polar.center[1], 0.0, 0.0, 0.0, 0.0], (len(fields), 1))
     pts: list = [None] * len(fields)
+    dtemps: list = [None] * len(fields)
     weights: list = [None] * len(fields)
     info, resid = {}, {}
     live = list(range(len(fields)))
@@ -289,8 +301,6 @@ def fit_drifts(
         batch = []
         for i in live:
             p = bin_points(fields[i], x[i, :2])
-            if adjusts[i] is not None:
-                p.points = adjusts[i](p)
             if p.counts.size < min_bins:
                 out[i] = InputError(
                     f"too few angle bins with samples for a drift fit: {p.counts.size}, need {min_bins}"
@@ -300,8 +310,16 @@ def fit_drifts(
             # that a few positions a servo holds for hours do not outvote the rest of the circle
             capped = np.minimum(p.counts, np.median(p.counts))
             pts[i], weights[i] = p, radius**2 / (p.sigma**2 / capped + locus.precision**2)
+            dtemps[i] = None if bin_dtemps[i] is None else np.asarray(bin_dtemps[i], float)[p.index]
             batch.append(i)
-        solved = _solve(polar, [pts[i].points for i in batch], [weights[i] for i in batch], x[batch], iterations)
+        solved = _solve(
+            polar,
+            [pts[i].points for i in batch],
+            [weights[i] for i in batch],
+            x[batch],
+            iterations,
+            [dtemps[i] for i in batch],
+        )
         live = []
         for i, result in zip(batch, solved):
             if isinstance(result, InputError):
@@ -310,7 +328,15 @@ def fit_drifts(
             x[i], info[i], resid[i] = result
             live.append(i)
     spreads = (
-        _jackknife(polar, [pts[i] for i in live], [weights[i] for i in live], x[live], radius, min_bins // 2)
+        _jackknife(
+            polar,
+            [pts[i] for i in live],
+            [weights[i] for i in live],
+            [dtemps[i] for i in live],
+            x[live],
+            radius,
+            min_bins // 2,
+        )
         if jackknife
         else [None] * len(live)
     )
@@ -325,53 +351,76 @@ def fit_drifts(
 
 
 STEPS = np.array([1e-3, 1e-3, 1e-5, 1e-5, 1e-5])  # finite-difference steps: centre (× radius), shape
+# the sixth parameter, the locus's common log-scale per kelvin inside a band: a Gaussian prior of this width
+# (1/K) keeps it defined where the bins' temperatures do not vary (then it stays 0 and the fit is the five-term
+# one); gains' temperature coefficients are ~0.1 %/K, so 1 %/K holds anything physical
+GAIN_SLOPE_PRIOR = 0.01
+GAIN_SLOPE_STEP = 1e-7  # convergence: a slope step below this (1/K) is negligible
 
 
-def _solve(polar: PolarLocus, points: list[np.ndarray], weights: list[np.ndarray], x0: np.ndarray, iterations: int):
+def _solve(
+    polar: PolarLocus,
+    points: list[np.ndarray],
+    weights: list[np.ndarray],
+    x0: np.ndarray,
+    iterations: int,
+    dtemps: list[np.ndarray | None] | None = None,
+):
     """Gauss-Newton on the radial residuals of several problems at once (each stops when its own step is
-    negligible); per problem its parameters, their information matrix and its residuals, or an InputError."""
+    negligible); per problem its six parameters (fit_drifts), their information matrix and its residuals, or
+    an InputError. dtemps: per problem, each point's temperature minus the band's (None: all zero)."""
     if not points:
         return []
     radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
     steps = STEPS * np.array([radius, radius, 1, 1, 1])
-    probes = np.vstack([np.zeros(5), np.diag(steps)])  # the point and its five finite-difference neighbours
+    probes = np.vstack([np.zeros(6), np.diag([*steps, 0.0])[:5]])  # the point and five finite-difference neighbours
     # the problems side by side, padded to the longest with a real point of weight zero
     sizes = [len(p) for p in points]
     field = np.empty((len(points), 2, max(sizes)))
     w = np.zeros((len(points), max(sizes)))
+    dt = np.zeros((len(points), max(sizes)))
     for k, (p, wk) in enumerate(zip(points, weights)):
         field[k] = p[np.minimum(np.arange(max(sizes)), len(p) - 1)].T
         w[k, : len(p)] = wk
+        if dtemps is not None and dtemps[k] is not None:
+            dt[k, : len(p)] = dtemps[k]
 
-    def residuals(xs: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """(a, m, 5) parameter sets of problems `rows` -> (a, m, n) residuals: polar.unit(drift.apply(p)) is
-        one 2x2 map per set, because the drift's bench centre is the locus's centre."""
+    def residuals(xs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(a, m, 6) parameter sets of problems `rows` -> (a, m, n) residuals and the points' radii:
+        polar.unit(drift.apply(p)) is one 2x2 map per set, because the drift's bench centre is the locus's
+        centre; the slope divides each point's radius by its scale at its temperature."""
         shapes = np.zeros(xs.shape[:2] + (2, 2))
         with np.errstate(over="ignore", invalid="ignore"):  # a run-away step: non-finite terms, gated out later
             shapes[..., 0, 0], shapes[..., 1, 0], shapes[..., 1, 1] = np.exp(xs[..., 2]), xs[..., 3], np.exp(xs[..., 4])
-            u = (polar.to_unit @ shapes) @ (field[rows, None] - xs[..., :2, None])  # (a, m, 2, n)
-            return polar.residual_of_unit(np.moveaxis(u, -2, 0))
+            u = np.moveaxis((polar.to_unit @ shapes) @ (field[rows, None] - xs[..., :2, None]), -2, 0)  # (2, a, m, n)
+            rad = np.hypot(u[0], u[1]) * np.exp(-xs[..., 5, None] * dt[rows, None])
+            return rad - polar.rho_of_unit(u), rad
 
     x = np.array(x0, float)
-    info = np.zeros((len(points), 5, 5))
+    info = np.zeros((len(points), 6, 6))
     active = np.ones(len(points), bool)
     failed = np.zeros(len(points), bool)
+    prior = 1.0 / GAIN_SLOPE_PRIOR**2
     for _ in range(iterations):
         rows = np.flatnonzero(active)
         if rows.size == 0:
             break
-        r = residuals(x[rows, None, :] + probes, rows)
+        r, rad = residuals(x[rows, None, :] + probes, rows)
         r0 = r[:, 0]
-        jac = np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2)  # (a, n, 5)
+        jac = np.concatenate(  # (a, n, 6): five by differences, the slope's exactly
+            [np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2), (-dt[rows] * rad[:, 0])[..., None]], axis=2
+        )
         info[rows] = np.swapaxes(jac, 1, 2) @ (jac * w[rows, :, None])
+        info[rows, 5, 5] += prior
         rhs = -np.einsum("ank,an->ak", jac, w[rows] * r0)
+        rhs[:, 5] -= prior * x[rows, 5]
         step = _solve_each(info[rows], rhs)
         bad = np.isnan(step[:, 0]) & np.all(np.isfinite(info[rows]), axis=(1, 2))
         failed[rows[bad]] = True
         x[rows] += np.where(bad[:, None], 0.0, step)
-        done = bad | np.all(np.abs(step) < steps * 1e-3, axis=1)
+        done = bad | (np.all(np.abs(step[:, :5]) < steps * 1e-3, axis=1) & (np.abs(step[:, 5]) < GAIN_SLOPE_STEP))
         active[rows[done]] = False
-    final = residuals(x[:, None, :], np.arange(len(points)))[:, 0]
+    final = residuals(x[:, None, :], np.arange(len(points)))[0][:, 0]
     return [
         InputError("drift fit: the bins do not constrain the drift") if failed[k] else (x[k], info[k], final[k, :n])
         for k, n in enumerate(sizes)
@@ -392,13 +441,15 @@ def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return out
 
 
-def _jackknife(polar: PolarLocus, pts_list, weights_list, xs, radius: float, min_bins: int) -> list[dict[str, float]]:
+def _jackknife(
+    polar: PolarLocus, pts_list, weights_list, dtemps_list, xs, radius: float, min_bins: int
+) -> list[dict[str, float]]:
     """Standard error of each term, per problem, from the four fits that each leave one quarter of the circle
     out (all problems' quarters in one batch)."""
     unknown = {t: float("inf") for t in TERMS}
     out: list[dict[str, float]] = [unknown] * len(pts_list)
-    owners, points, weights, starts = [], [], [], []
-    for i, (pts, w) in enumerate(zip(pts_list, weights_list)):
+    owners, points, weights, dtemps, starts = [], [], [], [], []
+    for i, (pts, w, dt) in enumerate(zip(pts_list, weights_list, dtemps_list)):
         quarter = pts.index * 4 // N_BINS
         keeps = [quarter != k for k in range(4)]
         if any(keep.sum() < max(min_bins, 6) for keep in keeps):
@@ -407,8 +458,9 @@ def _jackknife(polar: PolarLocus, pts_list, weights_list, xs, radius: float, min
             owners.append(i)
             points.append(pts.points[keep])
             weights.append(w[keep])
+            dtemps.append(None if dt is None else dt[keep])
             starts.append(xs[i])
-    solved = _solve(polar, points, weights, np.array(starts).reshape(-1, 5), 4)
+    solved = _solve(polar, points, weights, np.array(starts).reshape(-1, 6), 4, dtemps)
     for i in sorted(set(owners)):
         mine = [solved[k] for k, owner in enumerate(owners) if owner == i]
         if any(isinstance(m, InputError) for m in mine):
@@ -422,13 +474,15 @@ def _jackknife(polar: PolarLocus, pts_list, weights_list, xs, radius: float, min
 
 
 def _term_errors(x, info, inflate: float, bench_center, radius: float) -> dict[str, float]:
-    """Standard errors of the drift terms by the delta method from the parameters' covariance."""
+    """Standard errors of the drift terms by the delta method from the parameters' covariance (the in-band
+    gain slope, the sixth parameter, marginalised: its uncertainty widens the terms it can be mistaken for)."""
     try:
-        cov = np.linalg.inv(info) * inflate
+        cov = np.linalg.inv(info)[:5, :5] * inflate
     except np.linalg.LinAlgError:
         return {t: float("inf") for t in TERMS}
     if not np.all(np.isfinite(cov)) or np.linalg.cond(info) > 1e14:
         return {t: float("inf") for t in TERMS}
+    x = x[:5]
     base = _drift_of(x, bench_center).terms(radius)
     steps = np.array([1e-3 * radius, 1e-3 * radius, 1e-6, 1e-6, 1e-6])
     jac = np.zeros((len(TERMS), 5))
@@ -486,40 +540,6 @@ def anchor_zero(candidate: Correction, factory: Correction, locus: BenchLocus, d
     shift = np.angle(np.mean(np.exp(1j * diff)))
     out.zero_offset_rad = float(np.angle(np.exp(1j * (candidate.zero_offset_rad + shift))))
     return out
-
-
-def temperature_adjust(
-    bin_temp_sum: np.ndarray, counts: np.ndarray, temp_c: float, slope: Callable[[np.ndarray], np.ndarray]
-) -> Callable[[BinPoints], np.ndarray]:
-    """Move each bin's mean point to the band's mean temperature.
-
-    A drive that turns evenly visits every angle at every temperature of the band, but one that reverses
-    over an arc or dwells visits some angles only when the band is warm and others only when it is cool:
-    its bins then show the locus at different temperatures. With each bin's mean temperature (from the
-    windows' temperatures and bin counts) and the drift's slope from the neighbouring bands, every point is
-    taken to the band's mean temperature first. slope(points) -> d(point)/dT in raw units per K."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        bin_temp = np.where(counts > 0, bin_temp_sum / counts, temp_c)
-
-    def adjust(pts: BinPoints) -> np.ndarray:
-        delta = bin_temp[pts.index] - temp_c
-        return pts.points - delta[:, None] * slope(pts.points)
-
-    return adjust
-
-
-def drift_slope(here: Drift, temp_here: float, lo: tuple[Drift, float], hi: tuple[Drift, float]):
-    """d(field point)/dT at field points of this band, from the drifts of two other temperatures: a point is
-    taken to the bench through this band's drift and back out through the others'."""
-
-    def slope(points: np.ndarray) -> np.ndarray:
-        bench = np.column_stack(here.apply(points[:, 0], points[:, 1]))
-        (d_lo, t_lo), (d_hi, t_hi) = lo, hi
-        p_lo = np.column_stack(d_lo.inverse(bench[:, 0], bench[:, 1]))
-        p_hi = np.column_stack(d_hi.inverse(bench[:, 0], bench[:, 1]))
-        return (p_hi - p_lo) / (t_hi - t_lo)
-
-    return slope
 
 
 MODEL_DEGREE = 2  # drift terms as polynomials in temperature: the tempcos are linear with a small square

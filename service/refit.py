@@ -28,10 +28,8 @@ from encoder_core.differential import (
     DriftModel,
     anchor_zero,
     compose,
-    drift_slope,
     fit_drifts,
     gate,
-    temperature_adjust,
 )
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
 from encoder_core.physics import BAND_WIDTH_C, REFERENCE_TEMP_C, circular_mean, wrap_rad
@@ -105,8 +103,8 @@ def refit_device(
     keep the running set moved by the offset change the fitted bands agree on (offset_move).
 
     bin_temps (optional, per band, additive over its windows: WindowStats.bin_temps): Σ window mean
-    temperature × window count per angle bin. With them each band's bins are taken to the band's temperature
-    first (see encoder_core.differential.temperature_adjust)."""
+    temperature × window count per angle bin. With them each band's fit sets aside the locus's common scale
+    changing with temperature across its bins (see encoder_core.differential.fit_drifts)."""
     anchors = bench_anchors(factory)
     if anchors:
         return refit_from_bench(
@@ -134,7 +132,7 @@ def refit_from_bench(
     after_step: bool = False,
 ) -> RefitResult:
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
-    count in each angle bin; with it each band's bins are first taken to the band's mean temperature."""
+    count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
     model = drift_model(fits)
     result = RefitResult(bands=[])
@@ -208,33 +206,34 @@ def offset_move(moves: list[tuple[np.ndarray, np.ndarray]], radius: float) -> tu
 
 
 def band_fits(
-    band_stats, anchors, min_samples, bin_temps, *, errors: bool = True
+    band_stats, anchors, min_samples, bin_temps
 ) -> dict[int, tuple[DriftFit, WindowStats, Correction, BenchLocus]]:
-    """Each band's drift fit (bands whose statistics do not pin it down are left out); a second pass takes
-    the bins to the band's temperature when their temperatures are known."""
+    """Each band's drift fit (bands whose statistics do not pin it down are left out), with the in-band gain
+    slope where the bins' temperatures are known. (Until 2026-11-25 a second pass moved each bin to the
+    band's temperature along the slope of the neighbouring bands' first-pass fits; on a drive reversing over
+    arcs while it warmed those fits were as wrong as the band's, and the second pass adopted the error with
+    confidence: tests/test_refit.py, warming arcs.)"""
     chosen = {
         band: (stats, *min(anchors, key=lambda a: abs(a[1].temp_c - stats.temp_mean)))
         for band, stats in sorted(band_stats.items())
         if stats.n >= min_samples
     }
-    final = not bin_temps  # a first pass only feeds the second: its errors are not needed
-    fits = fit_bands(chosen, jackknife=errors and final)
-    if final:
-        return fits
-    first = {band: (f.drift, stats.temp_mean) for band, (f, stats, _, _) in fits.items()}
-    adjusts = {}
-    for band, (fit, stats, _, locus) in fits.items():
-        if band in bin_temps:
-            lo, hi = neighbours(band, first, locus)
-            slope = drift_slope(fit.drift, stats.temp_mean, lo, hi)
-            adjusts[band] = temperature_adjust(bin_temps[band], stats.bins[:, 0], stats.temp_mean, slope)
-    return fit_bands({band: chosen[band] for band in fits}, adjusts, jackknife=errors)
+    dtemps = {band: bin_dtemps(bin_temps[band], chosen[band][0]) for band in chosen if band in (bin_temps or {})}
+    return fit_bands(chosen, dtemps=dtemps)
 
 
-def fit_bands(chosen: dict, adjusts: dict | None = None, *, jackknife: bool) -> dict:
+def bin_dtemps(bin_temp_sum: np.ndarray, stats: WindowStats) -> np.ndarray:
+    """Each angle bin's mean temperature minus the band's (0 for empty bins)."""
+    counts = stats.bins[:, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, np.asarray(bin_temp_sum, float) / counts - stats.temp_mean, 0.0)
+
+
+def fit_bands(chosen: dict, *, dtemps: dict | None = None) -> dict:
     """band -> (statistics, factory band, bench locus) fitted in one batch per bench locus (`fit_drifts`);
-    bands too little of the circle pins are left out."""
-    adjusts = adjusts or {}
+    bands too little of the circle pins are left out. dtemps: per band, its bins' temperatures less its own
+    (the fit then has the in-band gain slope, see fit_drifts)."""
+    dtemps = dtemps or {}
     by_locus: dict[int, list[int]] = {}
     for band, (_, _, locus) in chosen.items():
         by_locus.setdefault(id(locus), []).append(band)
@@ -242,27 +241,15 @@ def fit_bands(chosen: dict, adjusts: dict | None = None, *, jackknife: bool) -> 
     for bands in by_locus.values():
         locus = chosen[bands[0]][2]
         found = fit_drifts(
-            [chosen[b][0] for b in bands], locus, adjusts=[adjusts.get(b) for b in bands], jackknife=jackknife
+            [chosen[b][0] for b in bands],
+            locus,
+            bin_dtemps=[dtemps.get(b) for b in bands],
         )
         for band, fit in zip(bands, found):
             if not isinstance(fit, InputError):
                 stats, factory, locus = chosen[band]
                 fits[band] = (fit, stats, factory, locus)
     return dict(sorted(fits.items()))
-
-
-def neighbours(band: int, first: dict[int, tuple[Drift, float]], locus: BenchLocus):
-    """The drifts at two other temperatures that bracket this band where they can: fitted bands, or the
-    bench itself (no drift at its temperature)."""
-    bench = (Drift(np.array([locus.d[0], locus.q[0]]), np.array([locus.d[0], locus.q[0]]), np.eye(2)), locus.temp_c)
-    here = first[band]
-    below = [first[b] for b in sorted(first) if b < band]
-    above = [first[b] for b in sorted(first) if b > band]
-    lo = below[-1] if below else (bench if bench[1] < here[1] else here)
-    hi = above[0] if above else (bench if bench[1] > here[1] else here)
-    if lo is hi or abs(hi[1] - lo[1]) < 1.0:
-        lo, hi = (here, bench) if bench[1] > here[1] else (bench, here)
-    return lo, hi
 
 
 def band_index(corr: Correction) -> int:
