@@ -32,7 +32,7 @@ from encoder_core.differential import (
     gate,
 )
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
-from encoder_core.physics import BAND_WIDTH_C, REFERENCE_TEMP_C, circular_mean, wrap_rad
+from encoder_core.physics import BAND_WIDTH_C, REFERENCE_TEMP_C, band_of, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 from fleet_wire import messages as wire
@@ -140,6 +140,12 @@ def refit_from_bench(
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
     for band, temp_c, stats in model_bands(fits, model):
         factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp_c))
+        if model is not None and band == band_of(locus.temp_c):
+            # the band that holds the bench speaks at the bench: there the factory is measured and the curve
+            # passes through it, where an entry at the band's mean would leave the agent interpolating to the
+            # bench between two fitted temperatures, each with its error (a few millidegrees worse than the factory
+            # in the hours a drive spends near +20 °C)
+            temp_c = locus.temp_c
         if model is not None:
             terms, errors = model.at(temp_c)
             chi2 = fits[band][0].chi2_dof if band in fits else None

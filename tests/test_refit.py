@@ -214,3 +214,36 @@ def test_a_band_that_warms_while_the_drive_reverses_over_arcs_is_not_misread():
             if (adopted and mine > factory_err * 1.01 + 1e-3) or mine - factory_err > CONFIDENCE * claimed + 1e-3:
                 wrong.append((seed, adopted, mine, factory_err, claimed))
     assert wrong == []
+
+
+def test_near_the_bench_a_refitted_set_is_no_worse_than_the_factory():
+    """At the bench temperature the factory set is measured against a reference; a refit over a day's bands must not
+    replace it there by an interpolation between two fitted temperatures (independent simulator, six drives
+    turning at random for 12 h through their temperature cycle at 5 Hz; the set that put the bench's band at its
+    mean temperature was worse than the factory's at +20 °C on four of them, by 0.002-0.006°)."""
+    at = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    worse = []
+    for seed in range(1, 7):
+        rng = np.random.default_rng(seed)
+        phys = fieldsim.draw_drive(rng, event=None, days=1)
+        factory = calibrate(fieldsim.bench_sweep(phys, rng))
+        scale = normalisation_scale(factory)
+        s = fieldsim.field_run(phys, days=0.5, rate_hz=5.0, regime="random", rng=rng).samples
+        bands: dict = {}
+        cuts = np.searchsorted(s.t, np.arange(s.t[0], s.t[-1], 60.0))
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            stats = window_stats(Samples(t=s.t[a:b], d=s.d[a:b], q=s.q[a:b], temp_c=s.temp_c[a:b]), scale)
+            band = band_of(stats.temp_mean)
+            bands[band] = bands[band].merge(stats) if band in bands else stats
+        result = refit_device(bands, factory, factory, bin_temps={b: x.bin_temps() for b, x in bands.items()})
+        assert result.changed  # the day's drift is corrected somewhere …
+        fleet = BandedCorrection.from_dict({"bands": result.bands})
+        for temp_c in (18.0, 20.0, 22.0):  # … and near the bench nothing is lost
+            d, q = phys.channels(at, np.full(at.size, temp_c), np.full(at.size, 6 * 3600.0))
+            errors = []
+            for corr in (factory, fleet):
+                err = (corr.angle(d, q, np.full(at.size, temp_c)) - at + np.pi) % (2 * np.pi) - np.pi
+                errors.append(float(np.degrees(np.sqrt(np.mean(err**2)))))
+            if errors[1] > errors[0] * 1.01 + 1e-3:
+                worse.append((seed, temp_c, *errors))
+    assert worse == []
