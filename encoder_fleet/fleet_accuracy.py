@@ -5,10 +5,11 @@ the end of the line by `encoder-fleet calibrate` on its own +20 °C bench sweep,
 the field. The fleet loop runs in this process through the same code as the real parts: the agent's
 usable-sample mask and window statistics (edge_agent.agent.EdgeAgent), the window's band as the wire
 message computes it, band sums with the store's drive-time horizon, the drift monitor restarting every
-band's memory after an offset step (as service.runtime does), the watch of the running set against the factory's
-every quarter of a drive-hour (service.trial.watch_against_factory), `service.refit.refit_device` on a refit
-cadence with what the service passes it, the agent's plausibility check before applying a set, and the
-set applied from the next window on, and the guard's trials as service.runtime judges them.
+band's memory after an offset step and moving the running set by it (as service.runtime does), the
+watch of the running set against the factory's every quarter of a drive-hour
+(service.trial.watch_against_factory), `service.refit.refit_device` on a refit cadence with what the
+service passes it, the agent's plausibility check before applying a set, and the set applied from the
+next window on, and the guard's trials as service.runtime judges them.
 The windows and band sums go through the service's own store (a SQLite file per drive). Only the transport
 (Zenoh) is left out, so that a fleet of drives × days × rates runs in minutes.
 
@@ -39,7 +40,7 @@ from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from fleet_wire import keys
 from fleet_wire import messages as wire
-from service.refit import STEP_OPEN_S, refit_device
+from service.refit import STEP_OPEN_S, refit_device, step_moved_bands
 from service.runtime import BAND_HORIZON_H, REFIT_EVERY_S, TRIAL_MAX_S, WATCH_EVERY_S
 from service.store import Store
 from service.trial import WATCH_S, TrialEvidence, changed_bands, judge, watch_against_factory
@@ -225,7 +226,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     watch = DeviceMonitor("drive") if monitor else None
     factory_msg = factory_message("drive", factory)
     confirmed, trial = factory_msg, None  # trial: [set message, soak band -> stats, bands it changed]
-    running = factory
+    running, running_msg = factory, factory_msg
     timeline = [(float(samples.t[0]), factory)]
     next_refit = next_watch = float(samples.t[0]) + refit_every_s
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
@@ -233,7 +234,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
         if pending is not None:  # the agent applies what arrived before this window
-            running = BandedCorrection.from_dict({"bands": pending["bands"]})
+            running, running_msg = BandedCorrection.from_dict({"bands": pending["bands"]}), pending
             timeline.append((float(block.t[0]), running))
             if watch is not None and step_at is not None and pending["created_at"] >= step_at:
                 # service.monitor: the step is cleared once a set made after it is applied (the next can be named)
@@ -253,6 +254,10 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 if event.cause == "offset_step" and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
+                    if pending is None and trial is None:  # service.runtime.publish_step_move
+                        step = event.parameters
+                        bands = step_moved_bands(running_msg["bands"], step["delta_d"], step["delta_q"], scale)
+                        pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
         if watch_factory and pending is None and end_s >= next_watch:
             next_watch = end_s + watch_every_s
             if watch_against_factory(sums.recent(end_s - WATCH_S), running, factory):

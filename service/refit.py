@@ -186,6 +186,18 @@ def refit_from_bench(
     return result
 
 
+def step_moved_bands(bands: list[dict], delta_d: float, delta_q: float, scale: float) -> list[dict]:
+    """A coefficient set's band entries for channels whose offsets stepped by (delta_d, delta_q), fractions of
+    the amplitude as the drift monitor's offset_step measures them (the device's statistics scale: raw units
+    per unit): every band reads the stepped channels as it read them before the step, band and quality kept."""
+    moved = []
+    for entry in bands:
+        corr = Correction.from_dict({k: v for k, v in entry.items() if k not in ("band", "quality")})
+        (after,) = BandedCorrection([corr]).offsets_moved(delta_d * scale, delta_q * scale).bands
+        moved.append({"band": entry["band"], **after.to_dict(), "quality": dict(entry.get("quality", {}))})
+    return moved
+
+
 def centre(corr: Correction) -> np.ndarray:
     """The raw (d, q) point a correction takes to the circle's centre."""
     return np.array([-corr.w2 / corr.w1, -corr.w4 / corr.w3])

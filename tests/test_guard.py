@@ -140,6 +140,38 @@ def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
     assert DEVICE in service._changed  # refitted on the next pass
 
 
+def test_an_offset_step_moves_the_running_set_at_once(fleet):
+    """The monitor measured the step: the next pass publishes the running set moved by it (on trial), which reads
+    the stepped channels exactly as the running set read them before, instead of waiting for a refit of windows
+    after the step (a drive that holds a few positions gives those slowly)."""
+    import numpy as np
+
+    from encoder_core.correction import BandedCorrection
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_msg = factory_set(store)
+    run_on(store, 0, hours=1.0)
+    step = {"id": 1, "device": DEVICE, "cause": "offset_step", "parameters": {"delta_d": 0.012, "delta_q": -0.007}}
+    step |= {"evidence": "a test step", "raised_at": 3000.0, "cleared_at": None}
+    service._publish_alarm(*alarms.encode(step))
+    service.refit_all()
+    trial = store.set_on_trial(DEVICE)
+    assert trial is not None and trial["version"] == 1 and trial["message"]["basis"] == "fit"
+    assert [b["band"] for b in trial["message"]["bands"]] == [b["band"] for b in factory_msg["bands"]]
+    factory = BandedCorrection.from_dict({"bands": factory_msg["bands"]})
+    moved = BandedCorrection.from_dict({"bands": trial["message"]["bands"]})
+    scale = normalisation_scale(factory_calibration(drive_model(SEED), SEED))
+    theta = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    d, q = 1500 * np.cos(theta) + 3.0, 1500 * np.sin(theta) - 2.0
+    before = factory.angle(d, q, np.full(d.size, 20.0))
+    after = moved.angle(d + 0.012 * scale, q - 0.007 * scale, np.full(d.size, 20.0))
+    assert np.max(np.abs(np.angle(np.exp(1j * (after - before))))) < 1e-9
+    assert not np.allclose(moved.angle(d, q, np.full(d.size, 20.0)), before)  # it did move
+    service.refit_all()  # the move is made once: the next pass judges it, nothing new goes out
+    assert store.published_version(DEVICE) == 1
+
+
 @pytest.mark.parametrize("offset_error", [0.0, 0.03])
 def test_the_guard_measures_against_the_bench_locus_on_an_independent_drive(fleet, offset_error):
     """A drive from encoder_fleet/fieldsim.py, calibrated on its bench (the factory set carries the bench
