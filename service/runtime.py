@@ -789,7 +789,7 @@ class FleetService:
     def _publish(self, msg: dict) -> None:
         self.session.put(
             keys.key(msg["device"], keys.COEFFICIENTS),
-            wire.encode("coefficients", msg),
+            wire.encode("coefficients", msg, checked=True),  # made by _issue_set's coefficients_message
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         self.store.mark_published(msg["device"], msg["version"])
