@@ -1,6 +1,7 @@
 """The window Structs (fleet_wire.messages, compiled once by msgspec) and schemas/window.schema.json say
 the same: same fields, same required set, and on every mutation of a valid message both accept or both
-reject. Every bad input of test_wire is also refused when it arrives as MessagePack, and counted."""
+reject. Every bad input of test_wire is also refused when it arrives as MessagePack, and counted. The
+coefficient set's Struct accepts nothing schemas/coefficients.schema.json refuses."""
 
 import copy
 import json
@@ -244,3 +245,78 @@ def test_every_refusal_is_counted(tmp_path):
         for _, reason, _ in cases:
             expected[reason] = expected.get(reason, 0) + 1
         assert store.rejection_counts() == expected
+
+
+def coefficient_set() -> dict:
+    """A signed-looking refit set of three bands, quality as the refit writes it (open properties included)."""
+    band = {
+        "temp_c": 25.0,
+        "w": [0.00065, -0.01, 0.00066, 0.02],
+        "w5": 0.001,
+        "zero_offset_rad": 0.3,
+        "harmonics": [[2, 0.001, -0.0005], [3, 0.0002, 0.0001]],
+        "quality": {
+            "samples": 5000,
+            "residual_rms_rad": 0.001,
+            "radius_ripple_rad": None,
+            "estimated_error_deg": 0.01,
+            "drift_terms": {"offset_d": 0.0},
+        },
+        "bench_locus": {"temp_c": 20.0},
+    }
+    bands = [{"band": b, **copy.deepcopy(band), "temp_c": 10.0 * b + 5} for b in (-1, 2, 3)]
+    msg = wire.coefficients_message("drive-1", 4, 3600.0, "rollback", bands, restores_version=2)
+    msg["signature"] = "A" * 86 + "=="
+    return msg
+
+
+def test_code_and_schema_file_agree_on_mutated_coefficient_sets():
+    """Coefficient sets are accepted by a Struct compiled once (fleet_wire.messages._CoefficientSet) and only what
+    it refuses goes to the schema file's validator: no set the file refuses may pass the Struct, and check() says
+    what the file says (band uniqueness and the rollback rule are beyond a JSON Schema)."""
+    validator = Draft202012Validator(wire.load_schema("coefficients"))
+    base = coefficient_set()
+    assert wire._compiled_valid("coefficients", base) and validator.is_valid(base)
+    checked = fast = 0
+    for path in leaves(base):
+        for value in MUTATIONS + ["DELETE", "EXTRA"]:
+            msg = copy.deepcopy(base)
+            target = msg
+            for key in path[:-1]:
+                target = target[key]
+            if value == "DELETE":
+                del target[path[-1]]
+            elif value == "EXTRA":
+                target["unexpected"] = 1
+            else:
+                target[path[-1]] = value
+            schema_ok = validator.is_valid(msg)
+            compiled_ok = wire._compiled_valid("coefficients", msg)
+            assert not compiled_ok or schema_ok, (path, value)  # the Struct never accepts what the file refuses
+            try:
+                wire.check("coefficients", msg)
+                reason = None
+            except wire.WireError as exc:
+                reason = exc.reason
+            assert (reason is None or reason not in STRUCTURAL) == schema_ok, (path, value, reason)
+            checked += 1
+            fast += compiled_ok
+    # whole lists: bands and harmonics of wrong shapes
+    for mutate in (
+        lambda m: m["bands"].clear(),
+        lambda m: m["bands"].extend(copy.deepcopy(m["bands"][0]) | {"band": 10 + k} for k in range(62)),
+        lambda m: m["bands"][1]["harmonics"].append([65, 0.0, 0.0]),
+        lambda m: m["bands"][1]["harmonics"].append([2, 0.0]),
+        lambda m: m["bands"][1]["harmonics"].append([2.5, 0.0, 0.0]),
+        lambda m: m["bands"][1]["w"].append(1.0),
+        lambda m: m["bands"][1].pop("quality"),
+    ):
+        msg = copy.deepcopy(base)
+        mutate(msg)
+        schema_ok = validator.is_valid(msg)
+        assert not wire._compiled_valid("coefficients", msg) or schema_ok
+        assert schema_ok is False
+        with pytest.raises(wire.WireError):
+            wire.check("coefficients", msg)
+        checked += 1
+    assert checked > 200 and fast > 10  # the fast path is taken (a valid mutation: 1.5 for a weight, …)
