@@ -113,13 +113,9 @@ def base_value(msg, path):
     return msg
 
 
-def test_code_and_schema_file_agree_on_mutated_windows():
-    rng = random.Random(7)
-    base = window()
-    base["rejected_by_reason"] = {"non_finite": 0, "clipped": 0, "outlier": 0}
-    paths = list(leaves(base))
-    checked = 0
-    for path in paths:
+def mutated(base: dict):
+    """(path, value, message) for every leaf of base set to each of MUTATIONS, deleted, or given a sibling."""
+    for path in leaves(base):
         for value in MUTATIONS + ["DELETE", "EXTRA"]:
             msg = copy.deepcopy(base)
             target = msg
@@ -131,16 +127,25 @@ def test_code_and_schema_file_agree_on_mutated_windows():
                 target["unexpected"] = 1
             else:
                 target[path[-1]] = value
-            if isinstance(value, float) and value.is_integer() and type(base_value(base, path)) is int:
-                # the one deliberate narrowing: JSON Schema counts 1e10 as an integer, the Structs want an
-                # integer literal (what every encoder writes for an int), so SQLite never gets a REAL seq
-                continue
-            schema_ok = VALIDATOR.is_valid(msg)
-            reasons = decode_both(msg)
-            for reason in reasons:
-                code_ok = reason is None or reason not in STRUCTURAL
-                assert code_ok == schema_ok, (path, value, reasons, schema_ok)
-            checked += 1
+            yield path, value, msg
+
+
+def test_code_and_schema_file_agree_on_mutated_windows():
+    rng = random.Random(7)
+    base = window()
+    base["rejected_by_reason"] = {"non_finite": 0, "clipped": 0, "outlier": 0}
+    checked = 0
+    for path, value, msg in mutated(base):
+        if isinstance(value, float) and value.is_integer() and type(base_value(base, path)) is int:
+            # the one deliberate narrowing: JSON Schema counts 1e10 as an integer, the Structs want an
+            # integer literal (what every encoder writes for an int), so SQLite never gets a REAL seq
+            continue
+        schema_ok = VALIDATOR.is_valid(msg)
+        reasons = decode_both(msg)
+        for reason in reasons:
+            code_ok = reason is None or reason not in STRUCTURAL
+            assert code_ok == schema_ok, (path, value, reasons, schema_ok)
+        checked += 1
     # arrays: wrong lengths, wrong types, one bad value somewhere
     for _ in range(60):
         msg = copy.deepcopy(base)
@@ -278,29 +283,18 @@ def test_code_and_schema_file_agree_on_mutated_coefficient_sets():
     base = coefficient_set()
     assert wire._compiled_valid("coefficients", base) and validator.is_valid(base)
     checked = fast = 0
-    for path in leaves(base):
-        for value in MUTATIONS + ["DELETE", "EXTRA"]:
-            msg = copy.deepcopy(base)
-            target = msg
-            for key in path[:-1]:
-                target = target[key]
-            if value == "DELETE":
-                del target[path[-1]]
-            elif value == "EXTRA":
-                target["unexpected"] = 1
-            else:
-                target[path[-1]] = value
-            schema_ok = validator.is_valid(msg)
-            compiled_ok = wire._compiled_valid("coefficients", msg)
-            assert not compiled_ok or schema_ok, (path, value)  # the Struct never accepts what the file refuses
-            try:
-                wire.check("coefficients", msg)
-                reason = None
-            except wire.WireError as exc:
-                reason = exc.reason
-            assert (reason is None or reason not in STRUCTURAL) == schema_ok, (path, value, reason)
-            checked += 1
-            fast += compiled_ok
+    for path, value, msg in mutated(base):
+        schema_ok = validator.is_valid(msg)
+        compiled_ok = wire._compiled_valid("coefficients", msg)
+        assert not compiled_ok or schema_ok, (path, value)  # the Struct never accepts what the file refuses
+        try:
+            wire.check("coefficients", msg)
+            reason = None
+        except wire.WireError as exc:
+            reason = exc.reason
+        assert (reason is None or reason not in STRUCTURAL) == schema_ok, (path, value, reason)
+        checked += 1
+        fast += compiled_ok
     # whole lists: bands and harmonics of wrong shapes
     for mutate in (
         lambda m: m["bands"].clear(),
