@@ -76,6 +76,14 @@ class Correction:
         q = (u2 - self.w4 - self.w5 * u1) / self.w3
         return d, q
 
+    def offsets_moved(self, delta_d: float, delta_q: float) -> Correction:
+        """The same correction for channels whose offsets moved by (delta_d, delta_q) raw units: it reads the
+        moved channels as this one read them before (a knocked magnet, a shifted sensor)."""
+        out = Correction(**{**self.__dict__, "harmonics": dict(self.harmonics)})
+        out.w2 = self.w2 - self.w1 * delta_d  # u1 = w1·(d - Δd) + w2
+        out.w4 = self.w4 - self.w3 * delta_q  # u2 = w3·(q - Δq) + w4 + w5·u1
+        return out
+
     def params(self, orders: list[int]) -> np.ndarray:
         row = [self.w1, self.w2, self.w3, self.w4, self.w5, self.zero_offset_rad]
         for m in orders:
@@ -165,13 +173,7 @@ class BandedCorrection:
     def offsets_moved(self, delta_d: float, delta_q: float) -> BandedCorrection:
         """The same set for channels whose offsets moved by (delta_d, delta_q) raw units at every temperature:
         what an offset step does (a knocked magnet, a shifted sensor), the rest of each band as it was."""
-        moved = []
-        for b in self.bands:
-            out = Correction(**{**b.__dict__, "harmonics": dict(b.harmonics)})
-            out.w2 = b.w2 - b.w1 * delta_d  # u1 = w1·(d - Δd) + w2
-            out.w4 = b.w4 - b.w3 * delta_q  # u2 = w3·(q - Δq) + w4 + w5·u1
-            moved.append(out)
-        return BandedCorrection(moved)
+        return BandedCorrection([b.offsets_moved(delta_d, delta_q) for b in self.bands])
 
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""

@@ -193,7 +193,7 @@ def step_moved_bands(bands: list[dict], delta_d: float, delta_q: float, scale: f
     moved = []
     for entry in bands:
         corr = Correction.from_dict({k: v for k, v in entry.items() if k not in ("band", "quality")})
-        (after,) = BandedCorrection([corr]).offsets_moved(delta_d * scale, delta_q * scale).bands
+        after = corr.offsets_moved(delta_d * scale, delta_q * scale)
         moved.append({"band": entry["band"], **after.to_dict(), "quality": dict(entry.get("quality", {}))})
     return moved
 
