@@ -84,6 +84,14 @@ class Correction:
         out.w4 = self.w4 - self.w3 * delta_q  # u2 = w3·(q - Δq) + w4 + w5·u1
         return out
 
+    def imbalance_moved(self, delta_imbalance: float) -> Correction:
+        """The same correction for channels whose amplitude ratio log(d/q) moved by delta_imbalance: q is read
+        scaled back about its offset (the angle sees only the ratio: moving d instead would read the same)."""
+        out = Correction(**{**self.__dict__, "harmonics": dict(self.harmonics)})
+        k = float(np.exp(delta_imbalance))  # q's amplitude grew by 1/k against d's
+        out.w3, out.w4 = self.w3 * k, self.w4 * k  # u2 = k·w3·(q - centre_q) + w5·u1
+        return out
+
     def params(self, orders: list[int]) -> np.ndarray:
         row = [self.w1, self.w2, self.w3, self.w4, self.w5, self.zero_offset_rad]
         for m in orders:

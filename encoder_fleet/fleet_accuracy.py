@@ -40,7 +40,7 @@ from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from fleet_wire import keys
 from fleet_wire import messages as wire
-from service.refit import STEP_OPEN_S, refit_device, step_moved_bands
+from service.refit import STEP_CAUSES, STEP_OPEN_S, refit_device, step_moved_bands
 from service.runtime import BAND_HORIZON_H, REFIT_EVERY_S, TRIAL_MAX_S, WATCH_EVERY_S
 from service.store import Store
 from service.trial import WATCH_S, TrialEvidence, changed_bands, judge, watch_against_factory
@@ -238,7 +238,8 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             timeline.append((float(block.t[0]), running))
             if watch is not None and step_at is not None and pending["created_at"] >= step_at:
                 # service.monitor: the step is cleared once a set made after it is applied (the next can be named)
-                watch.clear("offset_step", float(block.t[0]), "a set made after the step was applied")
+                for cause in STEP_CAUSES:
+                    watch.clear(cause, float(block.t[0]), "a set made after the step was applied")
             if guard and pending["basis"] != "rollback":
                 trial = [pending, {}, changed_bands(pending, confirmed), float(block.t[0])]
             pending = None
@@ -251,16 +252,16 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             trial[1][band] = trial[1][band].merge(stats) if band in trial[1] else stats
         if watch is not None:
             for event in watch.update(window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band)):
-                if event.cause == "offset_step" and event.kind == "raise":
+                if event.cause in STEP_CAUSES and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
                     if pending is None and trial is None:  # service.runtime.publish_step_move
-                        step = event.parameters
-                        bands = step_moved_bands(running_msg["bands"], step["delta_d"], step["delta_q"], scale)
+                        bands = step_moved_bands(running_msg["bands"], event.cause, event.parameters, scale)
                         pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
         if watch_factory and pending is None and end_s >= next_watch:
             next_watch = end_s + watch_every_s
-            if watch_against_factory(sums.recent(end_s - WATCH_S), running, factory):
+            since = max(end_s - WATCH_S, step_at or 0.0)  # service.runtime.watch: the drive as it is since a step
+            if watch_against_factory(sums.recent(since), running, factory):
                 # the first rule: the running set is worse than the factory's: the factory's again, and the drive
                 # learnt from what it is now
                 pending = {

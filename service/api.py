@@ -118,7 +118,7 @@ class Alarm(BaseModel):
     id: int
     device: str
     cause: str = Field(
-        description="offset_step, accelerated_aging, magnet_weakening, harmonic_growth, outliers, "
+        description="offset_step, gain_step, accelerated_aging, magnet_weakening, harmonic_growth, outliers, "
         "adc_clipping or offline (docs/architecture.md, Alarms)."
     )
     parameters: dict = Field(description="The cause's parameters.")

@@ -19,6 +19,7 @@ from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
 from fleet_wire import alarms as alarm_wire
 
+from .refit import STEP_CAUSES
 from .store import Store
 
 log = logging.getLogger("service.monitor")
@@ -101,22 +102,22 @@ class Monitor:
         return written
 
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
-        """An offset step is cleared once the fleet has re-corrected the drive: a coefficient set created
-        after the step has been applied by the agent (the refit history)."""
-        alarm = mon.open.get("offset_step")
-        if alarm is None:
-            return []
-        for ack in self.store.acks(device):
-            if ack["status"] != "applied" or ack["at"] < alarm["raised_at"]:
+        """A step (offset or gain) is cleared once the fleet has re-corrected the drive: a coefficient set
+        created after the step has been applied by the agent (the refit history)."""
+        cleared = []
+        for cause in STEP_CAUSES:
+            alarm = mon.open.get(cause)
+            if alarm is None:
                 continue
-            msg = self.store.coefficient_set(device, ack["version"])
-            if msg is not None and msg["created_at"] >= alarm["raised_at"]:
-                return mon.clear(
-                    "offset_step",
-                    ack["at"],
-                    f"coefficient set v{ack['version']}, fitted after the step, was applied by the agent.",
-                )
-        return []
+            for ack in self.store.acks(device):
+                if ack["status"] != "applied" or ack["at"] < alarm["raised_at"]:
+                    continue
+                msg = self.store.coefficient_set(device, ack["version"])
+                if msg is not None and msg["created_at"] >= alarm["raised_at"]:
+                    why = f"coefficient set v{ack['version']}, made after the step, was applied by the agent."
+                    cleared += mon.clear(cause, ack["at"], why)
+                    break
+        return cleared
 
     def set_online(self, device: str, online: bool) -> list[dict]:
         """From the liveliness token: offline raised when it goes, cleared when it is back."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import queue
 import socket
 import threading
@@ -26,7 +27,7 @@ from fleet_wire import messages as wire
 from service.cluster import Partitions
 from service.db import is_postgres, redacted, sqlite_path
 from service.monitor import Monitor
-from service.refit import MIN_BAND_SAMPLES, STEP_OPEN_S, RefitResult, refit_device, step_moved_bands
+from service.refit import MIN_BAND_SAMPLES, STEP_CAUSES, STEP_OPEN_S, RefitResult, refit_device, step_moved_bands
 from service.rollout import Rollouts
 from service.store import Store
 from service.trial import WATCH_S, TrialEvidence, Verdict, changed_bands, watch_against_factory
@@ -170,7 +171,7 @@ class FleetService:
         self._fitted_at: dict[str, float] = {}  # device -> drive time of its last refit
         self._watched_at: dict[str, float] = {}  # device -> drive time of its last watch against the factory
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
-        self._step_moves: dict[str, tuple[float, float]] = {}  # device -> the offset step the monitor measured
+        self._step_moves: dict[str, tuple[str, dict]] = {}  # device -> the step the monitor measured (cause, size)
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
         self._alive_unknown: dict[str, float] = {}  # tokens of devices that have sent nothing valid yet
@@ -471,15 +472,17 @@ class FleetService:
     def _publish_alarm(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         alarm = json.loads(payload)
-        if alarm["cause"] == "offset_step" and alarm["event"] == "raised":
+        if alarm["cause"] in STEP_CAUSES and alarm["event"] == "raised":
             # memory is drive time and a detected step restarts it: refits learn the drive as it is now
             bands = self.store.restart_band_memory(alarm["device"], after=alarm["raised_at"])
-            step = alarm["parameters"]
             with self._lock:
                 self._changed.add(alarm["device"])
                 self._refit_now.add(alarm["device"])
-                self._step_moves[alarm["device"]] = (float(step["delta_d"]), float(step["delta_q"]))
-            log.info("band memory restarted after an offset step", extra={"device": alarm["device"], "bands": bands})
+                self._step_moves[alarm["device"]] = (alarm["cause"], alarm["parameters"])
+            log.info(
+                "band memory restarted after a step",
+                extra={"device": alarm["device"], "cause": alarm["cause"], "bands": bands},
+            )
 
     # --- queries -----------------------------------------------------------------------------------
 
@@ -579,7 +582,9 @@ class FleetService:
         factory, running = self._correction(device, 0), self._correction(device, running_version)
         if factory is None or running is None:
             return None
-        found = watch_against_factory(self.store.stats_since(device, drive_now - WATCH_S), running, factory)
+        # windows from before a step the monitor named show a drive that is no more (a moved set is right after it)
+        since = max(drive_now - WATCH_S, self._last_step_at(device) or 0.0)
+        found = watch_against_factory(self.store.stats_since(device, since), running, factory)
         if not found:
             return None
         reason = "worse than the factory set: " + "; ".join(f.reason for f in found)
@@ -603,9 +608,9 @@ class FleetService:
 
     def refit(self, device: str) -> int | None:
         """Judge the set on trial, if there is one (the device gets nothing new meanwhile); otherwise, right after
-        an offset step, publish the running set moved by it (publish_step_move); otherwise refit and publish what
-        changed. New sets go out on trial. Returns the version published (a fit, a move or a rollback). A device
-        a staged rollout holds (service/rollout.py) is left to the rollout."""
+        a step (offset or gain), publish the running set moved by it (publish_step_move); otherwise refit and
+        publish what changed. New sets go out on trial. Returns the version published (a fit, a move or a
+        rollback). A device a staged rollout holds (service/rollout.py) is left to the rollout."""
         with self._lock:
             step = self._step_moves.pop(device, None)  # a step's move is now or never: a trial or rollout goes first
         if self.rollouts.holds(device):
@@ -626,8 +631,9 @@ class FleetService:
             return None
         return self.publish_fit(device, result)
 
-    def publish_step_move(self, device: str, delta_d: float, delta_q: float) -> int | None:
-        """The set the device runs, moved by the offset step the drift monitor measured, on trial: right at once
+    def publish_step_move(self, device: str, cause: str, step: dict) -> int | None:
+        """The set the device runs, moved by the step (offset_step or gain_step) the drift monitor measured, on
+        trial: right at once
         for the step, where a refit must first gather windows after it (band memory restarts with the step),
         which a drive that holds a few positions gives slowly. bench-fleet-accuracy: worse hours 46 -> 41 on
         four fleets, 20 Hz dwelling drives 0.1101° -> 0.0846° on one pair of seeds."""
@@ -637,11 +643,12 @@ class FleetService:
         if factory is None or running is None:
             return None
         scale = normalisation_scale(factory)  # the agent's statistics scale, in which the monitor measures
-        bands = step_moved_bands(running["bands"], delta_d, delta_q, scale)
-        reason = (
-            f"offset step: v{running_version} moved by {100 * delta_d:+.2f} % (d), {100 * delta_q:+.2f} % (q) of the"
-            " amplitude, as the drift monitor measured it"
-        )
+        bands = step_moved_bands(running["bands"], cause, step, scale)
+        if cause == "offset_step":
+            size = f"{100 * step['delta_d']:+.2f} % (d), {100 * step['delta_q']:+.2f} % (q) of the amplitude"
+        else:
+            size = f"a d/q amplitude ratio {100 * math.expm1(step['delta_imbalance']):+.2f} %"
+        reason = f"{cause.replace('_', ' ')}: v{running_version} moved by {size}, as the drift monitor measured it"
         return self._issue_set(device, "fit", bands, state="trial", reason=reason)
 
     def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
@@ -797,9 +804,14 @@ class FleetService:
             self.counters.rollouts += 1
 
     def _stepped_recently(self, device: str) -> bool:
-        """An offset step raised within STEP_OPEN_S of drive time: the refit may move bands it has no data for."""
-        steps = self.store.alarms(device, cause="offset_step", limit=1)
-        return bool(steps) and self._drive_now(device) - steps[0]["raised_at"] < STEP_OPEN_S
+        """A step raised within STEP_OPEN_S of drive time: the refit may move bands it has no data for."""
+        step_at = self._last_step_at(device)
+        return step_at is not None and self._drive_now(device) - step_at < STEP_OPEN_S
+
+    def _last_step_at(self, device: str) -> float | None:
+        """Drive time of the newest step (offset or gain) the monitor raised for the device."""
+        raised = [a["raised_at"] for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
+        return max(raised, default=None)
 
     def _drive_now(self, device: str) -> float:
         """The device's newest window end: message times are on the drive's clock."""

@@ -226,6 +226,14 @@ _MONITOR_ONLY = (
         alarm_params=("delta_d", "delta_q"),
     ),
     Cause(
+        "gain_step",
+        "the ratio of the channels' gains jumped (a sensor knocked, a connector, an amplifier's gain)",
+        (Param("delta_imbalance", "", "jump of log(d amplitude / q amplitude)"),),
+        "the ratio of the channel amplitudes (d/q) jumped by {percent:+.2f} %",
+        derive=lambda v: {"percent": 100 * math.expm1(v["delta_imbalance"])},
+        alarm_params=("delta_imbalance",),
+    ),
+    Cause(
         "accelerated_aging",
         "offsets or gains drift far faster than the fleet's normal rate",
         (
