@@ -92,6 +92,16 @@ class Correction:
         out.w3, out.w4 = self.w3 * k, self.w4 * k  # u2 = k·w3·(q - centre_q) + w5·u1
         return out
 
+    def axes_moved(self, delta_skew: float) -> Correction:
+        """The same correction for a q axis turned towards d by asin(delta_skew) (the ellipse's skew moved by
+        delta_skew): q now reads cosΔ·q - sinΔ·(its amplitude over d's)·d about the centre, and the correction
+        takes the d part back out through w5 (its amplitudes per unit are w1 and w3's inverses, to first order)."""
+        out = Correction(**{**self.__dict__, "harmonics": dict(self.harmonics)})
+        turn = float(np.arcsin(delta_skew))
+        out.w3, out.w4 = self.w3 / np.cos(turn), self.w4 / np.cos(turn)
+        out.w5 = self.w5 + float(np.tan(turn))
+        return out
+
     def params(self, orders: list[int]) -> np.ndarray:
         row = [self.w1, self.w2, self.w3, self.w4, self.w5, self.zero_offset_rad]
         for m in orders:

@@ -60,13 +60,16 @@ class Settings:
     step_h: float = 12.0  # CUSUM threshold, in standard deviations
     gain_step_min: float = 0.003  # smallest jump of the gain imbalance worth an alarm (log of the d/q amplitude
     # ratio; the planted gain steps: 0.003-0.01)
-    gain_step_z: float = 5.0  # ... and this many standard deviations of the change between two windows
-    gain_model_sd: float = 0.0002  # added to that: what the slope in temperature leaves between windows
-    gain_slope_prior: float = 0.002  # per kelvin: the ratio's slope before any pair of windows has shown it
-    gain_match_s: float = 1800.0  # two windows this close in drive time ...
-    gain_match_c: float = 3.0  # ... and in temperature are compared
-    gain_max_gap_bins: int = N_BINS // 16  # ... when each saw the whole circle but this many bins (of 64): with a
+    axis_step_min: float = 0.002  # smallest jump of the axes' skew worth an alarm (sine of the angle between the
+    # sensor axes' change; the planted axis steps: 0.002-0.006 rad)
+    jump_z: float = 5.0  # a gain or axis step: this many standard deviations of the change between two windows
+    jump_model_sd: float = 0.0002  # added to that: what the slope in temperature leaves between windows
+    jump_slope_prior: float = 0.002  # per kelvin: the slope before any pair of windows has shown it
+    jump_match_s: float = 1800.0  # two windows this close in drive time ...
+    jump_match_c: float = 3.0  # ... and in temperature are compared
+    jump_max_gap_bins: int = N_BINS // 16  # ... when each saw the whole circle but this many bins (of 64): with a
     # quarter turn unseen, clean reversing drives raised 5 gain steps of 0.3-0.4 % on 8 fleets
+    jump_max_rejected: float = 0.001  # ... and each rejected no more than this share of its samples as spikes
     held_step_min: float = 0.003  # a jump of the held positions worth an alarm, fraction of amplitude (they move
     # ~0.0004 per °C, and up to 0.002 in minutes with the die's lag: a jump is judged against a visit within
     # held_match_c and held_match_s; at 0.0015, clean 0.5 Hz drives raised an alarm every few hours)
@@ -112,6 +115,7 @@ class Features:
     sigma: np.ndarray | None = None  # their uncertainties
     held: list | None = None  # [x, y, sd] of each position the window held (normalised)
     gap_bins: int = 0  # the longest run of angle bins the window left empty
+    skew: float | None = None  # the ellipse's skew, q01 / sqrt(q00·q11): the sine of the axes' departure from 90°
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -218,6 +222,7 @@ def window_features(
     if not np.all(np.isfinite(y)):
         return f
     f.y = y
+    f.skew = float(q01 / math.sqrt(q00 * q11))
     f.sigma = np.full(N_FEATURES, s_center)
     f.sigma[2:4] = s_amp
     return f
@@ -415,6 +420,61 @@ class BandBaseline:
         return cls(**d)
 
 
+@dataclass
+class WindowJump:
+    """A step of one shape quantity (the channels' amplitude ratio, the axes' skew), judged window against
+    window: the quantity moves with temperature, and the bands' lines in temperature miss it by up to 0.4 % over a
+    day's cycle (s2-20hz-04 raised 15 false gain steps against them), while from one window to the next it moves
+    by its slope times a fraction of a kelvin. A jump must then hold still in the next window (a step that falls
+    inside a window shows there in part: its size is the change from the window before the jump)."""
+
+    recent: list = field(default_factory=list)  # [value, temp_c, t, sd] of the last two windows judged
+    slope: list = field(default_factory=lambda: [0.0, 0.0])  # Σ ΔT², Σ ΔT·Δvalue of pairs of windows (decaying)
+    pending: list | None = None  # [value, temp_c, windows, slope sums] before a jump not yet seen still
+
+    def update(self, y: float, sd: float, temp: float, t: float, step_min: float, s: Settings) -> tuple | None:
+        """Feed one window's value; returns (step, its standard error) when a step is certain."""
+        recent = [w for w in self.recent if t - w[2] <= s.jump_match_s and abs(temp - w[1]) <= s.jump_match_c]
+        self.recent = [*recent[-1:], [y, temp, t, sd]]
+        if not recent:
+            self.pending = None  # too far apart to tell a step from drift
+            return None
+        prev = recent[-1]
+        # while a jump waits to be seen still, the slope is the one from before it (the jump's own pairs would
+        # tilt it: 2 Hz, 600 s windows, a step as the drive warmed from a flat stretch read 0.0049 for 0.0062)
+        sums = self.pending[3] if self.pending is not None else self.slope
+        slope = sums[1] / (sums[0] + 1.0)  # per kelvin; a kelvin² of ridge
+        # what the slope may be off by, all of it: at a cycle's turn the die's lag makes the ratio run on while the
+        # reported temperature turns back (the project's simulator, ~0.14 %/K, raised a step at +70 °C), and
+        # before many kelvin of pairs it is barely known (false steps in the first half hour)
+        noise = math.hypot(sd, prev[3]) + s.jump_model_sd
+        slope_sd = abs(slope) + 1.0 / math.sqrt(s.jump_slope_prior**-2 + sums[0] / noise**2)  # prior, then pairs
+        change = y - prev[0] - slope * (temp - prev[1])
+        moving = abs(change) > max(step_min / 2, s.jump_z * noise) + slope_sd * abs(temp - prev[1])
+        # the slope from every pair of windows but a step's (learning it only from pairs that did not move never
+        # learnt it where the ratio moves by more than a step's threshold between two windows: the project's
+        # simulator, ~0.14 %/K and 4 K per window, raised false steps in the first hour)
+        decay = math.exp(-(t - prev[2]) / s.rate_tau_s)
+        dt_c, dy = temp - prev[1], y - prev[0]
+        learnt = [decay * self.slope[0] + dt_c * dt_c, decay * self.slope[1] + dt_c * dy]
+        if self.pending is None:
+            if moving:  # the level before the jump: two windows back, in case the step began inside the last one
+                self.pending = [recent[0][0], recent[0][1], 1, list(self.slope)]
+            self.slope = learnt
+            return None
+        before_y, before_c, windows, before_sums = self.pending
+        self.slope = learnt
+        if moving:  # still moving: a step spread over two windows, or a creep that is no step
+            self.pending = [before_y, before_c, windows + 1, before_sums] if windows < 2 else None
+            return None
+        self.pending = None
+        delta = y - before_y - slope * (temp - before_c)
+        if abs(delta) < max(step_min, s.jump_z * noise) + slope_sd * abs(temp - before_c):
+            return None  # it came back: one odd window, not a step
+        self.slope = before_sums  # the step's pairs say nothing of the slope
+        return delta, noise
+
+
 # --- alarms ---------------------------------------------------------------------------------------
 
 
@@ -450,9 +510,8 @@ class DeviceMonitor:
     level_t: float | None = None
     step: Cusum = None
     step_sum: list = field(default_factory=lambda: [0.0, 0.0])  # Σ (e - level) while the step CUSUM climbs
-    gain_recent: list = field(default_factory=list)  # [imbalance, temp_c, t, sd] of the last two windows fitted
-    gain_slope: list = field(default_factory=lambda: [0.0, 0.0])  # Σ ΔT², Σ ΔT·Δimbalance of quiet window pairs
-    gain_pending: list | None = None  # [imbalance, temp_c, windows, slope sums] before a jump not yet seen still
+    gain_jump: WindowJump = field(default_factory=WindowJump)  # the amplitude ratio log(d/q), window to window
+    axis_jump: WindowJump = field(default_factory=WindowJump)  # the axes' skew, window to window
     rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
     rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
     harm_mean: list | None = None  # hourly mean of the harmonic residuals
@@ -498,9 +557,8 @@ class DeviceMonitor:
             "level_t": self.level_t,
             "step": self.step.to_dict(),
             "step_sum": self.step_sum,
-            "gain_recent": self.gain_recent,
-            "gain_slope": self.gain_slope,
-            "gain_pending": self.gain_pending,
+            "gain_jump": asdict(self.gain_jump),
+            "axis_jump": asdict(self.axis_jump),
             "rates": self.rates.to_dict(),
             "rate_cusum": {k: v.to_dict() for k, v in self.rate_cusum.items()},
             "harm_mean": self.harm_mean,
@@ -533,9 +591,8 @@ class DeviceMonitor:
             level_t=d["level_t"],
             step=Cusum.from_dict(d["step"]),
             step_sum=d["step_sum"],
-            gain_recent=d.get("gain_recent", []),  # states stored before the gain step was judged have none of these
-            gain_slope=d.get("gain_slope", [0.0, 0.0]),
-            gain_pending=d.get("gain_pending"),
+            gain_jump=WindowJump(**d.get("gain_jump", {})),  # states stored before these steps were judged: new
+            axis_jump=WindowJump(**d.get("axis_jump", {})),
             rates=EwRegression.from_dict(d["rates"]),
             rate_cusum={k: Cusum.from_dict(v) for k, v in d["rate_cusum"].items()},
             harm_mean=d["harm_mean"],
@@ -571,7 +628,7 @@ class DeviceMonitor:
         loads += [c.load for c in self.frac.values()]
         recent_absurd = self.last_absurd_t is not None and self.last_t is not None
         recent_absurd = recent_absurd and self.last_t - self.last_absurd_t < self.settings.clear_after_s
-        return "watch" if max(loads) >= 0.5 or recent_absurd or self.gain_pending is not None else "ok"
+        return "watch" if max(loads) >= 0.5 or recent_absurd or self.gain_jump.pending is not None else "ok"
 
     def rate_estimates(self) -> dict[str, float] | None:
         """This device's current |offset rate| and amplitude loss per day, for the fleet's distribution."""
@@ -599,7 +656,7 @@ class DeviceMonitor:
         if f.held:
             self._held_step(f, events)
         if f.y is not None:
-            self._gain_step(f, events)
+            self._shape_steps(f, events)
             self._shape(f, fleet, events)
         return events
 
@@ -763,67 +820,43 @@ class DeviceMonitor:
             w = 1.0 - math.exp(-max(dt, 0.0) / s.level_tau_s)
             level[_OFF] += w * jump
             level[_AMP] += w * (e[_AMP] - level[_AMP])
-            if self.gain_pending is None:
+            if self.gain_jump.pending is None:
                 level[_IMB] += w * (e[_IMB] - level[_IMB])
             self.level = list(level)
         self.level_t = f.t
 
-    def _gain_step(self, f: Features, events) -> None:
-        """A step of the gain imbalance (the ratio of the channels' amplitudes jumped: a sensor knocked, a
-        connector's contact resistance, an amplifier's gain switch), judged window to window: the ratio moves
-        with temperature (~0.03 %/K) and the bands' lines in temperature miss that by up to 0.4 % over a day's
-        cycle (s2-20hz-04 raised 15 false alarms against them), while from one window to the next it moves by
-        its slope times a fraction of a kelvin. A jump must then hold still in the next window (a step that falls
-        inside a window shows there in part: its size is the change from the window before the jump)."""
+    def _shape_steps(self, f: Features, events) -> None:
+        """A step of the gain ratio (a sensor knocked, a connector's contact resistance, an amplifier's gain switch)
+        or of the angle between the sensor axes (a sensor tilted on its board), each by its WindowJump."""
         s = self.settings
-        if f.gap_bins > s.gain_max_gap_bins:
-            return  # an ellipse through part of the circle biases the ratio by which part (reversing drives)
-        y, temp, sd = float(f.y[_IMB]), f.temp_c, float(f.sigma[_IMB])
-        recent = [w for w in self.gain_recent if f.t - w[2] <= s.gain_match_s and abs(temp - w[1]) <= s.gain_match_c]
-        self.gain_recent = [*recent[-1:], [y, temp, f.t, sd]]
-        if not recent:
-            self.gain_pending = None  # too far apart to tell a step from drift
+        if f.gap_bins > s.jump_max_gap_bins:
+            return  # an ellipse through part of the circle biases the shape by which part (reversing drives)
+        if f.rejected["outlier"] + f.rejected["clipped"] > s.jump_max_rejected * max(f.seen, 1):
+            return  # spikes too small to reject tilt the fit too (bench-monitor: a false axis_step on a spiky drive)
+        sd = float(f.sigma[_IMB])
+        gain = self.gain_jump.update(float(f.y[_IMB]), sd, f.temp_c, f.t, s.gain_step_min, s)
+        axis = self.axis_jump.update(f.skew, sd, f.temp_c, f.t, s.axis_step_min, s)
+        where = f"at {f.temp_c:.1f} °C (band {f.band})"
+        if axis is not None:
+            delta, noise = axis
+            self._raise(
+                events,
+                "axis_step",
+                f.t,
+                {"delta_skew": round(delta, 6)},
+                f"the angle between the sensor axes moved by {math.degrees(math.asin(delta)):+.3f}° between two "
+                f"windows and held there, {abs(delta) / noise:.0f}× the windows' uncertainty, {where}.",
+            )
+        if gain is None:
             return
-        prev = recent[-1]
-        # while a jump waits to be seen still, the slope is the one from before it (the jump's own pairs would
-        # tilt it: 2 Hz, 600 s windows, a step as the drive warmed from a flat stretch read 0.0049 for 0.0062)
-        sums = self.gain_pending[3] if self.gain_pending is not None else self.gain_slope
-        slope = sums[1] / (sums[0] + 1.0)  # ratio per kelvin; a kelvin² of ridge
-        # what the slope may be off by, all of it: at a cycle's turn the die's lag makes the ratio run on while the
-        # reported temperature turns back (the project's simulator, ~0.14 %/K, raised a step at +70 °C), and
-        # before many kelvin of pairs it is barely known (false steps in the first half hour)
-        slope_sd = abs(slope) + s.gain_slope_prior / math.sqrt(1.0 + sums[0])
-        change = y - prev[0] - slope * (temp - prev[1])
-        noise = math.hypot(sd, prev[3]) + s.gain_model_sd
-        moving = abs(change) > max(s.gain_step_min / 2, s.gain_step_z * noise) + slope_sd * abs(temp - prev[1])
-        # the slope from every pair of windows but a step's (learning it only from pairs that did not move never
-        # learnt it where the ratio moves by more than a step's threshold between two windows: the project's
-        # simulator, ~0.14 %/K and 4 K per window, raised false steps in the first hour)
-        decay = math.exp(-(f.t - prev[2]) / s.rate_tau_s)
-        dt_c, dy = temp - prev[1], y - prev[0]
-        learnt = [decay * self.gain_slope[0] + dt_c * dt_c, decay * self.gain_slope[1] + dt_c * dy]
-        if self.gain_pending is None:
-            if moving:  # the level before the jump: two windows back, in case the step began inside the last one
-                self.gain_pending = [recent[0][0], recent[0][1], 1, list(self.gain_slope)]
-            self.gain_slope = learnt
-            return
-        before_y, before_c, windows, before_sums = self.gain_pending
-        self.gain_slope = learnt
-        if moving:  # still moving: a step spread over two windows, or a creep that is no step
-            self.gain_pending = [before_y, before_c, windows + 1, before_sums] if windows < 2 else None
-            return
-        self.gain_pending = None
-        delta = y - before_y - slope * (temp - before_c)
-        if abs(delta) < max(s.gain_step_min, s.gain_step_z * noise) + slope_sd * abs(temp - before_c):
-            return  # it came back: one odd window, not a step
-        self.gain_slope = before_sums  # the step's pairs say nothing of the slope
+        delta, noise = gain
         self._raise(
             events,
             "gain_step",
             f.t,
             {"delta_imbalance": round(delta, 6)},
             f"the ratio of the channels' amplitudes (d/q) jumped by {_pct(math.expm1(delta))} between two windows "
-            f"and held there, {abs(delta) / noise:.0f}× the windows' uncertainty, at {temp:.1f} °C (band {f.band}).",
+            f"and held there, {abs(delta) / noise:.0f}× the windows' uncertainty, {where}.",
         )
         if self.level is not None:
             level = list(self.level)

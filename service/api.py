@@ -118,8 +118,8 @@ class Alarm(BaseModel):
     id: int
     device: str
     cause: str = Field(
-        description="offset_step, gain_step, accelerated_aging, magnet_weakening, harmonic_growth, outliers, "
-        "adc_clipping or offline (docs/architecture.md, Alarms)."
+        description="offset_step, gain_step, axis_step, accelerated_aging, magnet_weakening, harmonic_growth, "
+        "outliers, adc_clipping or offline (docs/architecture.md, Alarms)."
     )
     parameters: dict = Field(description="The cause's parameters.")
     evidence: str = Field(description="One sentence: what the monitor saw.")

@@ -102,7 +102,7 @@ class Monitor:
         return written
 
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
-        """A step (offset or gain) is cleared once the fleet has re-corrected the drive: a coefficient set
+        """A step (offset, gain or axes) is cleared once the fleet has re-corrected the drive: a coefficient set
         created after the step has been applied by the agent (the refit history)."""
         cleared = []
         for cause in STEP_CAUSES:

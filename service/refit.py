@@ -46,7 +46,7 @@ CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own 
 MIN_GAIN_DEG = 0.01  # … and by at least this much
 ZERO_ANCHOR_REACH_C = 10.0  # the factory's zero is trusted this close to its bench temperature
 UNBOUNDED_ERROR_DEG = 180.0  # a candidate whose drift the data cannot bound (the wire's largest error)
-STEP_CAUSES = ("offset_step", "gain_step")  # the alarms whose measured step moves the running set at once
+STEP_CAUSES = ("offset_step", "gain_step", "axis_step")  # the alarms whose measured step moves the running set at once
 STEP_OPEN_S = 86400.0  # drive time after an offset step in which bands with no data since may be moved
 
 
@@ -190,8 +190,8 @@ def refit_from_bench(
 def step_moved_bands(bands: list[dict], cause: str, step: dict, scale: float) -> list[dict]:
     """A coefficient set's band entries for channels that stepped as the drift monitor measured it (an alarm's
     parameters): an offset_step's (delta_d, delta_q), fractions of the amplitude in the device's statistics scale
-    (raw units per unit), or a gain_step's delta_imbalance. Every band reads the stepped channels as it read them
-    before the step, band and quality kept."""
+    (raw units per unit), a gain_step's delta_imbalance or an axis_step's delta_skew. Every band reads the stepped
+    channels as it read them before the step, band and quality kept."""
     moved = []
     for entry in bands:
         corr = Correction.from_dict({k: v for k, v in entry.items() if k not in ("band", "quality")})
@@ -199,6 +199,8 @@ def step_moved_bands(bands: list[dict], cause: str, step: dict, scale: float) ->
             after = corr.offsets_moved(step["delta_d"] * scale, step["delta_q"] * scale)
         elif cause == "gain_step":
             after = corr.imbalance_moved(step["delta_imbalance"])
+        elif cause == "axis_step":
+            after = corr.axes_moved(step["delta_skew"])
         else:
             raise ValueError(f"no move for a {cause} alarm")
         moved.append({"band": entry["band"], **after.to_dict(), "quality": dict(entry.get("quality", {}))})

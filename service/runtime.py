@@ -608,7 +608,7 @@ class FleetService:
 
     def refit(self, device: str) -> int | None:
         """Judge the set on trial, if there is one (the device gets nothing new meanwhile); otherwise, right after
-        a step (offset or gain), publish the running set moved by it (publish_step_move); otherwise refit and
+        a step (offset, gain or axes), publish the running set moved by it (publish_step_move); otherwise refit and
         publish what changed. New sets go out on trial. Returns the version published (a fit, a move or a
         rollback). A device a staged rollout holds (service/rollout.py) is left to the rollout."""
         with self._lock:
@@ -646,8 +646,10 @@ class FleetService:
         bands = step_moved_bands(running["bands"], cause, step, scale)
         if cause == "offset_step":
             size = f"{100 * step['delta_d']:+.2f} % (d), {100 * step['delta_q']:+.2f} % (q) of the amplitude"
-        else:
+        elif cause == "gain_step":
             size = f"a d/q amplitude ratio {100 * math.expm1(step['delta_imbalance']):+.2f} %"
+        else:
+            size = f"an angle between the axes {math.degrees(math.asin(step['delta_skew'])):+.3f}°"
         reason = f"{cause.replace('_', ' ')}: v{running_version} moved by {size}, as the drift monitor measured it"
         return self._issue_set(device, "fit", bands, state="trial", reason=reason)
 
@@ -809,7 +811,7 @@ class FleetService:
         return step_at is not None and self._drive_now(device) - step_at < STEP_OPEN_S
 
     def _last_step_at(self, device: str) -> float | None:
-        """Drive time of the newest step (offset or gain) the monitor raised for the device."""
+        """Drive time of the newest step (offset, gain or axes) the monitor raised for the device."""
         raised = [a["raised_at"] for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
         return max(raised, default=None)
 

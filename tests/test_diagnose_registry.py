@@ -38,8 +38,8 @@ def test_registry_holds_designs_causes_each_with_its_sample_form():
 def test_the_monitor_names_alarms_from_the_same_registry():
     from encoder_core import monitor_causes
 
-    alarm_names = {"offset_step", "accelerated_aging", "magnet_weakening", "harmonic_growth", "outliers"}
-    alarm_names |= {"adc_clipping", "offline"}
+    alarm_names = {"offset_step", "gain_step", "axis_step", "accelerated_aging", "magnet_weakening"}
+    alarm_names |= {"harmonic_growth", "outliers", "adc_clipping", "offline"}
     assert set(monitor_causes.CAUSES) == alarm_names  # the Alarms contract of docs/architecture.md
     for name, cause in monitor_causes.CAUSES.items():
         assert CAUSES[name] is cause and set(cause.alarm_params) <= set(cause.param_names)

@@ -333,13 +333,16 @@ def test_a_comparison_with_no_finite_error_is_not_counted_as_measured():
     assert known.action == "confirm" and "1 band(s) measured" in known.reason
 
 
-@pytest.mark.parametrize("seed", [51, 52])
-def test_a_gain_step_is_named_moved_for_and_the_move_kept(fleet, seed):
-    """Independent simulator: q's gain steps mid-run (size and sign drawn from the seed). The monitor names it,
-    the service publishes the running set moved by what it measured, and the watch against the factory judges the
-    move only on windows after the step: judged on the newest hour, which held the windows from before it, the
-    watch rolled every such move back to the factory set (bench-fleet-accuracy: s2-20hz-04 ran the factory's
-    0.11° for an hour, then a refit mixed with the old drive). On the truth, the move is the better set."""
+@pytest.mark.parametrize(
+    ("seed", "cause"), [(51, "gain_step"), (52, "gain_step"), (53, "axis_step"), (54, "axis_step")]
+)
+def test_a_gain_or_axis_step_is_named_moved_for_and_the_move_kept(fleet, seed, cause):
+    """Independent simulator: q's gain steps mid-run, or its sensor axis turns (size and sign drawn from the
+    seed). The monitor names it, the service publishes the running set moved by what it measured (q scaled, or the
+    axes' shear w5 moved), and the watch against the factory judges the move only on windows after the step:
+    judged on the newest hour, which held the windows from before it, the watch rolled every such move back to the
+    factory set (bench-fleet-accuracy: s2-20hz-04 ran the factory's 0.11° for an hour, then a refit mixed with the
+    old drive). On the truth, the move is the better set."""
     import numpy as np
 
     from encoder_core.correction import BandedCorrection
@@ -350,8 +353,11 @@ def test_a_gain_step_is_named_moved_for_and_the_move_kept(fleet, seed):
     rng = np.random.default_rng(seed)
     phys = fieldsim.draw_drive(rng)
     step_at = 5400.0
-    size = float(rng.choice([-1, 1]) * rng.uniform(0.01, 0.02))
-    phys.events.append(fieldsim.Event(step_at, "gain_step", q_gain=size))
+    sign = float(rng.choice([-1, 1]))
+    if cause == "gain_step":
+        phys.events.append(fieldsim.Event(step_at, cause, q_gain=sign * rng.uniform(0.01, 0.02)))
+    else:
+        phys.events.append(fieldsim.Event(step_at, cause, q_axis=sign * rng.uniform(0.005, 0.01)))
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
     store.insert_coefficient_set(factory_set(DEVICE, factory))
     store.mark_published(DEVICE, 0)
@@ -376,10 +382,10 @@ def test_a_gain_step_is_named_moved_for_and_the_move_kept(fleet, seed):
 
     after_step = int(np.searchsorted(starts, step_at)) + 3
     send(0, after_step)
-    (alarm,) = store.alarms(DEVICE, cause="gain_step")
+    (alarm,) = store.alarms(DEVICE, cause=cause)
     assert step_at <= alarm["raised_at"] <= step_at + 180.0
     history = store.coefficient_history(DEVICE)
-    assert history[0]["version"] == 1 and "gain step" in history[0]["state_reason"]
+    assert history[0]["version"] == 1 and cause.replace("_", " ") in history[0]["state_reason"]
     send(after_step, after_step + 16)  # the watch looks again (every 15 minutes of drive time), its hour mostly
     send(after_step + 16, len(starts))  # from before the step; and again
     history = store.coefficient_history(DEVICE)

@@ -19,11 +19,12 @@ ARCH = open("docs/architecture.md", encoding="utf-8").read()
 
 
 def test_vocabulary_is_the_contract():
-    for name in ("offset_step", "gain_step", "accelerated_aging", "magnet_weakening", "harmonic_growth", "outliers"):
+    for name in ("offset_step", "gain_step", "axis_step", "accelerated_aging", "magnet_weakening", "outliers"):
         assert f"`{name}`" in ARCH
     assert set(CAUSES) == {
         "offset_step",
         "gain_step",
+        "axis_step",
         "accelerated_aging",
         "magnet_weakening",
         "harmonic_growth",
@@ -33,6 +34,7 @@ def test_vocabulary_is_the_contract():
     }
     assert set(CAUSES["offset_step"].alarm_params) == {"delta_d", "delta_q"}
     assert set(CAUSES["gain_step"].alarm_params) == {"delta_imbalance"}
+    assert set(CAUSES["axis_step"].alarm_params) == {"delta_skew"}
     assert set(CAUSES["accelerated_aging"].alarm_params) == {"rate_per_day", "fleet_median_rate_per_day"}
     assert set(CAUSES["magnet_weakening"].alarm_params) == {"loss_per_day"}
     assert set(CAUSES["harmonic_growth"].alarm_params) == {"order", "amplitude_deg"}
@@ -210,7 +212,7 @@ def test_a_clean_reversing_drive_raises_no_offset_step(seed):
     assert monitor.judged > 300  # the windows that do go round the circle are still judged
 
 
-def _gain_alarms(phys, rng, rate_hz: float, window_s: float, regime: str, days: float) -> list:
+def _step_alarms(phys, rng, rate_hz: float, window_s: float, regime: str, days: float, cause: str) -> list:
     from encoder_core.stats import normalisation_scale, window_stats
     from encoder_fleet import fieldsim
     from encoder_fleet.calibrate import calibrate
@@ -224,7 +226,8 @@ def _gain_alarms(phys, rng, rate_hz: float, window_s: float, regime: str, days: 
         stats = window_stats(run.samples.subset(slice(start, end)), scale)
         end_s, temp = float(run.samples.t[end - 1]), stats.temp_mean
         for e in monitor.update(window_features(stats, t=end_s, temp_c=temp, band=band_of(temp))):
-            if e.kind == "raise" and e.cause == "gain_step":
+            if e.kind == "raise" and e.cause in ("gain_step", "axis_step"):
+                assert e.cause == cause, (e.cause, e.at / 3600, e.parameters)
                 raised.append(e)
                 monitor.clear(e.cause, e.at, "the test takes each step as re-corrected at once")
     return raised
@@ -248,9 +251,33 @@ def test_a_gain_step_is_named_with_its_size_and_the_same_drive_without_it_raises
     phys = fieldsim.draw_drive(np.random.default_rng(seed), event="gain_step", days=days)
     (step,) = phys.events
     truth = -math.log1p(step.q_gain)  # log(d/q) of the amplitudes: q's gain grew by q_gain
-    raised = _gain_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days)
+    raised = _step_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days, "gain_step")
     assert len(raised) == 1, [(e.at / 3600, e.parameters) for e in raised]
     assert step.t_s <= raised[0].at <= step.t_s + 3600.0
     assert abs(raised[0].parameters["delta_imbalance"] - truth) < 0.2 * abs(truth), (raised[0].parameters, truth)
     phys.events.clear()
-    assert _gain_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days) == []
+    assert _step_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days, "gain_step") == []
+
+
+@pytest.mark.parametrize(("seed", "rate_hz", "window_s", "regime"), [
+    (61, 20.0, 60.0, "even"), (62, 20.0, 60.0, "random"), (63, 0.5, 300.0, "random"), (64, 5.0, 120.0, "even"),
+    (65, 2.0, 600.0, "random"),
+])  # fmt: skip
+def test_an_axis_step_is_named_with_its_size_and_the_same_drive_without_it_raises_none(seed, rate_hz, window_s, regime):
+    """Independent simulator: the q sensor's axis turns by 0.3–0.6° of a radian's thousandths (0.003–0.006 rad: a
+    sensor tilted on its board), sign and time drawn from the seed. The monitor names one axis_step within the
+    hour, the ellipse's skew jump within a fifth of the turn's sine; the same drive without the turn raises none."""
+    from encoder_fleet import fieldsim
+
+    days = 1.5
+    rng = np.random.default_rng(seed)
+    phys = fieldsim.draw_drive(rng, event=None, days=days)
+    turn = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.003, 0.006))
+    step = fieldsim.Event(float(rng.uniform(0.3, 0.8) * days * DAY_S), "axis_step", q_axis=turn)
+    phys.events.append(step)
+    raised = _step_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days, "axis_step")
+    assert len(raised) == 1, [(e.at / 3600, e.parameters) for e in raised]
+    assert step.t_s <= raised[0].at <= step.t_s + 3600.0
+    assert abs(raised[0].parameters["delta_skew"] - np.sin(turn)) < 0.2 * abs(turn), (raised[0].parameters, turn)
+    phys.events.clear()
+    assert _step_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days, "axis_step") == []

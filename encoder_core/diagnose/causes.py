@@ -234,6 +234,14 @@ _MONITOR_ONLY = (
         alarm_params=("delta_imbalance",),
     ),
     Cause(
+        "axis_step",
+        "the angle between the sensor axes jumped (a sensor tilted on its board, a bent bracket)",
+        (Param("delta_skew", "", "jump of the sine of the axes' departure from 90° (the ellipse's skew)"),),
+        "the angle between the sensor axes moved by {degrees:+.3f}°",
+        derive=lambda v: {"degrees": math.degrees(math.asin(v["delta_skew"]))},
+        alarm_params=("delta_skew",),
+    ),
+    Cause(
         "accelerated_aging",
         "offsets or gains drift far faster than the fleet's normal rate",
         (
