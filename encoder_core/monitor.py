@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .held import held_points
+from .monitor_causes import cause as cause_of
 from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C
 from .stats import MONOMIALS, N_BINS, WindowStats
@@ -836,28 +837,20 @@ class DeviceMonitor:
         sd = float(f.sigma[_IMB])
         gain = self.gain_jump.update(float(f.y[_IMB]), sd, f.temp_c, f.t, s.gain_step_min, s)
         axis = self.axis_jump.update(f.skew, sd, f.temp_c, f.t, s.axis_step_min, s)
-        where = f"at {f.temp_c:.1f} °C (band {f.band})"
-        if axis is not None:
-            delta, noise = axis
-            self._raise(
-                events,
-                "axis_step",
-                f.t,
-                {"delta_skew": round(delta, 6)},
-                f"the angle between the sensor axes moved by {math.degrees(math.asin(delta)):+.3f}° between two "
-                f"windows and held there, {abs(delta) / noise:.0f}× the windows' uncertainty, {where}.",
-            )
+        for name, step, param in (("axis_step", axis, "delta_skew"), ("gain_step", gain, "delta_imbalance")):
+            if step is not None:
+                parameters = {param: round(step[0], 6)}
+                self._raise(
+                    events,
+                    name,
+                    f.t,
+                    parameters,
+                    f"{cause_of(name).state(**parameters)} between two windows and held there, "
+                    f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
+                )
         if gain is None:
             return
-        delta, noise = gain
-        self._raise(
-            events,
-            "gain_step",
-            f.t,
-            {"delta_imbalance": round(delta, 6)},
-            f"the ratio of the channels' amplitudes (d/q) jumped by {_pct(math.expm1(delta))} between two windows "
-            f"and held there, {abs(delta) / noise:.0f}× the windows' uncertainty, {where}.",
-        )
+        delta = gain[0]
         if self.level is not None:
             level = list(self.level)
             level[_IMB] += delta
