@@ -231,6 +231,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     next_refit = next_watch = float(samples.t[0]) + refit_every_s
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
+    deferred = None  # a step's move waiting for a trial's verdict: (cause, parameters, at)
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
         if pending is not None:  # the agent applies what arrived before this window
@@ -243,6 +244,10 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             if guard and pending["basis"] != "rollback":
                 trial = [pending, {}, changed_bands(pending, confirmed), float(block.t[0])]
             pending = None
+        if deferred is not None and pending is None and trial is None:  # service.runtime.refit: after the verdict
+            bands = step_moved_bands(running_msg["bands"], deferred[0], deferred[1], scale)
+            pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": float(block.t[0])}
+            deferred = None
         stats = window_stats(block, scale)  # the agent's own code path
         if stats.temp_n == 0:
             continue
@@ -255,7 +260,11 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 if event.cause in STEP_CAUSES and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
-                    if pending is None and trial is None:  # service.runtime.publish_step_move
+                    if trial is not None and trial[0]["created_at"] >= event.at:
+                        deferred = None  # the set on trial was fitted after the step (service.runtime.refit)
+                    elif pending is not None or trial is not None:  # the move waits for them
+                        deferred = (event.cause, event.parameters, event.at)
+                    else:  # service.runtime.publish_step_move
                         bands = step_moved_bands(running_msg["bands"], event.cause, event.parameters, scale)
                         pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
         if watch_factory and pending is None and end_s >= next_watch:

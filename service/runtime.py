@@ -171,7 +171,7 @@ class FleetService:
         self._fitted_at: dict[str, float] = {}  # device -> drive time of its last refit
         self._watched_at: dict[str, float] = {}  # device -> drive time of its last watch against the factory
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
-        self._step_moves: dict[str, tuple[str, dict]] = {}  # device -> the step the monitor measured (cause, size)
+        self._step_moves: dict[str, tuple] = {}  # device -> the step the monitor measured (cause, size, raised_at)
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
         self._alive_unknown: dict[str, float] = {}  # tokens of devices that have sent nothing valid yet
@@ -478,7 +478,7 @@ class FleetService:
             with self._lock:
                 self._changed.add(alarm["device"])
                 self._refit_now.add(alarm["device"])
-                self._step_moves[alarm["device"]] = (alarm["cause"], alarm["parameters"])
+                self._step_moves[alarm["device"]] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
             log.info(
                 "band memory restarted after a step",
                 extra={"device": alarm["device"], "cause": alarm["cause"], "bands": bands},
@@ -561,6 +561,8 @@ class FleetService:
             if device in self._refit_now:
                 self._refit_now.discard(device)
                 return True
+            if device in self._step_moves:  # a move waits for a trial's verdict: the next pass may make it
+                return True
         last = self._fitted_at.get(device)
         if last is None or self.store.set_on_trial(device) is not None:
             return True
@@ -612,13 +614,20 @@ class FleetService:
         publish what changed. New sets go out on trial. Returns the version published (a fit, a move or a
         rollback). A device a staged rollout holds (service/rollout.py) is left to the rollout."""
         with self._lock:
-            step = self._step_moves.pop(device, None)  # a step's move is now or never: a trial or rollout goes first
+            step = self._step_moves.get(device)
         if self.rollouts.holds(device):
+            self._step_moves.pop(device, None)  # a rollout goes first, and the refit after it sees the step
             return None
         trial = self.store.set_on_trial(device)
         if trial is not None:
+            if step is not None and trial["message"]["created_at"] >= step[2]:
+                self._step_moves.pop(device, None)  # the set on trial was fitted after the step: nothing to move
+            # else the move waits for the verdict, then moves what runs (s4-20hz-08: an axis step during a trial
+            # was dropped, and the drive ran 0.13-0.22° for a day against 0.02-0.04° before it)
             return self._judge_trial(device, trial)
-        if step is not None and (version := self.publish_step_move(device, *step)) is not None:
+        with self._lock:
+            self._step_moves.pop(device, None)
+        if step is not None and (version := self.publish_step_move(device, *step[:2])) is not None:
             self._fitted_at[device] = self._drive_now(device)
             with self._lock:
                 self.counters.refits += 1
