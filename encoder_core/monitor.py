@@ -809,12 +809,7 @@ class DeviceMonitor:
             self.level = list(level)
             self.step.reset()
             self.step_sum = [0.0, 0.0]
-            self.rates.reset()
-            for c in self.rate_cusum.values():
-                c.reset()
-            for band in self.bands.values():  # learning that saw the drive before the jump starts over
-                if not band.ready:
-                    band.restart()
+            self._restart_after_step()
             return
         if self.step.s == 0:  # follow slow drift (normal aging) only while no jump is building
             dt = f.t - (self.level_t or f.t)
@@ -850,11 +845,15 @@ class DeviceMonitor:
                 )
         if gain is None:
             return
-        delta = gain[0]
         if self.level is not None:
             level = list(self.level)
-            level[_IMB] += delta
+            level[_IMB] += gain[0]
             self.level = level
+        self._restart_after_step()
+
+    def _restart_after_step(self) -> None:
+        """After an offset or gain step: the rates restart, and band learning that saw the drive before it starts
+        over."""
         self.rates.reset()
         for c in self.rate_cusum.values():
             c.reset()

@@ -104,12 +104,11 @@ class Monitor:
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
         """A step (offset, gain or axes) is cleared once the fleet has re-corrected the drive: a coefficient set
         created after the step has been applied by the agent (the refit history)."""
+        open_steps = {cause: mon.open[cause] for cause in STEP_CAUSES if cause in mon.open}
+        acks = self.store.acks(device) if open_steps else []
         cleared = []
-        for cause in STEP_CAUSES:
-            alarm = mon.open.get(cause)
-            if alarm is None:
-                continue
-            for ack in self.store.acks(device):
+        for cause, alarm in open_steps.items():
+            for ack in acks:
                 if ack["status"] != "applied" or ack["at"] < alarm["raised_at"]:
                     continue
                 msg = self.store.coefficient_set(device, ack["version"])

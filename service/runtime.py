@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import queue
 import socket
 import threading
@@ -20,6 +19,7 @@ import zenoh
 from prometheus_client import Histogram
 
 from encoder_core.correction import BandedCorrection
+from encoder_core.monitor_causes import cause as cause_of
 from encoder_core.samples import InputError
 from encoder_core.stats import normalisation_scale
 from fleet_wire import keys
@@ -615,37 +615,35 @@ class FleetService:
         rollback). A device a staged rollout holds (service/rollout.py) is left to the rollout."""
         with self._lock:
             step = self._step_moves.get(device)
-        if self.rollouts.holds(device):
-            self._step_moves.pop(device, None)  # a rollout goes first, and the refit after it sees the step
-            return None
-        trial = self.store.set_on_trial(device)
-        if trial is not None:
-            if step is not None and trial["message"]["created_at"] >= step[2]:
-                self._step_moves.pop(device, None)  # the set on trial was fitted after the step: nothing to move
-            # else the move waits for the verdict, then moves what runs (s4-20hz-08: an axis step during a trial
-            # was dropped, and the drive ran 0.13-0.22° for a day against 0.02-0.04° before it)
-            return self._judge_trial(device, trial)
-        with self._lock:
-            self._step_moves.pop(device, None)
-        if step is not None and (version := self.publish_step_move(device, *step[:2])) is not None:
-            self._fitted_at[device] = self._drive_now(device)
+        held = self.rollouts.holds(device)
+        trial = None if held else self.store.set_on_trial(device)
+        if trial is None or (step is not None and trial["message"]["created_at"] >= step[2]):
+            # a rollout goes first (the refit after it sees the step); a set on trial fitted after the step has
+            # nothing to move; otherwise the move waits for the trial's verdict, then moves what runs (s4-20hz-08:
+            # an axis step during a trial was dropped, and the drive ran 0.13-0.22° for a day against 0.02-0.04°)
             with self._lock:
-                self.counters.refits += 1
+                self._step_moves.pop(device, None)
+        if held:
+            return None
+        if trial is not None:
+            return self._judge_trial(device, trial)
+        if step is not None and (version := self.publish_step_move(device, *step[:2])) is not None:
+            self._refitted(device)
             return version
         result = self.fit(device)
+        self._refitted(device)
+        return self.publish_fit(device, result) if result is not None and result.changed else None
+
+    def _refitted(self, device: str) -> None:
+        """A refit pass was made for the device (a fit or a move): its cadence restarts, and it is counted."""
         self._fitted_at[device] = self._drive_now(device)
         with self._lock:
             self.counters.refits += 1
-        if result is None or not result.changed:
-            return None
-        return self.publish_fit(device, result)
 
     def publish_step_move(self, device: str, cause: str, step: dict) -> int | None:
-        """The set the device runs, moved by the step (offset_step or gain_step) the drift monitor measured, on
-        trial: right at once
-        for the step, where a refit must first gather windows after it (band memory restarts with the step),
-        which a drive that holds a few positions gives slowly. bench-fleet-accuracy: worse hours 46 -> 41 on
-        four fleets, 20 Hz dwelling drives 0.1101° -> 0.0846° on one pair of seeds."""
+        """The set the device runs, moved by the step (offset_step, gain_step or axis_step) the drift monitor
+        measured, on trial: right at once for the step, where a refit must first gather windows after it (band
+        memory restarts with the step), which a drive that holds a few positions gives slowly."""
         running_version = self.store.published_version(device)
         factory = self._correction(device, 0)
         running = self.store.coefficient_set(device, running_version) if running_version is not None else None
@@ -653,13 +651,7 @@ class FleetService:
             return None
         scale = normalisation_scale(factory)  # the agent's statistics scale, in which the monitor measures
         bands = step_moved_bands(running["bands"], cause, step, scale)
-        if cause == "offset_step":
-            size = f"{100 * step['delta_d']:+.2f} % (d), {100 * step['delta_q']:+.2f} % (q) of the amplitude"
-        elif cause == "gain_step":
-            size = f"a d/q amplitude ratio {100 * math.expm1(step['delta_imbalance']):+.2f} %"
-        else:
-            size = f"an angle between the axes {math.degrees(math.asin(step['delta_skew'])):+.3f}°"
-        reason = f"{cause.replace('_', ' ')}: v{running_version} moved by {size}, as the drift monitor measured it"
+        reason = f"{cause.replace('_', ' ')}: v{running_version} moved for it ({cause_of(cause).state(**step)})"
         return self._issue_set(device, "fit", bands, state="trial", reason=reason)
 
     def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
