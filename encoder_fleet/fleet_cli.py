@@ -36,7 +36,7 @@ def cmd_agent(args) -> int:
     from edge_agent.outbox import Outbox
     from edge_agent.sources import ReplaySource, SimulatedDrive, drive_model, factory_calibration
     from encoder_core.correction import BandedCorrection
-    from fleet_wire.session import agent_session_config
+    from fleet_wire.session import agent_session_config, set_on_signals
 
     seed = args.seed if args.seed is not None else device_seed(args.device)
     if args.source == "sim":
@@ -73,7 +73,7 @@ def cmd_agent(args) -> int:
         raise InputError(f"cannot connect to {', '.join(args.connect)}: {first_line}") from None
     agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s, verifier=verifier)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    set_on_signals(stop, signal.SIGTERM)
     try:
         agent.start()
         c = agent.run(real_time_factor=args.real_time_factor, stop=stop)

@@ -58,3 +58,14 @@ def free_port() -> int:
 
 def loopback_endpoint(port: int | None = None) -> str:
     return f"tcp/127.0.0.1:{port or free_port()}"
+
+
+def set_on_signals(event, *signums: int) -> None:
+    """SIGTERM/SIGINT set `event`, from a helper thread: the handler runs in the main thread between bytecodes,
+    and if that thread is inside `event.wait()` holding the event's (non-reentrant) lock, a direct `event.set()`
+    deadlocks the process (seen: a service that ignored SIGTERM)."""
+    import signal
+    import threading
+
+    for signum in signums or (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: threading.Thread(target=event.set, daemon=True).start())

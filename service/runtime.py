@@ -24,6 +24,7 @@ from encoder_core.samples import InputError
 from encoder_core.stats import normalisation_scale
 from fleet_wire import keys
 from fleet_wire import messages as wire
+from fleet_wire.session import set_on_signals
 from service.cluster import Partitions
 from service.db import is_postgres, redacted, sqlite_path
 from service.monitor import Monitor
@@ -908,7 +909,6 @@ def run_service(
 ) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM. pki: TLS, mTLS, ACL and signed sets (None: insecure);
     rest_auth: bearer tokens on REST, the first admin token written to admin_token_file."""
-    import signal
     from contextlib import ExitStack
     from pathlib import Path
 
@@ -948,8 +948,7 @@ def run_service(
         if http_port:
             running.callback(HttpServer(store, http_port, host=http_host, service=service, auth=auth).start().stop)
         stop = threading.Event()
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
-        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        set_on_signals(stop)
         where = ", ".join(connect or listen) + (f" meshed with {', '.join(mesh)}" if mesh else "")
         print(
             f"service: zenoh {'client of ' if connect else 'router on '}{where}; database {redacted(db)}"
