@@ -116,7 +116,9 @@ class Features:
     sigma: np.ndarray | None = None  # their uncertainties
     held: list | None = None  # [x, y, sd] of each position the window held (normalised)
     gap_bins: int = 0  # the longest run of angle bins the window left empty
-    skew: float | None = None  # the ellipse's skew, q01 / sqrt(q00·q11): the sine of the axes' departure from 90°
+    # the shape of the ellipse fitted per angle bin (_ellipse_per_bin): the gain ratio log(d/q amplitude), the skew
+    # q01 / sqrt(q00·q11) (the sine of the axes' departure from 90°), and the standard error of either
+    shape: tuple[float, float, float] | None = None
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -130,7 +132,25 @@ def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
     sums: encoder_core.ellipse.fit_ellipse's algorithm with its checks, lean enough for every window."""
     if int(np.count_nonzero(stats.bins[:, 0])) < N_BINS // 2:
         return None
-    sm = stats.moments[_SCATTER]
+    return _conic_fit(stats.moments[_SCATTER], stats.moments[0])
+
+
+def _ellipse_per_bin(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The same fit with every angle bin the window saw weighted alike, whatever its count: each bin's mean of the
+    conic's monomials (its first and second moments) is one row. The field's harmonics bend the locus away from an
+    ellipse, so a fit weighted by the samples tilts with where along the circle they fall; a drive that reverses
+    dwells at its turns and shifts them from window to window, and its skew and gain ratio moved with them (false
+    axis and gain steps). Weighted per bin, the fit sees the same locus whatever the shaft's pace along it."""
+    b = stats.bins[stats.bins[:, 0] > 0]
+    if len(b) < N_BINS // 2:
+        return None
+    rows = np.column_stack([b[:, 3], b[:, 4], b[:, 5], b[:, 1], b[:, 2], b[:, 0]]) / b[:, :1]
+    return _conic_fit(rows.T @ rows, float(len(b)))
+
+
+def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(center, qform, rms of the conic's residual over `count` rows) from the 6×6 scatter of the rows
+    [x², xy, y², x, y, 1]."""
     s2, s3 = sm[:3, 3:], sm[3:, 3:]
     try:
         t = -np.linalg.solve(s3, s2.T)
@@ -154,8 +174,22 @@ def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
         return None
     qform = np.array([[a, b / 2], [b / 2, c]]) / -f_center
     conic = conic / -f_center
-    mean_sq = float(conic @ sm @ conic) / stats.moments[0]
+    mean_sq = float(conic @ sm @ conic) / count
     return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
+
+
+def _shape(stats: WindowStats, residual: float) -> tuple[float, float, float] | None:
+    """(gain ratio, skew, standard error) of the ellipse fitted per angle bin; the error from the samples' own
+    scatter (`residual`, of the fit weighted by them) over the sample count a per-bin weighting is worth."""
+    fit = _ellipse_per_bin(stats)
+    if fit is None:
+        return None
+    q00, q01, q11 = fit[1][0, 0], fit[1][0, 1], fit[1][1, 1]
+    if not (q00 > 0 and q11 > 0 and q00 * q11 > q01 * q01):
+        return None
+    counts = stats.bins[stats.bins[:, 0] > 0, 0]
+    n_equal = counts.size**2 / float(np.sum(1.0 / counts))  # Kish's effective size of equal weights per bin
+    return 0.5 * math.log(q11 / q00), float(q01 / math.sqrt(q00 * q11)), max(residual, 1e-5) / math.sqrt(n_equal)
 
 
 def largest_gap_bins(stats: WindowStats) -> int:
@@ -223,7 +257,7 @@ def window_features(
     if not np.all(np.isfinite(y)):
         return f
     f.y = y
-    f.skew = float(q01 / math.sqrt(q00 * q11))
+    f.shape = _shape(stats, residual)
     f.sigma = np.full(N_FEATURES, s_center)
     f.sigma[2:4] = s_amp
     return f
@@ -432,10 +466,12 @@ class WindowJump:
     recent: list = field(default_factory=list)  # [value, temp_c, t, sd] of the last two windows judged
     slope: list = field(default_factory=lambda: [0.0, 0.0])  # Σ ΔT², Σ ΔT·Δvalue of pairs of windows (decaying)
     pending: list | None = None  # [value, temp_c, windows, slope sums] before a jump not yet seen still
+    slope_before: list | None = None  # the slope sums before the newest pair (a jump's level is two windows back)
 
     def update(self, y: float, sd: float, temp: float, t: float, step_min: float, s: Settings) -> tuple | None:
         """Feed one window's value; returns (step, its standard error) when a step is certain."""
-        recent = [w for w in self.recent if t - w[2] <= s.jump_match_s and abs(temp - w[1]) <= s.jump_match_c]
+        within = [w for w in self.recent if t - w[2] <= s.jump_match_s]
+        recent = [w for w in within if abs(temp - w[1]) <= s.jump_match_c]
         self.recent = [*recent[-1:], [y, temp, t, sd]]
         if not recent:
             self.pending = None  # too far apart to tell a step from drift
@@ -459,12 +495,17 @@ class WindowJump:
         dt_c, dy = temp - prev[1], y - prev[0]
         learnt = [decay * self.slope[0] + dt_c * dt_c, decay * self.slope[1] + dt_c * dy]
         if self.pending is None:
-            if moving:  # the level before the jump: two windows back, in case the step began inside the last one
-                self.pending = [recent[0][0], recent[0][1], 1, list(self.slope)]
-            self.slope = learnt
+            if moving:  # the level before the jump: two windows back, in case the step began inside the last one,
+                # and the slope from before that window's pair too (a step inside it tilted the slope: 2 Hz, 600 s
+                # windows, an axis turn measured 26 % short)
+                # (two back within the time the slope bridges, even where its temperature is too far to judge by)
+                two_back = len(within) == 2 and self.slope_before is not None
+                level = within[0] if two_back else prev
+                self.pending = [level[0], level[1], 1, list(self.slope_before if two_back else self.slope)]
+            self.slope_before, self.slope = self.slope, learnt
             return None
         before_y, before_c, windows, before_sums = self.pending
-        self.slope = learnt
+        self.slope_before, self.slope = self.slope, learnt
         if moving:  # still moving: a step spread over two windows, or a creep that is no step
             self.pending = [before_y, before_c, windows + 1, before_sums] if windows < 2 else None
             return None
@@ -829,9 +870,11 @@ class DeviceMonitor:
             return  # an ellipse through part of the circle biases the shape by which part (reversing drives)
         if f.rejected["outlier"] + f.rejected["clipped"] > s.jump_max_rejected * max(f.seen, 1):
             return  # spikes too small to reject tilt the fit too (bench-monitor: a false axis_step on a spiky drive)
-        sd = float(f.sigma[_IMB])
-        gain = self.gain_jump.update(float(f.y[_IMB]), sd, f.temp_c, f.t, s.gain_step_min, s)
-        axis = self.axis_jump.update(f.skew, sd, f.temp_c, f.t, s.axis_step_min, s)
+        if f.shape is None:
+            return
+        ratio, skew, sd = f.shape
+        gain = self.gain_jump.update(ratio, sd, f.temp_c, f.t, s.gain_step_min, s)
+        axis = self.axis_jump.update(skew, sd, f.temp_c, f.t, s.axis_step_min, s)
         for name, step, param in (("axis_step", axis, "delta_skew"), ("gain_step", gain, "delta_imbalance")):
             if step is not None:
                 parameters = {param: round(step[0], 6)}

@@ -98,9 +98,14 @@ class DriveResult:
         return self.factory_deg / self.fleet_deg if self.fleet_deg > 0 else float("inf")
 
     @property
-    def worse_hours(self) -> int:
+    def worse_hour_indices(self) -> list[int]:
+        """The drive-hours (from the start) whose fleet error is worse than the factory set's."""
         fleet, factory = np.array(self.fleet_hour_deg), np.array(self.factory_hour_deg)
-        return int(np.sum((fleet > factory * (1 + WORSE_MARGIN)) & (fleet > factory + WORSE_MIN_DEG)))
+        return np.flatnonzero((fleet > factory * (1 + WORSE_MARGIN)) & (fleet > factory + WORSE_MIN_DEG)).tolist()
+
+    @property
+    def worse_hours(self) -> int:
+        return len(self.worse_hour_indices)
 
 
 def fleet_specs(
@@ -421,7 +426,7 @@ def run_bench(
     for r in results:
         row = {k: v for k, v in asdict(r).items() if not k.endswith("hour_deg")}
         row.update(factory_deg=r.factory_deg, fleet_deg=r.fleet_deg, gain=r.gain, worse_hours=r.worse_hours)
-        row.update(floor_deg=r.floor_deg, floor_gain=r.floor_gain)
+        row.update(floor_deg=r.floor_deg, floor_gain=r.floor_gain, worse_hour_indices=r.worse_hour_indices)
         report["drives"].append(row)
     return report
 
