@@ -118,7 +118,7 @@ class Features:
     gap_bins: int = 0  # the longest run of angle bins the window left empty
     # the shape of the ellipse fitted per angle bin (_ellipse_per_bin): the gain ratio log(d/q amplitude), the skew
     # q01 / sqrt(q00·q11) (the sine of the axes' departure from 90°), and the standard error of either
-    shape: tuple[float, float, float] | None = None
+    ratio_skew: tuple[float, float, float] | None = None
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -139,8 +139,9 @@ def _ellipse_per_bin(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float]
     """The same fit with every angle bin the window saw weighted alike, whatever its count: each bin's mean of the
     conic's monomials (its first and second moments) is one row. The field's harmonics bend the locus away from an
     ellipse, so a fit weighted by the samples tilts with where along the circle they fall; a drive that reverses
-    dwells at its turns and shifts them from window to window, and its skew and gain ratio moved with them (false
-    axis and gain steps). Weighted per bin, the fit sees the same locus whatever the shaft's pace along it."""
+    lingers at its turns and moves them from window to window, and its skew and gain ratio moved with them (false
+    axis and gain steps). Weighted per bin, the fit sees the same locus whatever the shaft's pace along it (capping
+    each bin's weight at twice the typical count instead brought two of the eight false steps back)."""
     b = stats.bins[stats.bins[:, 0] > 0]
     if len(b) < N_BINS // 2:
         return None
@@ -149,8 +150,8 @@ def _ellipse_per_bin(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float]
 
 
 def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """(center, qform, rms of the conic's residual over `count` rows) from the 6×6 scatter of the rows
-    [x², xy, y², x, y, 1]."""
+    """(center, qform, rms of the conic's residual) from the 6×6 scatter of the rows [x², xy, y², x, y, 1] and the
+    sum of the rows' weights (`count`)."""
     s2, s3 = sm[:3, 3:], sm[3:, 3:]
     try:
         t = -np.linalg.solve(s3, s2.T)
@@ -178,7 +179,7 @@ def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, fl
     return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
 
 
-def _shape(stats: WindowStats, residual: float) -> tuple[float, float, float] | None:
+def _shape_per_bin(stats: WindowStats, residual: float) -> tuple[float, float, float] | None:
     """(gain ratio, skew, standard error) of the ellipse fitted per angle bin; the error from the samples' own
     scatter (`residual`, of the fit weighted by them) over the sample count a per-bin weighting is worth."""
     fit = _ellipse_per_bin(stats)
@@ -189,7 +190,8 @@ def _shape(stats: WindowStats, residual: float) -> tuple[float, float, float] | 
         return None
     counts = stats.bins[stats.bins[:, 0] > 0, 0]
     n_equal = counts.size**2 / float(np.sum(1.0 / counts))  # Kish's effective size of equal weights per bin
-    return 0.5 * math.log(q11 / q00), float(q01 / math.sqrt(q00 * q11)), max(residual, 1e-5) / math.sqrt(n_equal)
+    shape = (0.5 * math.log(q11 / q00), float(q01 / math.sqrt(q00 * q11)), max(residual, 1e-5) / math.sqrt(n_equal))
+    return shape if all(math.isfinite(v) for v in shape) else None
 
 
 def largest_gap_bins(stats: WindowStats) -> int:
@@ -257,7 +259,7 @@ def window_features(
     if not np.all(np.isfinite(y)):
         return f
     f.y = y
-    f.shape = _shape(stats, residual)
+    f.ratio_skew = _shape_per_bin(stats, residual)
     f.sigma = np.full(N_FEATURES, s_center)
     f.sigma[2:4] = s_amp
     return f
@@ -513,7 +515,7 @@ class WindowJump:
         delta = y - before_y - slope * (temp - before_c)
         if abs(delta) < max(step_min, s.jump_z * noise) + slope_sd * abs(temp - before_c):
             return None  # it came back: one odd window, not a step
-        self.slope = before_sums  # the step's pairs say nothing of the slope
+        self.slope, self.slope_before = before_sums, None  # the step's pairs say nothing of the slope
         return delta, noise
 
 
@@ -870,9 +872,9 @@ class DeviceMonitor:
             return  # an ellipse through part of the circle biases the shape by which part (reversing drives)
         if f.rejected["outlier"] + f.rejected["clipped"] > s.jump_max_rejected * max(f.seen, 1):
             return  # spikes too small to reject tilt the fit too (bench-monitor: a false axis_step on a spiky drive)
-        if f.shape is None:
+        if f.ratio_skew is None:
             return
-        ratio, skew, sd = f.shape
+        ratio, skew, sd = f.ratio_skew
         gain = self.gain_jump.update(ratio, sd, f.temp_c, f.t, s.gain_step_min, s)
         axis = self.axis_jump.update(skew, sd, f.temp_c, f.t, s.axis_step_min, s)
         for name, step, param in (("axis_step", axis, "delta_skew"), ("gain_step", gain, "delta_imbalance")):
