@@ -186,29 +186,35 @@ def test_clipping_is_recognised_from_the_data_at_any_rail():
     assert band_of(stats.temp_mean) == 2
 
 
+def _reversing_drive_alarms(rng, days: float, rate_hz: float, window_s: float) -> tuple[list, DeviceMonitor]:
+    """(cause, hour) of every alarm the monitor raises on a clean reversing drive of the independent simulator."""
+    from encoder_core.stats import normalisation_scale, window_stats
+    from encoder_fleet import fieldsim
+    from encoder_fleet.calibrate import calibrate
+    from encoder_fleet.fleet_accuracy import windows_of
+
+    phys = fieldsim.draw_drive(rng, event=None, days=days)
+    scale = normalisation_scale(calibrate(fieldsim.bench_sweep(phys, rng)))
+    run = fieldsim.field_run(phys, days=days, rate_hz=rate_hz, regime="reverse", rng=rng)
+    monitor = DeviceMonitor("reversing")
+    raised = []
+    for start, end in windows_of(run.samples.t, window_s):
+        stats = window_stats(run.samples.subset(slice(start, end)), scale)
+        end_s, temp = float(run.samples.t[end - 1]), stats.temp_mean
+        for e in monitor.update(window_features(stats, t=end_s, temp_c=temp, band=band_of(temp))):
+            if e.kind == "raise":
+                raised.append((e.cause, round(e.at / 3600, 2)))
+    return raised, monitor
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_a_clean_reversing_drive_raises_no_offset_step(seed):
     """Independent simulator, a clean drive that reverses over arcs for a day at 20 Hz: a window that leaves
     more than a quarter turn unseen is not judged (an ellipse through an arc puts its centre anywhere along the
     arc's axis). Judging them, the monitor raised a false offset_step on 4 of these 6 drives, and the service
     then moved every band of a good set by it."""
-    from encoder_core.stats import normalisation_scale, window_stats
-    from encoder_fleet import fieldsim
-    from encoder_fleet.calibrate import calibrate
-    from encoder_fleet.fleet_accuracy import windows_of
-
-    rng = np.random.default_rng(seed)
-    phys = fieldsim.draw_drive(rng, event=None, days=1)
-    scale = normalisation_scale(calibrate(fieldsim.bench_sweep(phys, rng)))
-    run = fieldsim.field_run(phys, days=1, rate_hz=20.0, regime="reverse", rng=rng)
-    monitor = DeviceMonitor("reversing")
-    raised = []
-    for start, end in windows_of(run.samples.t, 60.0):
-        stats = window_stats(run.samples.subset(slice(start, end)), scale)
-        end_s, temp = float(run.samples.t[end - 1]), stats.temp_mean
-        features = window_features(stats, t=end_s, temp_c=temp, band=band_of(temp))
-        raised += [e.cause for e in monitor.update(features) if e.kind == "raise"]
-    assert "offset_step" not in raised
+    raised, monitor = _reversing_drive_alarms(np.random.default_rng(seed), 1, 20.0, 60.0)
+    assert "offset_step" not in [cause for cause, _ in raised], raised
     assert monitor.judged > 300  # the windows that do go round the circle are still judged
 
 
@@ -219,23 +225,7 @@ def test_a_clean_reversing_drive_raises_no_gain_or_axis_step(seed):
     the locus away from an ellipse, and an ellipse fitted with a weight per sample tilted with where along the
     circle the reversals left the samples: the monitor raised false axis or gain steps on 2 of these 6 drives, and
     the service then moved a good set by them. The shape is now fitted with each angle bin weighted alike."""
-    from encoder_core.stats import normalisation_scale, window_stats
-    from encoder_fleet import fieldsim
-    from encoder_fleet.calibrate import calibrate
-    from encoder_fleet.fleet_accuracy import windows_of
-
-    rng = np.random.default_rng([seed, 3, 500])
-    phys = fieldsim.draw_drive(rng, event=None, days=3.0)
-    scale = normalisation_scale(calibrate(fieldsim.bench_sweep(phys, rng)))
-    run = fieldsim.field_run(phys, days=3.0, rate_hz=0.5, regime="reverse", rng=rng)
-    monitor = DeviceMonitor("reversing")
-    raised = []
-    for start, end in windows_of(run.samples.t, 300.0):
-        stats = window_stats(run.samples.subset(slice(start, end)), scale)
-        end_s, temp = float(run.samples.t[end - 1]), stats.temp_mean
-        for e in monitor.update(window_features(stats, t=end_s, temp_c=temp, band=band_of(temp))):
-            if e.kind == "raise":
-                raised.append((e.cause, round(e.at / 3600, 2)))
+    raised, monitor = _reversing_drive_alarms(np.random.default_rng([seed, 3, 500]), 3.0, 0.5, 300.0)
     assert not [r for r in raised if r[0] in ("gain_step", "axis_step")], raised
     assert monitor.judged > 100  # the windows that go round the circle are still judged
 
