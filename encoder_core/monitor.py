@@ -135,16 +135,14 @@ def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
     return _conic_fit(stats.moments[_SCATTER], stats.moments[0])
 
 
-def _ellipse_per_bin(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
+def _ellipse_per_bin(b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
     """The same fit with every angle bin the window saw weighted alike, whatever its count: each bin's mean of the
     conic's monomials (its first and second moments) is one row. The field's harmonics bend the locus away from an
     ellipse, so a fit weighted by the samples tilts with where along the circle they fall; a drive that reverses
     lingers at its turns and moves them from window to window, and its skew and gain ratio moved with them (false
     axis and gain steps). Weighted per bin, the fit sees the same locus whatever the shaft's pace along it (capping
-    each bin's weight at twice the typical count instead brought two of the eight false steps back)."""
-    b = stats.bins[stats.bins[:, 0] > 0]
-    if len(b) < N_BINS // 2:
-        return None
+    each bin's weight at twice the typical count instead brought two of the eight false steps back).
+    b: the bins the window saw (count > 0), at least half of them, as _ellipse requires of the window."""
     rows = np.column_stack([b[:, 3], b[:, 4], b[:, 5], b[:, 1], b[:, 2], b[:, 0]]) / b[:, :1]
     return _conic_fit(rows.T @ rows, float(len(b)))
 
@@ -179,16 +177,17 @@ def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, fl
     return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
 
 
-def _shape_per_bin(stats: WindowStats, residual: float) -> tuple[float, float, float] | None:
-    """(gain ratio, skew, standard error) of the ellipse fitted per angle bin; the error from the samples' own
-    scatter (`residual`, of the fit weighted by them) over the sample count a per-bin weighting is worth."""
-    fit = _ellipse_per_bin(stats)
+def _shape_per_bin(b: np.ndarray, residual: float) -> tuple[float, float, float] | None:
+    """(gain ratio, skew, standard error) of the ellipse fitted per angle bin (b: the bins the window saw); the
+    error from the samples' own scatter (`residual`, of the fit weighted by them) over the sample count a per-bin
+    weighting is worth."""
+    fit = _ellipse_per_bin(b)
     if fit is None:
         return None
     q00, q01, q11 = fit[1][0, 0], fit[1][0, 1], fit[1][1, 1]
     if not (q00 > 0 and q11 > 0 and q00 * q11 > q01 * q01):
         return None
-    counts = stats.bins[stats.bins[:, 0] > 0, 0]
+    counts = b[:, 0]
     n_equal = counts.size**2 / float(np.sum(1.0 / counts))  # Kish's effective size of equal weights per bin
     shape = (0.5 * math.log(q11 / q00), float(q01 / math.sqrt(q00 * q11)), max(residual, 1e-5) / math.sqrt(n_equal))
     return shape if all(math.isfinite(v) for v in shape) else None
@@ -259,7 +258,7 @@ def window_features(
     if not np.all(np.isfinite(y)):
         return f
     f.y = y
-    f.ratio_skew = _shape_per_bin(stats, residual)
+    f.ratio_skew = _shape_per_bin(b, residual)
     f.sigma = np.full(N_FEATURES, s_center)
     f.sigma[2:4] = s_amp
     return f
