@@ -407,13 +407,17 @@ def _solve(
             break
         r, rad = residuals(x[rows, None, :] + probes, rows)
         r0 = r[:, 0]
-        jac = np.concatenate(  # (a, n, 6): five by differences, the slope's exactly
-            [np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2), (-dt[rows] * rad[:, 0])[..., None]], axis=2
-        )
-        info[rows] = np.swapaxes(jac, 1, 2) @ (jac * w[rows, :, None])
-        info[rows, 5, 5] += prior
-        rhs = -np.einsum("ank,an->ak", jac, w[rows] * r0)
-        rhs[:, 5] -= prior * x[rows, 5]
+        # a run-away problem carries non-finite numbers through here; its step says so below, and the batch's
+        # other problems are not touched by it (no warning per batch: bench-fleet-accuracy printed dozens)
+        with np.errstate(invalid="ignore", over="ignore"):
+            jac = np.concatenate(  # (a, n, 6): five by differences, the slope's exactly
+                [np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2), (-dt[rows] * rad[:, 0])[..., None]],
+                axis=2,
+            )
+            info[rows] = np.swapaxes(jac, 1, 2) @ (jac * w[rows, :, None])
+            info[rows, 5, 5] += prior
+            rhs = -np.einsum("ank,an->ak", jac, w[rows] * r0)
+            rhs[:, 5] -= prior * x[rows, 5]
         step = _solve_each(info[rows], rhs)
         bad = np.isnan(step[:, 0]) & np.all(np.isfinite(info[rows]), axis=(1, 2))
         failed[rows[bad]] = True
