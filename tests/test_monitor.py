@@ -299,3 +299,59 @@ def test_an_axis_step_is_named_with_its_size_and_the_same_drive_without_it_raise
     assert abs(raised[0].parameters["delta_skew"] - np.sin(turn)) < 0.2 * abs(turn), (raised[0].parameters, turn)
     phys.events.clear()
     assert _step_alarms(phys, np.random.default_rng(seed + 100), rate_hz, window_s, regime, days, "axis_step") == []
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_odd_windows_never_break_the_monitor(seed):
+    """Windows a real drive can send that no simulator draws (all samples at one point, on a line through the
+    centre, two clusters, a few samples, one channel dead, an arc, an amplitude off the agent's scale, off
+    centre), in a shuffled stream: every window's features are finite or absent, and the monitor's events carry
+    finite parameters. The shapes and sizes are drawn by hypothesis, the noise from the seed."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    def shaped(kind: str, n: int, amp: float, off: float, rng) -> tuple[np.ndarray, np.ndarray]:
+        theta = {
+            "point": np.full(n, rng.uniform(0, 2 * np.pi)),
+            "two": rng.choice(rng.uniform(0, 2 * np.pi, 2), n),
+            "arc": rng.uniform(0, rng.uniform(0.1, 3.0), n),
+            "circle": rng.uniform(0, 2 * np.pi, n),
+        }.get(kind)
+        if kind == "line":  # through the centre: the ellipse degenerates
+            r = rng.choice([-amp, amp], n) + rng.normal(0, 1.0, n)
+            return r * math.cos(0.3), r * math.sin(0.3)
+        if kind == "flat":  # one channel dead
+            return amp * np.cos(rng.uniform(0, 2 * np.pi, n)), np.zeros(n)
+        noise = rng.normal(0, 1.0, (2, n))
+        return off + amp * np.cos(theta) + noise[0], amp * np.sin(theta) + noise[1]
+
+    kinds = st.sampled_from(["point", "two", "arc", "circle", "line", "flat"])
+
+    sizes = st.floats(1300.0, 1700.0) | st.floats(5.0, 5000.0)  # mostly near the agent's scale (1500), where kept
+    windows = st.tuples(kinds, st.integers(1, 3000), sizes, st.floats(-200.0, 200.0))
+
+    @settings(max_examples=25, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+    @given(stream=st.lists(windows, min_size=3, max_size=12))
+    def check(stream):
+        rng = np.random.default_rng([seed, len(stream)])
+        monitor = DeviceMonitor("odd")
+        t = 0.0
+        fitted = 0
+        for kind, n, amp, off in stream:
+            d, q = shaped(kind, n, amp, off, rng)
+            t += 60.0
+            samples = Samples(t=t + np.arange(n) / n, d=d, q=q, temp_c=np.full(n, 25.0 + rng.normal(0, 5)))
+            stats, reasons = block_statistics(samples, 1500.0)
+            f = window_features(stats, t=t, temp_c=float(samples.temp_c[0]), band=2, rejected_by_reason=reasons)
+            for values in (f.y, f.sigma):
+                assert values is None or np.all(np.isfinite(values)), (kind, n, amp, values)
+            assert f.ratio_skew is None or all(math.isfinite(v) for v in f.ratio_skew), (kind, f.ratio_skew)
+            fitted += f.ratio_skew is not None
+            for event in monitor.update(f):
+                numbers = [v for v in event.parameters.values() if isinstance(v, float)]
+                assert all(math.isfinite(v) for v in numbers), (kind, event)
+        found.append(fitted)
+
+    found: list[int] = []
+    check()
+    assert sum(found) > 0  # the per-bin shape was fitted on some of them (the stream reached the whole path)
