@@ -322,7 +322,8 @@ _MSGPACK_MAP = frozenset([*range(0x80, 0x90), 0xDE, 0xDF])  # a MessagePack map'
 # validator, which names what is wrong (or accepts what the Structs are stricter about, such as 2.0 for an
 # integer). tests/test_wire_contract.py: no mutated set the file refuses is accepted here.
 
-_Version = Annotated[int, msgspec.Meta(ge=0, le=2**53 - 1)]
+MAX_VERSION = 2**53 - 1  # a coefficient set's version: exact in every JSON reader
+_Version = Annotated[int, msgspec.Meta(ge=0, le=MAX_VERSION)]
 _NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 
 

@@ -17,6 +17,7 @@ import json
 import threading
 
 from fleet_wire import keys
+from fleet_wire import messages as wire
 
 from .store import Store
 
@@ -48,6 +49,8 @@ class IngestGuard:
             version, status = int(msg["version"]), str(msg["status"])
         except (ValueError, TypeError, KeyError, AttributeError, RecursionError, OverflowError):
             return None  # not an ack at all: the decoder says why
+        if version > wire.MAX_VERSION:
+            return None  # no set has such a version, and SQLite cannot even look it up: the decoder refuses it
         # a set the service made (stored before it is put: an agent's ack may beat mark_published)
         if version < 1 or self.store.coefficient_set(device, version) is None:
             return "forged_ack", f"ack from {device} for version {version}, which the service never published to it"
