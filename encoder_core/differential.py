@@ -407,8 +407,10 @@ def _solve(
             break
         r, rad = residuals(x[rows, None, :] + probes, rows)
         r0 = r[:, 0]
-        # a run-away problem carries non-finite numbers through here; its step says so below, and the batch's
-        # other problems are not touched by it (no warning per batch: bench-fleet-accuracy printed dozens)
+        # a run-away problem carries non-finite numbers through here (no warning per batch: bench-fleet-accuracy
+        # printed dozens); the batch's other problems are not touched by it. A singular one is marked failed below;
+        # one whose information is no longer finite ends with NaN parameters, whose terms' errors are infinite
+        # (_term_errors), so every term stays the factory's (gate)
         with np.errstate(invalid="ignore", over="ignore"):
             jac = np.concatenate(  # (a, n, 6): five by differences, the slope's exactly
                 [np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2), (-dt[rows] * rad[:, 0])[..., None]],

@@ -13,7 +13,6 @@ for a router whose ACL is stale, misconfigured or absent):
 
 from __future__ import annotations
 
-import json
 import threading
 
 from fleet_wire import keys
@@ -44,13 +43,14 @@ class IngestGuard:
         return None
 
     def _check_ack(self, device: str, payload: bytes) -> tuple[str, str] | None:
+        # the wire's own checks first: an ack they refuse is the decoder's to refuse and count, and must leave no mark
+        # here (a malformed ack once poisoned the replay memory, and the genuine one after it was refused as
+        # replayed; a version past any SQLite INTEGER made the look-up below raise)
         try:
-            msg = json.loads(payload)
-            version, status = int(msg["version"]), str(msg["status"])
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError, OverflowError):
-            return None  # not an ack at all: the decoder says why
-        if version > wire.MAX_VERSION:
-            return None  # no set has such a version, and SQLite cannot even look it up: the decoder refuses it
+            msg = wire.decode("ack", payload, key_device=device)
+        except wire.WireError:
+            return None
+        version, status = msg["version"], msg["status"]
         # a set the service made (stored before it is put: an agent's ack may beat mark_published)
         if version < 1 or self.store.coefficient_set(device, version) is None:
             return "forged_ack", f"ack from {device} for version {version}, which the service never published to it"

@@ -209,3 +209,23 @@ def test_rest_fuzz_no_5xx(rest_app):
 
         fuzz()
     assert {"GET", "POST", "DELETE"} <= set(seen)
+
+
+def test_an_ack_the_wire_refuses_leaves_no_mark_on_the_replay_guard(tmp_path, pki):
+    """The guard remembers each ack it lets through, to refuse a replay of it. An ack the decoder then refuses (a
+    version of 1.5 or true, an `at` that is no number) once stayed in that memory, and the drive's genuine ack after
+    it was refused as a replay (found by a second reader of the fuzz fix)."""
+    store = Store.open(tmp_path / "fleet.sqlite")
+    store.insert_coefficient_set(SetSigner.load(pki).sign(ws.coefficients("drive-a", 1)))
+    store.mark_published("drive-a", 1)
+    guard = IngestGuard(store, registry(pki))
+    key = keys.key("drive-a", keys.ACK)
+    for change in ({"at": "x"}, {"version": 1.5}, {"version": True}, {"status": 7}):
+        payload = json.dumps({**ws.ack("drive-a", 1, at=161.0), **change}).encode()
+        assert guard.refuse(key, payload) is None, change  # the decoder's to refuse …
+        assert store.ingest(key, payload) not in ("stored", "duplicate"), change  # … and it does
+    genuine = json.dumps(ws.ack("drive-a", 1, at=160.0)).encode()
+    assert guard.refuse(key, genuine) is None
+    assert store.ingest(key, genuine) == "stored"
+    assert guard.refuse(key, json.dumps(ws.ack("drive-a", 1, at=999.0)).encode())[0] == "replayed_ack"
+    store.close()
