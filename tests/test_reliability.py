@@ -116,16 +116,20 @@ def test_agent_started_before_any_router_buffers_and_resends_after_its_clock_jum
     """No router when the agent starts: it opens, buffers 20 windows, then its monotonic clock jumps back a
     day (as after a reboot that kept the process's notion of sends). The service appears: every window
     arrives exactly once, and the factory set is announced."""
-    now = [1e6]
-    agent = agent_for(
-        zenoh.open(agent_session_config([fleet.endpoint])), tmp_path / "outbox.sqlite", clock=lambda: now[0]
-    )
+    now, jumped_at = [1e6], [None]
+
+    def clock() -> float:  # stepped by hand until the jump, then running in real time, as after a reboot (a clock
+        # frozen there would never let a send lost while the service was still subscribing come due again)
+        return now[0] if jumped_at[0] is None else now[0] + time.monotonic() - jumped_at[0]
+
+    agent = agent_for(zenoh.open(agent_session_config([fleet.endpoint])), tmp_path / "outbox.sqlite", clock=clock)
     agent.start()
     for _ in range(20):
         assert agent.step()
         now[0] += 60.0
     assert len(agent.outbox) == 20 and agent.counters.offline_syncs == 20
     now[0] -= 86400.0  # the clock jumps back: every send time is now "in the future"
+    jumped_at[0] = time.monotonic()
     fleet.start()
     try:
         counters = agent.run()
