@@ -59,8 +59,9 @@ class Settings:
     level_tau_s: float = 3 * HOUR_S  # the device's offset level follows slow drift with this time constant
     step_min: float = 0.005  # smallest offset jump worth an alarm, fraction of amplitude (CUSUM reference = half)
     step_h: float = 12.0  # CUSUM threshold, in standard deviations
-    gain_step_min: float = 0.003  # smallest jump of the gain imbalance worth an alarm (log of the d/q amplitude
-    # ratio; the planted gain steps: 0.003-0.01)
+    gain_step_min: float = 0.002  # smallest jump of the gain imbalance worth an alarm (log of the d/q amplitude
+    # ratio; the planted gain steps: 0.003-0.01; a bar at 0.003 left a 0.0038 step at 0.5 Hz unnamed: measured
+    # through 150 samples a window, a step near the bar falls under it as often as not)
     axis_step_min: float = 0.002  # smallest jump of the axes' skew worth an alarm (sine of the angle between the
     # sensor axes' change; the planted axis steps: 0.002-0.006 rad)
     jump_z: float = 5.0  # a gain or axis step: this many standard deviations of the change between two windows
