@@ -299,8 +299,6 @@ def test_gain_steps_at_the_bottom_of_the_range_are_named_at_half_a_hertz():
     range's bottom, sign, size and time drawn per seed. With the bar at 0.3 % three were named (a 0.31 % step
     measured 0.296 % fell under it; bench-fleet-accuracy's s4-0.5hz-05, 0.38 %, ran three hours worse than its factory
     set); now at least four, each within an hour and a quarter of its size; none on the same drives without a step."""
-    import math
-
     from encoder_fleet import fieldsim
 
     days, named = 1.5, 0
