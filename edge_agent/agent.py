@@ -14,7 +14,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import zenoh
@@ -23,6 +23,7 @@ from encoder_core.correction import BandedCorrection
 from encoder_core.physics import REFERENCE_TEMP_C, band_of
 from encoder_core.samples import InputError, Samples
 from encoder_core.stats import normalisation_scale, rejected_by_reason, window_stats
+from encoder_core.thermal import DieTemperature
 from fleet_wire import keys
 from fleet_wire import messages as wire
 
@@ -83,6 +84,7 @@ class EdgeAgent:
         self.service_has_set = False  # until the service answers our question for a set (ask_for_set)
         # the statistics' normalisation stays fixed for the device's whole life: windows must merge
         self.scale = normalisation_scale(factory)
+        self.die = DieTemperature()  # the die's temperature, lagged from what the drive reports (thermal_lag_s)
         self._declared: list = []
         saved = outbox.saved_coefficients()
         if saved is not None:
@@ -141,6 +143,7 @@ class EdgeAgent:
             return True
         if self.time_offset is None:
             self.time_offset = continued_clock(block.t, self.outbox.last_window_end())
+        block = self.at_die_temperature(block)  # the correction and the window's temperatures: the die's
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
         usable, by_reason = rejected_by_reason(block)  # spikes and clipping counted per reason, for the monitor
         quality = self.angle_quality_deg(block, usable)
@@ -167,6 +170,12 @@ class EdgeAgent:
         self.counters.windows += 1
         self.sync()
         return True
+
+    def at_die_temperature(self, block: Samples) -> Samples:
+        """The block with its temperatures replaced by the die estimate of the set the agent runs."""
+        if block.temp_c is None:
+            return block
+        return replace(block, temp_c=self.die(block.t, block.temp_c, self.correction.thermal_lag_s))
 
     def correct(self, block: Samples) -> np.ndarray:
         return self.correction.angle(block.d, block.q, block.temp_c)
@@ -259,7 +268,7 @@ class EdgeAgent:
                     raise
             if msg["version"] <= self.version:
                 return  # an old or repeated set: nothing to do, nothing to say
-            candidate = BandedCorrection.from_dict({"bands": msg["bands"]})
+            candidate = BandedCorrection.from_dict(msg)  # the bands, and the die lag to read them at
             check_plausible(candidate, self.factory)
         except (wire.WireError, InputError) as exc:
             self.counters.bad_messages += 1

@@ -180,6 +180,9 @@ class BandedCorrection:
     """Corrections at several temperatures, interpolated linearly between them (held flat outside)."""
 
     bands: list[Correction]
+    # the die's lag behind the reported temperature (encoder_core/thermal.py): the agent reads the bands at its
+    # die estimate, the reported temperature lagged by this; 0: at the reported temperature
+    thermal_lag_s: float = 0.0
 
     def __post_init__(self):
         if not self.bands:
@@ -191,7 +194,7 @@ class BandedCorrection:
     def offsets_moved(self, delta_d: float, delta_q: float) -> BandedCorrection:
         """The same set for channels whose offsets moved by (delta_d, delta_q) raw units at every temperature:
         what an offset step does (a knocked magnet, a shifted sensor), the rest of each band as it was."""
-        return BandedCorrection([b.offsets_moved(delta_d, delta_q) for b in self.bands])
+        return BandedCorrection([b.offsets_moved(delta_d, delta_q) for b in self.bands], self.thermal_lag_s)
 
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
@@ -240,8 +243,11 @@ class BandedCorrection:
         return orders, np.column_stack([np.interp(temps, centers, table[:, k]) for k in range(table.shape[1])])
 
     def to_dict(self) -> dict:
-        return {"bands": [b.to_dict() for b in self.bands]}
+        out: dict = {"bands": [b.to_dict() for b in self.bands]}
+        if self.thermal_lag_s:
+            out["thermal_lag_s"] = self.thermal_lag_s
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> BandedCorrection:
-        return cls([Correction.from_dict(b) for b in data["bands"]])
+        return cls([Correction.from_dict(b) for b in data["bands"]], float(data.get("thermal_lag_s", 0.0)))

@@ -34,6 +34,7 @@ from .monitor_causes import cause as cause_of
 from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C
 from .stats import MONOMIALS, N_BINS, WindowStats
+from .thermal import LagEstimate
 
 DAY_S = 86400.0
 HOUR_S = 3600.0
@@ -120,6 +121,11 @@ class Features:
     # the shape of the ellipse fitted per angle bin (_ellipse_per_bin): the gain ratio log(d/q amplitude), the skew
     # q01 / sqrt(q00·q11) (the sine of the axes' departure from 90°), and the standard error of either
     ratio_skew: tuple[float, float, float] | None = None
+    # for the die's lag (encoder_core/thermal.py): the window's start, its temperature rate, and the lag its
+    # temperatures were written with (the τ of the set the agent ran); start None: not estimated
+    start: float | None = None
+    temp_rate: float = 0.0
+    lag_used_s: float = 0.0
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -203,9 +209,18 @@ def largest_gap_bins(stats: WindowStats) -> int:
 
 
 def window_features(
-    stats: WindowStats, *, t: float, temp_c: float, band: int, rejected_by_reason: dict | None = None
+    stats: WindowStats,
+    *,
+    t: float,
+    temp_c: float,
+    band: int,
+    rejected_by_reason: dict | None = None,
+    start: float | None = None,
+    temp_rate: float = 0.0,
+    lag_used_s: float = 0.0,
 ) -> Features:
-    """What the monitor reads from one window (cheap: one ellipse fit and 64 bins)."""
+    """What the monitor reads from one window (cheap: one ellipse fit and 64 bins). start, temp_rate and
+    lag_used_s (see Features) let it measure the die's lag."""
     rejected = {"non_finite": 0, "clipped": 0, "outlier": 0}
     if rejected_by_reason:
         rejected.update({k: int(v) for k, v in rejected_by_reason.items() if k in rejected})
@@ -213,6 +228,7 @@ def window_features(
     f = Features(
         t=float(t), temp_c=float(temp_c), band=int(band), samples=n, seen=n + int(stats.rejected), rejected=rejected
     )
+    f.start, f.temp_rate, f.lag_used_s = start, float(temp_rate), float(lag_used_s)
     held = held_points(stats)
     if held:
         centre = np.array([stats.center_d, stats.center_q])
@@ -575,6 +591,7 @@ class DeviceMonitor:
     online: bool = True
     held_last: list = field(default_factory=list)  # [x, y, sd, temp_c, t] of each held position at its last visit
     held_jump: list | None = None  # [Δx, Δy, t, windows]: the held positions jumped, not yet seen still again
+    lag: LagEstimate = field(default_factory=LagEstimate)  # the die's lag, from the windows' amplitude
 
     def __post_init__(self):
         s = self.settings
@@ -622,6 +639,7 @@ class DeviceMonitor:
             "online": self.online,
             "held_last": self.held_last,
             "held_jump": self.held_jump,
+            "lag": self.lag.to_dict(),
         }
 
     @classmethod
@@ -656,6 +674,7 @@ class DeviceMonitor:
             online=d.get("online", True),
             held_last=d.get("held_last", []),
             held_jump=d.get("held_jump"),
+            lag=LagEstimate.from_dict(d["lag"]) if "lag" in d else LagEstimate(),
         )
 
     # --- state for users ---------------------------------------------------------------------------
@@ -692,7 +711,9 @@ class DeviceMonitor:
         dt = 0.0 if self.last_t is None else f.t - self.last_t
         self.windows += 1
         self.last_t = f.t
-        if f.y is not None and self._is_absurd(f):
+        absurd = f.y is not None and self._is_absurd(f)
+        self._lag(f, absurd)
+        if absurd:
             self.absurd += 1  # valid, but not this drive: it moves no baseline and no detector
             self.last_absurd_t = f.t
             return events
@@ -703,6 +724,25 @@ class DeviceMonitor:
             self._shape_steps(f, events)
             self._shape(f, fleet, events)
         return events
+
+    def _lag(self, f: Features, absurd: bool) -> None:
+        """Every window draws the die's path; a fitted, plausible one also measures the lag."""
+        if f.start is None:
+            return
+        fitted = f.y is not None and not absurd
+        self.lag.add(
+            start=f.start,
+            end=f.t,
+            temp_c=f.temp_c,
+            rate_c_per_s=f.temp_rate,
+            lag_used_s=f.lag_used_s,
+            log_amp=float(f.y[_AMP]) if fitted else None,
+            sd=float(f.sigma[_AMP]) if fitted else None,
+        )
+
+    def thermal_lag(self) -> tuple[float, float] | None:
+        """(τ s, its standard error) of the die's lag behind the reported temperature, once the windows show it."""
+        return self.lag.tau()
 
     def _is_absurd(self, f: Features) -> bool:
         s, y = self.settings, f.y
@@ -721,6 +761,8 @@ class DeviceMonitor:
         check_parameters(cause, parameters)
         self.open[cause] = {"raised_at": at, "parameters": parameters, "quiet_since": None}
         events.append(AlarmEvent("raise", cause, at, parameters, evidence))
+        if cause == "gain_step":
+            self.lag.restart()  # the amplitude moved: windows from before the step would read as a lag
 
     def _quiet(self, events, cause: str, at: float, quiet: bool, why: str) -> None:
         """Clear an open alarm once its condition has been gone for clear_after_s of drive time."""

@@ -18,10 +18,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
-from scipy.signal import lfilter
 
 from .physics import ADC_MAX, ADC_MID, REFERENCE_TEMP_C, halls_to_dq
 from .samples import Samples
+from .thermal import first_order_lag
 
 
 @dataclass(frozen=True)
@@ -63,28 +63,6 @@ class EncoderModel:
 
     def with_(self, **changes) -> EncoderModel:
         return replace(self, **changes)
-
-
-def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float, y0: float | None = None) -> np.ndarray:
-    """y' = (x - y)/tau, exact for piecewise-constant x between samples. tau <= 0 returns x."""
-    x = np.asarray(x, dtype=float)
-    if tau_s <= 0 or x.size == 0:
-        return x.copy()
-    t = np.asarray(t, dtype=float)
-    y_start = x[0] if y0 is None else y0
-    dt = np.diff(t, prepend=t[0])
-    if np.allclose(dt[1:], dt[1] if dt.size > 1 else 0.0):
-        a = np.exp(-(dt[1] if dt.size > 1 else 0.0) / tau_s)
-        # y[i] = a*y[i-1] + (1-a)*x[i-1]: the input held over the step that ends at sample i
-        x_prev = np.concatenate(([y_start], x[:-1]))
-        y, _ = lfilter([1 - a], [1, -a], x_prev[1:], zi=[a * y_start])
-        return np.concatenate(([y_start], y))
-    y = np.empty_like(x)
-    y[0] = y_start
-    decay = np.exp(-dt / tau_s)
-    for i in range(1, x.size):
-        y[i] = decay[i] * y[i - 1] + (1 - decay[i]) * x[i - 1]
-    return y
 
 
 def clean_signals(model: EncoderModel, theta_mech, die_temp_c, hours) -> tuple[np.ndarray, np.ndarray]:

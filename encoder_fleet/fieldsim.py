@@ -367,11 +367,12 @@ def bench_sweep(phys: DrivePhysics, rng: np.random.Generator, *, positions: int 
     return Samples(t=t, d=d, q=q, temp_c=temp + rng.normal(0, 0.05, positions), theta_ref=ref % (2 * np.pi))
 
 
-def true_error_deg(correction, run: FieldRun, index=None) -> np.ndarray:
+def true_error_deg(correction, run: FieldRun, index=None, temp_c=None) -> np.ndarray:
     """Angle error (degrees) of a correction on the run's noise-free signals at the samples' true angles:
-    what the coefficients leave, not the sensor's noise. The correction sees the reported temperature."""
+    what the coefficients leave, not the sensor's noise. The correction sees the reported temperature, or
+    temp_c (the selected samples' temperature as the agent reads it)."""
     idx = slice(None) if index is None else index
     theta, die, t = run.theta[idx], run.die_c[idx], run.samples.t[idx]
     d, q = run.physics.channels(theta, die, t)
-    est = correction.angle(d, q, run.samples.temp_c[idx])
+    est = correction.angle(d, q, run.samples.temp_c[idx] if temp_c is None else temp_c)
     return np.degrees((est - theta + np.pi) % (2 * np.pi) - np.pi)

@@ -24,18 +24,19 @@ from __future__ import annotations
 import multiprocessing
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from edge_agent.agent import check_plausible, factory_message
+from edge_agent.agent import check_plausible, factory_message, temp_rate
 from encoder_core.correction import BandedCorrection
 from encoder_core.methods import OursLsRef
 from encoder_core.monitor import DeviceMonitor, window_features
 from encoder_core.physics import BAND_WIDTH_C, band_of
 from encoder_core.samples import InputError, Samples
 from encoder_core.stats import WindowStats, normalisation_scale, window_stats
+from encoder_core.thermal import DieTemperature, first_order_lag, lag_to_send
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from fleet_wire import keys
@@ -237,22 +238,27 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
     deferred = None  # a step's move waiting for a trial's verdict: (cause, parameters, at)
+    die = DieTemperature()  # the agent's
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
         if pending is not None:  # the agent applies what arrived before this window
-            running, running_msg = BandedCorrection.from_dict({"bands": pending["bands"]}), pending
+            lag = pending.get("thermal_lag_s", running.thermal_lag_s)  # a set without one keeps the drive's
+            running, running_msg = BandedCorrection.from_dict({**pending, "thermal_lag_s": lag}), pending
             timeline.append((float(block.t[0]), running))
             if watch is not None and step_at is not None and pending["created_at"] >= step_at:
                 # service.monitor: the step is cleared once a set made after it is applied (the next can be named)
                 for cause in STEP_CAUSES:
                     watch.clear(cause, float(block.t[0]), "a set made after the step was applied")
-            if guard and pending["basis"] != "rollback":
+            if pending.get("lag_only"):  # service.runtime.publish_lag: confirmed as it is sent
+                confirmed = pending
+            elif guard and pending["basis"] != "rollback":
                 trial = [pending, {}, changed_bands(pending, confirmed), float(block.t[0])]
             pending = None
         if deferred is not None and pending is None and trial is None:  # service.runtime.refit: after the verdict
             bands = step_moved_bands(running_msg["bands"], deferred[0], deferred[1], scale)
             pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": float(block.t[0])}
             deferred = None
+        block = replace(block, temp_c=die(block.t, block.temp_c, running.thermal_lag_s))  # EdgeAgent.step
         stats = window_stats(block, scale)  # the agent's own code path
         if stats.temp_n == 0:
             continue
@@ -261,7 +267,16 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
         if trial is not None and band in trial[2]:  # the soak: what the drive ran on the trial set
             trial[1][band] = trial[1][band].merge(stats) if band in trial[1] else stats
         if watch is not None:
-            for event in watch.update(window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band)):
+            features = window_features(
+                stats,
+                t=end_s,
+                temp_c=stats.temp_mean,
+                band=band,
+                start=float(block.t[0]),
+                temp_rate=temp_rate(block),
+                lag_used_s=running.thermal_lag_s,
+            )
+            for event in watch.update(features):
                 if event.cause in STEP_CAUSES and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
@@ -300,6 +315,12 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             elif verdict.action == "rollback":
                 pending, trial = {**confirmed, "basis": "rollback", "created_at": end_s}, None
             continue
+        if watch is not None and pending is None and deferred is None:
+            lag = lag_to_send(watch.thermal_lag(), running.thermal_lag_s)
+            if lag is not None:  # service.runtime.publish_lag: the bands as they run, read at the new die estimate
+                pending = {"bands": running_msg["bands"], "basis": "fit", "version": len(timeline), "created_at": end_s}
+                pending.update(thermal_lag_s=lag, lag_only=True)
+                continue
         band_sums = sums.band_sums()
         bin_temps = {b: s.bin_temps() for b, s in band_sums.items()}  # what service.runtime passes
         after_step = step_at is not None and end_s - step_at < STEP_OPEN_S
@@ -328,10 +349,14 @@ def score(run: fieldsim.FieldRun, factory: BandedCorrection, timeline) -> tuple[
     err_fleet = np.empty_like(err_factory)
     starts = np.array([s for s, _ in timeline])
     which = np.searchsorted(starts, t[idx], side="right") - 1
+    die = {0.0: run.samples.temp_c}  # the agent's die estimate per lag (from the run's start: the same after a few τ)
     for k, (_, corr) in enumerate(timeline):
         sel = which == k
         if sel.any():
-            err_fleet[sel] = fieldsim.true_error_deg(corr, run, idx[sel])
+            lag = corr.thermal_lag_s
+            if lag not in die:
+                die[lag] = first_order_lag(t, run.samples.temp_c, lag)
+            err_fleet[sel] = fieldsim.true_error_deg(corr, run, idx[sel], temp_c=die[lag][idx[sel]])
     h = hours[idx]
     per_hour = [
         (float(np.sqrt(np.mean(err_factory[h == k] ** 2))), float(np.sqrt(np.mean(err_fleet[h == k] ** 2))))

@@ -323,6 +323,7 @@ _MSGPACK_MAP = frozenset([*range(0x80, 0x90), 0xDE, 0xDF])  # a MessagePack map'
 # integer). tests/test_wire_contract.py: no mutated set the file refuses is accepted here.
 
 MAX_VERSION = 2**53 - 1  # a coefficient set's version: exact in every JSON reader
+MAX_THERMAL_LAG_S = 1800.0  # encoder_core.thermal.MAX_LAG_S: the die's lag a set may carry
 _Version = Annotated[int, msgspec.Meta(ge=0, le=MAX_VERSION)]
 _NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 
@@ -355,6 +356,7 @@ class _CoefficientSet(msgspec.Struct, forbid_unknown_fields=True):
     bands: Annotated[list[_BandEntry], msgspec.Meta(min_length=1, max_length=64)]
     signature: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9+/]{86}==$")] | msgspec.UnsetType = msgspec.UNSET
     restores_version: _Version | msgspec.UnsetType = msgspec.UNSET
+    thermal_lag_s: Annotated[float, msgspec.Meta(ge=0, le=MAX_THERMAL_LAG_S)] | msgspec.UnsetType = msgspec.UNSET
 
 
 _COMPILED = {"coefficients": _CoefficientSet}
@@ -794,10 +796,18 @@ def band_entry(band: int, correction: dict, quality: dict) -> dict:
 
 
 def coefficients_message(
-    device: str, version: int, created_at: float, basis: str, bands: list[dict], *, restores_version: int | None = None
+    device: str,
+    version: int,
+    created_at: float,
+    basis: str,
+    bands: list[dict],
+    *,
+    restores_version: int | None = None,
+    thermal_lag_s: float = 0.0,
 ) -> dict:
     """bands: entries from band_entry(), in any order (sent sorted by band). restores_version: only for
-    basis 'rollback', the confirmed set it carries again."""
+    basis 'rollback', the confirmed set it carries again. thermal_lag_s: the die's lag the agent reads the bands
+    with (encoder_core/thermal.py), sent when above 0."""
     msg = {
         "schema": SCHEMA_NAME["coefficients"],
         "device": device,
@@ -808,6 +818,8 @@ def coefficients_message(
     }
     if restores_version is not None:
         msg["restores_version"] = int(restores_version)
+    if thermal_lag_s:
+        msg["thermal_lag_s"] = float(thermal_lag_s)
     return check("coefficients", msg)
 
 

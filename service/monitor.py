@@ -41,6 +41,7 @@ class Monitor:
         self.fleet = FleetRates(self.settings)
         self.devices: dict[str, DeviceMonitor] = {}
         self.last_seq: dict[str, int] = {}
+        self._lags: dict[tuple[str, int], float] = {}
         self._lock = threading.RLock()
         self.reload(lambda device: True)
 
@@ -94,12 +95,31 @@ class Monitor:
                         temp_c=row["temp_mean_c"],
                         band=row["band"],
                         rejected_by_reason=row["rejected_by_reason"],
+                        start=row["window_start"],
+                        temp_rate=row["temp_rate_c_per_s"],
+                        lag_used_s=self._lag_of(device, row["coefficients_version"]),
                     )
                     events += mon.update(f, self.fleet)
                 events += self._refit_clears(device, mon)
                 written += self._save(device, mon, rows[-1]["seq"], events)
         self._publish(written)
         return written
+
+    def _lag_of(self, device: str, version: int) -> float:
+        """The die lag the agent wrote a window's temperatures with: the τ of the set it ran (sets never change)."""
+        key = (device, version)
+        if key not in self._lags:
+            msg = self.store.coefficient_set(device, version)
+            if msg is None:
+                return 0.0  # a set this service does not hold: the agent's factory set, or not stored yet
+            self._lags[key] = float(msg.get("thermal_lag_s", 0.0))
+        return self._lags[key]
+
+    def thermal_lag(self, device: str) -> tuple[float, float] | None:
+        """The device's die lag (τ s, standard error) as its windows measure it, or None."""
+        with self._lock:
+            mon = self.devices.get(device)
+            return mon.thermal_lag() if mon is not None else None
 
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
         """A step (offset, gain or axes) is cleared once the fleet has re-corrected the drive: a coefficient set

@@ -22,6 +22,7 @@ from encoder_core.correction import BandedCorrection
 from encoder_core.monitor_causes import cause as cause_of
 from encoder_core.samples import InputError
 from encoder_core.stats import normalisation_scale
+from encoder_core.thermal import lag_to_send
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import set_on_signals
@@ -631,6 +632,9 @@ class FleetService:
         if step is not None and (version := self.publish_step_move(device, *step[:2])) is not None:
             self._refitted(device)
             return version
+        if (version := self.publish_lag(device)) is not None:
+            self._refitted(device)
+            return version
         result = self.fit(device)
         self._refitted(device)
         return self.publish_fit(device, result) if result is not None and result.changed else None
@@ -654,6 +658,34 @@ class FleetService:
         bands = step_moved_bands(running["bands"], cause, step, scale)
         reason = f"{cause.replace('_', ' ')}: v{running_version} moved for it ({cause_of(cause).state(**step)})"
         return self._issue_set(device, "fit", bands, state="trial", reason=reason)
+
+    def publish_lag(self, device: str) -> int | None:
+        """Where the windows measure the die's lag clear of the one the drive runs (encoder_core/thermal.py): the
+        running bands with the new lag, confirmed (the bands are the ones the guard confirmed; what changes is the
+        temperature they are read at). Returns the version published. Band memory is kept: its older windows,
+        written at the reported temperature, carry the lag's bias as every window did before, and fade out with
+        the horizon (restarting it cost a reversing drive its cold bands, refitted from the curve's reach instead:
+        s3-0.5hz-07, three worse hours)."""
+        running_version = self.store.published_version(device)
+        if running_version is None:
+            return None
+        estimate = self.monitor.thermal_lag(device)
+        running_lag = self._running_lag(device)
+        lag = lag_to_send(estimate, running_lag)
+        if lag is None:
+            return None
+        running = self.store.coefficient_set(device, running_version)
+        reason = (
+            f"die lag {lag:.0f} s (± {estimate[1]:.0f} s) measured from the windows' amplitude against temperature "
+            f"and its rate; v{running_version} ran {running_lag:.0f} s"
+        )
+        return self._issue_set(device, "fit", running["bands"], state="confirmed", reason=reason, thermal_lag_s=lag)
+
+    def _running_lag(self, device: str) -> float:
+        """The die lag of the set the device runs (0 before any set carries one)."""
+        version = self.store.published_version(device)
+        msg = self.store.coefficient_set(device, version) if version is not None else None
+        return float(msg.get("thermal_lag_s", 0.0)) if msg is not None else 0.0
 
     def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
         """The refit of the device's band sums against the set it runs; None when no set is known yet."""
@@ -684,15 +716,20 @@ class FleetService:
         restores_version: int | None = None,
         before: Callable[[int, float], None] | None = None,
         after: Callable[[int], None] | None = None,
+        thermal_lag_s: float | None = None,
     ) -> int:
         """A new set in one transaction (`before(version, drive_now)` and `after(version)` run inside it, around
-        the set's insert: what belongs with the set lands with it, or nothing does), then published."""
+        the set's insert: what belongs with the set lands with it, or nothing does), then published. Every set
+        carries the die lag the device runs (a property of the drive, not of a fit) unless given a new one."""
         drive_now = self._drive_now(device)
+        lag = self._running_lag(device) if thermal_lag_s is None else thermal_lag_s
         with self.store.transaction():
             version = self.store.next_version(device)
             if before is not None:
                 before(version, drive_now)
-            msg = wire.coefficients_message(device, version, drive_now, basis, bands, restores_version=restores_version)
+            msg = wire.coefficients_message(
+                device, version, drive_now, basis, bands, restores_version=restores_version, thermal_lag_s=lag
+            )
             msg = self._publishable(msg)
             self.store.insert_coefficient_set(msg, state=state, reason=reason)
             if after is not None:

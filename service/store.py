@@ -1036,15 +1036,19 @@ class Store:
     def monitor_windows(self, device: str, after_seq: int, through_seq: int, limit: int = 500) -> list[dict]:
         """Windows after_seq < seq <= through_seq in seq order, with what the monitor reads of them."""
         rows = self._rows(
-            "SELECT seq, window_end, temp_mean_c, band, stats_json, stats, rejected_by_reason_json FROM windows "
+            "SELECT seq, window_start, window_end, temp_mean_c, temp_rate_c_per_s, coefficients_version, band, "
+            "stats_json, stats, rejected_by_reason_json FROM windows "
             "WHERE device = ? AND seq > ? AND seq <= ? ORDER BY seq LIMIT ?",
             (device, after_seq, through_seq, limit),
         )
         return [
             {
                 "seq": r["seq"],
+                "window_start": r["window_start"],
                 "window_end": r["window_end"],
                 "temp_mean_c": r["temp_mean_c"],
+                "temp_rate_c_per_s": r["temp_rate_c_per_s"],
+                "coefficients_version": r["coefficients_version"],
                 "band": r["band"],
                 "stats": self._stats_dict(r),
                 "rejected_by_reason": json.loads(r["rejected_by_reason_json"])

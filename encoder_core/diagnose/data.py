@@ -13,7 +13,7 @@ from scipy.ndimage import median_filter
 
 from ..physics import REFERENCE_TEMP_C
 from ..samples import InputError, Samples, check_angle_coverage, check_fit_input
-from ..simulator import first_order_lag
+from ..thermal import first_order_lag
 from .causes import Observables
 
 MIN_SAMPLES = 64
