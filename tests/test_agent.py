@@ -90,3 +90,34 @@ def test_restarted_agent_resumes_with_its_set(setup):
     again = make_agent(client)  # a new process would do the same: open its outbox and go on
     assert again.version == 7 and again.seq == seq
     assert again.correction.bands[0].w1 == pytest.approx(factory.bands[0].w1 * 1.02)
+
+
+def test_agent_reads_the_die_temperature_with_the_lag_its_set_carries(setup):
+    """A set with thermal_lag_s: the agent corrects with, and writes its windows' temperatures at, the reported
+    temperature lagged by it, carried on from the window before (encoder_core/thermal.py)."""
+    from encoder_core.stats import rejected_by_reason
+    from encoder_core.thermal import DieTemperature
+
+    store, router, client, factory, make_agent = setup
+    agent = make_agent(client)
+    agent.start()
+    agent.step()  # a window at the factory set: the temperature as reported
+    lagged = {**coefficient_set(factory, 5), "thermal_lag_s": 300.0}
+    router.put(f"encoders/{DEVICE}/coefficients", wire.encode("coefficients", lagged))
+    assert wait_for(lambda: agent.apply_inbox() or agent.version == 5)  # (the service's own echo may come first)
+    for _ in range(3):
+        agent.step()
+    assert agent.version == 5 and agent.correction.thermal_lag_s == 300.0
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 4)
+    stored = store.windows(DEVICE)
+    assert [w["coefficients_version"] for w in stored] == [0, 5, 5, 5], stored
+    reference, die = SimulatedDrive(SEED, hours=1), DieTemperature()  # the same drive, read again
+    for k, window in enumerate(stored):
+        block = reference.read(60.0)
+        usable, _ = rejected_by_reason(block)
+        reported = block.temp_c[usable].mean()
+        expected = die(block.t, block.temp_c, 0.0 if k == 0 else 300.0)[usable].mean()
+        assert window["temp_mean_c"] == pytest.approx(expected, abs=1e-9), (k, window, reported)
+        if k > 0:
+            assert abs(expected - reported) > 0.05  # the lag is seen: the drive's temperature moves
+    agent.close()
