@@ -110,10 +110,10 @@ class LagEstimate:
     log amplitude on it (a + b·x + c·x² + e·t); τ is where the misfit is least, its error where the misfit grows
     by one (after scaling it to one per window)."""
 
-    die: list | None = None  # per candidate τ: the die at the end of the last window
+    die: np.ndarray | None = None  # per candidate τ: the die at the end of the last window
     last_end: tuple | None = None  # (t, reported temperature) at the end of the last window
-    sxx: list = field(default_factory=lambda: np.zeros((len(LAG_GRID_S), N_TERMS, N_TERMS)).tolist())
-    sxy: list = field(default_factory=lambda: np.zeros((len(LAG_GRID_S), N_TERMS)).tolist())
+    sxx: np.ndarray = field(default_factory=lambda: np.zeros((len(LAG_GRID_S), N_TERMS, N_TERMS)))
+    sxy: np.ndarray = field(default_factory=lambda: np.zeros((len(LAG_GRID_S), N_TERMS)))
     syy: float = 0.0
     sw: float = 0.0  # the windows' count, decayed
     n: int = 0
@@ -150,9 +150,9 @@ class LagEstimate:
             t_prev, temp_prev = self.last_end
             # a gap between windows: the die relaxes towards the last temperature reported
             gap = max(start - t_prev, 0.0)
-            y0 = temp_prev + (np.asarray(self.die) - temp_prev) * np.exp(-gap / np.maximum(grid, 1e-9))
+            y0 = temp_prev + (self.die - temp_prev) * np.exp(-gap / np.maximum(grid, 1e-9))
         mean, y_end = ramp_lag(y0, start_c, rate_c_per_s, length, grid)
-        self.die, self.last_end = y_end.tolist(), (end, start_c + rate_c_per_s * length)
+        self.die, self.last_end = y_end, (end, start_c + rate_c_per_s * length)
         if log_amp is None or sd is None or not (math.isfinite(log_amp) and math.isfinite(sd) and sd > 0):
             return
         if self.t0 is None:
@@ -162,8 +162,8 @@ class LagEstimate:
         x = mean - BENCH_C
         rows = np.column_stack([np.ones_like(x), x, x * x, np.full_like(x, (end - self.t0) / 86400.0)])
         w = 1.0 / sd**2
-        self.sxx = (np.asarray(self.sxx) * f + w * rows[:, :, None] * rows[:, None, :]).tolist()
-        self.sxy = (np.asarray(self.sxy) * f + w * rows * log_amp).tolist()
+        self.sxx = self.sxx * f + w * rows[:, :, None] * rows[:, None, :]
+        self.sxy = self.sxy * f + w * rows * log_amp
         self.syy = self.syy * f + w * log_amp * log_amp
         self.sw = self.sw * f + 1.0
         self.n += 1
@@ -182,7 +182,7 @@ class LagEstimate:
             return None
         if (self.t_fit or self.t0) - self.t0 < MIN_HOURS * 3600.0:
             return None
-        a, b = np.asarray(self.sxx), np.asarray(self.sxy)
+        a, b = self.sxx, self.sxy
         try:
             coef = np.linalg.solve(a, b[..., None])[..., 0]
         except np.linalg.LinAlgError:
@@ -214,10 +214,18 @@ class LagEstimate:
         return best, float(1.0 / math.sqrt(curv))
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        """Plain JSON (the drift monitor's saved state)."""
+        out = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in out.items()}
 
     @classmethod
     def from_dict(cls, d: dict) -> LagEstimate:
+        d = dict(d)
+        for name in ("die", "sxx", "sxy"):
+            if d.get(name) is not None:
+                d[name] = np.asarray(d[name], float)
+        if d.get("last_end") is not None:
+            d["last_end"] = tuple(d["last_end"])
         return cls(**d)
 
 

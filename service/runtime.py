@@ -607,7 +607,7 @@ class FleetService:
             msg = self.store.coefficient_set(device, version)
             if msg is None:
                 return None
-            corr = self._corrections[key] = BandedCorrection.from_dict({"bands": msg["bands"]})
+            corr = self._corrections[key] = BandedCorrection.from_dict(msg)  # the bands and the die lag
         return corr
 
     def refit(self, device: str) -> int | None:
@@ -684,8 +684,8 @@ class FleetService:
     def _running_lag(self, device: str) -> float:
         """The die lag of the set the device runs (0 before any set carries one)."""
         version = self.store.published_version(device)
-        msg = self.store.coefficient_set(device, version) if version is not None else None
-        return float(msg.get("thermal_lag_s", 0.0)) if msg is not None else 0.0
+        corr = self._correction(device, version) if version is not None else None
+        return corr.thermal_lag_s if corr is not None else 0.0
 
     def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
         """The refit of the device's band sums against the set it runs; None when no set is known yet."""
