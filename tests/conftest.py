@@ -62,3 +62,21 @@ def postgres_url(postgres_server):
     with psycopg.connect(postgres_server, autocommit=True) as admin:
         admin.execute(f"CREATE DATABASE {name}")
     return postgres_server.rsplit("/", 1)[0] + "/" + name
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def fleet(request, tmp_path):
+    """(store, service): a real store (SQLite, then PostgreSQL) and the service on a real Zenoh session, with no
+    refit timer (the tests call refit_all). Modules with a fleet of their own define `fleet` themselves."""
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+    from service.store import Store
+
+    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    store = Store.open(target)
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0).start()
+    yield store, service
+    service.stop()
+    session.close()
+    store.close()

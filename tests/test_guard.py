@@ -15,26 +15,11 @@ from edge_agent.agent import factory_message
 from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
 from encoder_core.stats import normalisation_scale, window_stats
 from fleet_wire import messages as wire
-from fleet_wire.session import loopback_endpoint
 from service.api import create_app
 from service.mcap_export import iter_mcap
 from service.refit import step_moved_bands
-from service.runtime import FleetService, open_session
-from service.store import Store
 
 DEVICE, SEED = "drive-7", 7
-
-
-@pytest.fixture(params=["sqlite", "postgres"])
-def fleet(request, tmp_path):
-    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
-    store = Store.open(target)
-    session = open_session(listen=[loopback_endpoint()])
-    service = FleetService(store, session, refit_interval_s=0).start()
-    yield store, service
-    service.stop()
-    session.close()
-    store.close()
 
 
 def run_on(store, version: int, hours: float = 2.0, after_s: float = 0.0) -> None:

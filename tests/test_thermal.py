@@ -15,9 +15,6 @@ from encoder_core.thermal import DieTemperature, LagEstimate, first_order_lag, l
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate, factory_set
 from fleet_wire import messages as wire
-from fleet_wire.session import loopback_endpoint
-from service.runtime import FleetService, open_session
-from service.store import Store
 
 DEVICE = "drive-lag"
 
@@ -106,18 +103,6 @@ def test_a_drive_whose_die_does_not_lag_gets_no_lag():
             )
     assert estimate.tau() is not None and estimate.tau()[0] < 20.0
     assert lag_to_send(estimate.tau(), 0.0) is None
-
-
-@pytest.fixture(params=["sqlite", "postgres"])
-def fleet(request, tmp_path):
-    target = tmp_path / "fleet.sqlite" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
-    store = Store.open(target)
-    session = open_session(listen=[loopback_endpoint()])
-    service = FleetService(store, session, refit_interval_s=0).start()
-    yield store, service
-    service.stop()
-    session.close()
-    store.close()
 
 
 def test_the_service_sends_the_lag_it_measures_and_every_later_set_keeps_it(fleet):
