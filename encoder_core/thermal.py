@@ -51,11 +51,18 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float, y0: float | None
         x_prev = np.concatenate(([y_start], x[:-1]))
         y, _ = lfilter([1 - a], [1, -a], x_prev[1:], zi=[a * y_start])
         return np.concatenate(([y_start], y))
+    # an irregular clock: y[i] = a_i·y[i-1] + (1 - a_i)·x[i-1] with a_i = e^(-dt_i/τ), whose products telescope
+    # to e^(-(t_i - t_0)/τ): in closed form, block by block (50 τ at most, so the exponentials stay finite)
     y = np.empty_like(x)
-    y[0] = y_start
-    decay = np.exp(-dt / tau_s)
-    for i in range(1, x.size):
-        y[i] = decay[i] * y[i - 1] + (1 - decay[i]) * x[i - 1]
+    y[0] = y_prev = y_start
+    start = 0
+    while start < x.size - 1:
+        end = int(np.searchsorted(t, t[start] + 50 * tau_s, side="right")) - 1
+        end = min(max(end, start + 1), x.size - 1)
+        grow = np.exp(np.minimum((t[start : end + 1] - t[start]) / tau_s, 600.0))  # e^((t_i - t_start)/τ)
+        gain = (1 - grow[:-1] / grow[1:]) * x[start:end] * grow[1:]  # (1 - a_i)·x[i-1]·e^((t_i - t_start)/τ)
+        y[start + 1 : end + 1] = (y_prev + np.cumsum(gain)) / grow[1:]
+        y_prev, start = y[end], end
     return y
 
 

@@ -91,6 +91,7 @@ SCHEMAS = {
             "published_at": {**NUMBER, "description": "Service clock, unix s (absent: never published)."},
             "state": {**STRING, "description": "The guard's state now: trial, confirmed or rolled_back."},
             "restores_version": {**INTEGER, "description": "Basis rollback only: the confirmed set it restores."},
+            "thermal_lag_s": {**NUMBER, "description": "The die's lag the agent reads the bands at, s (absent: 0)."},
             "bands": {
                 "type": "array",
                 "items": _object(
@@ -222,6 +223,7 @@ def coefficient_set_record(entry: dict) -> dict:
             "published_at": entry["published_at"],
             "state": entry["state"],
             "restores_version": entry["restores_version"],
+            "thermal_lag_s": msg.get("thermal_lag_s"),
             "bands": bands,
         }
     )

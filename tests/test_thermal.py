@@ -4,10 +4,13 @@ the lag the service measures from window statistics of drives this project did n
 
 from __future__ import annotations
 
+import io
+import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from encoder_core.monitor import window_features
 from encoder_core.stats import normalisation_scale, window_stats
@@ -15,6 +18,7 @@ from encoder_core.thermal import DieTemperature, LagEstimate, first_order_lag, l
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate, factory_set
 from fleet_wire import messages as wire
+from service.mcap_export import iter_mcap
 
 DEVICE = "drive-lag"
 
@@ -28,7 +32,13 @@ def test_the_die_estimate_carried_across_windows_is_the_lag_of_the_whole_stream(
     cuts = np.sort(rng.choice(np.arange(1, t.size), 12, replace=False))
     die = DieTemperature()
     pieces = [die(t[a:b], temp[a:b], tau) for a, b in zip([0, *cuts], [*cuts, t.size])]
-    assert np.allclose(np.concatenate(pieces), first_order_lag(t, temp, tau), atol=1e-9)
+    whole = first_order_lag(t, temp, tau)
+    assert np.allclose(np.concatenate(pieces), whole, atol=1e-9)
+    step_by_step = [temp[0]]  # the recursion itself, sample by sample, against the closed form
+    for i in range(1, t.size):
+        a = np.exp(-(t[i] - t[i - 1]) / tau)
+        step_by_step.append(a * step_by_step[-1] + (1 - a) * temp[i - 1])
+    assert np.allclose(whole, step_by_step, atol=1e-9)
     # a reading that is not a number passes through as it is and does not move the estimate
     held = die.last
     out = die(np.array([t[-1] + 1, t[-1] + 2]), np.array([np.nan, np.inf]), tau)
@@ -131,3 +141,10 @@ def test_the_service_sends_the_lag_it_measures_and_every_later_set_keeps_it(flee
     # every set after it carries the drive's lag
     service.publish_step_move(DEVICE, "offset_step", {"delta_d": 0.001, "delta_q": 0.0})
     assert store.coefficient_set(DEVICE, 2)["thermal_lag_s"] == sent["thermal_lag_s"]
+    # and the audit export says which lag each set was read at, read back with the mcap reader
+    exported = {
+        json.loads(m.data)["version"]: json.loads(m.data).get("thermal_lag_s")
+        for _, c, m in make_reader(io.BytesIO(b"".join(iter_mcap(store, DEVICE)))).iter_messages()
+        if c.topic.endswith("/coefficients")
+    }
+    assert exported == {0: None, 1: sent["thermal_lag_s"], 2: sent["thermal_lag_s"]}
