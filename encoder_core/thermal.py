@@ -164,7 +164,7 @@ class LagEstimate:
             return
         if self.t0 is None:
             self.t0 = end
-        f = math.exp(-max(end - (self.t_fit or end), 0.0) / MEMORY_S)
+        f = 1.0 if self.t_fit is None else math.exp(-max(end - self.t_fit, 0.0) / MEMORY_S)
         self.t_fit = end
         x = mean - BENCH_C
         rows = np.column_stack([np.ones_like(x), x, x * x, np.full_like(x, (end - self.t0) / 86400.0)])
@@ -185,10 +185,8 @@ class LagEstimate:
 
     def profile(self) -> np.ndarray | None:
         """Residual sum of squares per candidate τ (None before the windows can measure it)."""
-        if self.n < MIN_WINDOWS or self.x_max - self.x_min < MIN_SPAN_C or self.t0 is None:
-            return None
-        if (self.t_fit or self.t0) - self.t0 < MIN_HOURS * 3600.0:
-            return None
+        if self.n < MIN_WINDOWS or self.x_max - self.x_min < MIN_SPAN_C or self.t_fit - self.t0 < MIN_HOURS * 3600.0:
+            return None  # (n > 0: t0 and t_fit are set)
         a, b = self.sxx, self.sxy
         try:
             coef = np.linalg.solve(a, b[..., None])[..., 0]

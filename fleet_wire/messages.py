@@ -21,6 +21,7 @@ from jsonschema.exceptions import best_match
 from encoder_core.physics import BAND_WIDTH_C, band_of
 from encoder_core.samples import InputError
 from encoder_core.stats import BIN_COLUMNS, MONOMIALS, N_BINS, WindowStats
+from encoder_core.thermal import MAX_LAG_S  # the die's lag a set may carry
 
 from . import keys
 
@@ -323,7 +324,6 @@ _MSGPACK_MAP = frozenset([*range(0x80, 0x90), 0xDE, 0xDF])  # a MessagePack map'
 # integer). tests/test_wire_contract.py: no mutated set the file refuses is accepted here.
 
 MAX_VERSION = 2**53 - 1  # a coefficient set's version: exact in every JSON reader
-MAX_THERMAL_LAG_S = 1800.0  # encoder_core.thermal.MAX_LAG_S: the die's lag a set may carry
 _Version = Annotated[int, msgspec.Meta(ge=0, le=MAX_VERSION)]
 _NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 
@@ -356,7 +356,7 @@ class _CoefficientSet(msgspec.Struct, forbid_unknown_fields=True):
     bands: Annotated[list[_BandEntry], msgspec.Meta(min_length=1, max_length=64)]
     signature: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9+/]{86}==$")] | msgspec.UnsetType = msgspec.UNSET
     restores_version: _Version | msgspec.UnsetType = msgspec.UNSET
-    thermal_lag_s: Annotated[float, msgspec.Meta(ge=0, le=MAX_THERMAL_LAG_S)] | msgspec.UnsetType = msgspec.UNSET
+    thermal_lag_s: Annotated[float, msgspec.Meta(ge=0, le=MAX_LAG_S)] | msgspec.UnsetType = msgspec.UNSET
 
 
 _COMPILED = {"coefficients": _CoefficientSet}

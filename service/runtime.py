@@ -670,7 +670,7 @@ class FleetService:
         if running_version is None:
             return None
         estimate = self.monitor.thermal_lag(device)
-        running_lag = self._running_lag(device)
+        running_lag = self._running_lag(device, running_version)
         lag = lag_to_send(estimate, running_lag)
         if lag is None:
             return None
@@ -681,9 +681,10 @@ class FleetService:
         )
         return self._issue_set(device, "fit", running["bands"], state="confirmed", reason=reason, thermal_lag_s=lag)
 
-    def _running_lag(self, device: str) -> float:
-        """The die lag of the set the device runs (0 before any set carries one)."""
-        version = self.store.published_version(device)
+    def _running_lag(self, device: str, version: int | None = None) -> float:
+        """The die lag of the set the device runs (version: its published version, when the caller has it; 0
+        before any set carries one)."""
+        version = self.store.published_version(device) if version is None else version
         corr = self._correction(device, version) if version is not None else None
         return corr.thermal_lag_s if corr is not None else 0.0
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from edge_agent.agent import temp_rate
 from encoder_core.monitor import window_features
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_core.thermal import DieTemperature, LagEstimate, first_order_lag, lag_to_send
@@ -65,8 +66,22 @@ def windows(run, factory, window_s: float, lag_used_s: float = 0.0):
         yield block, window_stats(block, scale)
 
 
-def temp_rate(block) -> float:
-    return float(np.polyfit(block.t - block.t[0], block.temp_c, 1)[0])
+def estimate_from(run, factory, lag_used_s: float = 0.0) -> LagEstimate:
+    """The service's estimate from the windows an agent running lag_used_s writes (120 s), fed as the drift
+    monitor feeds it (DeviceMonitor._lag): every window draws the die's path, the fitted ones measure."""
+    estimate = LagEstimate()
+    for block, stats in windows(run, factory, 120.0, lag_used_s):
+        f = window_features(stats, t=float(block.t[-1]), temp_c=stats.temp_mean, band=0)
+        estimate.add(
+            start=float(block.t[0]),
+            end=float(block.t[-1]),
+            temp_c=stats.temp_mean,
+            rate_c_per_s=temp_rate(block),
+            lag_used_s=lag_used_s,
+            log_amp=None if f.y is None else float(f.y[2]),
+            sd=None if f.y is None else float(f.sigma[2]),
+        )
+    return estimate
 
 
 @pytest.mark.parametrize(("seed", "written_with"), [(81, 0.0), (82, 0.0), (83, 0.5)])
@@ -75,19 +90,7 @@ def test_the_lag_is_measured_from_window_statistics_within_a_tenth(seed, written
     (a first estimate sent earlier); the estimate is of the whole lag all the same."""
     phys, factory, run = drive_with_hidden_lag(seed)
     used = written_with * phys.die_lag_s
-    estimate = LagEstimate()
-    for block, stats in windows(run, factory, 120.0, used):
-        f = window_features(stats, t=float(block.t[-1]), temp_c=stats.temp_mean, band=0)
-        estimate.add(
-            start=float(block.t[0]),
-            end=float(block.t[-1]),
-            temp_c=stats.temp_mean,
-            rate_c_per_s=temp_rate(block),
-            lag_used_s=used,
-            log_amp=None if f.y is None else float(f.y[2]),
-            sd=None if f.y is None else float(f.sigma[2]),
-        )
-    tau, se = estimate.tau()
+    tau, se = estimate_from(run, factory, used).tau()
     assert abs(tau - phys.die_lag_s) < max(0.1 * phys.die_lag_s, 20.0), (tau, se, phys.die_lag_s)
     assert se < 0.1 * phys.die_lag_s
     assert lag_to_send((tau, se), used) is not None  # far enough from what the agent runs to be sent
@@ -98,19 +101,7 @@ def test_a_drive_whose_die_does_not_lag_gets_no_lag():
     phys = replace(fieldsim.draw_drive(rng), die_lag_s=0.0)
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
     run = fieldsim.field_run(phys, days=0.75, rate_hz=5.0, regime="even", rng=rng)
-    estimate = LagEstimate()
-    for block, stats in windows(run, factory, 120.0):
-        f = window_features(stats, t=float(block.t[-1]), temp_c=stats.temp_mean, band=0)
-        if f.y is not None:
-            estimate.add(
-                start=float(block.t[0]),
-                end=float(block.t[-1]),
-                temp_c=stats.temp_mean,
-                rate_c_per_s=temp_rate(block),
-                lag_used_s=0.0,
-                log_amp=float(f.y[2]),
-                sd=float(f.sigma[2]),
-            )
+    estimate = estimate_from(run, factory)
     assert estimate.tau() is not None and estimate.tau()[0] < 20.0
     assert lag_to_send(estimate.tau(), 0.0) is None
 
