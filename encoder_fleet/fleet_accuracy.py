@@ -101,12 +101,29 @@ class DriveResult:
     @property
     def worse_hour_indices(self) -> list[int]:
         """The drive-hours (from the start) whose fleet error is worse than the factory set's."""
-        fleet, factory = np.array(self.fleet_hour_deg), np.array(self.factory_hour_deg)
-        return np.flatnonzero((fleet > factory * (1 + WORSE_MARGIN)) & (fleet > factory + WORSE_MIN_DEG)).tolist()
+        return worse_than(self.fleet_hour_deg, self.factory_hour_deg)
 
     @property
     def worse_hours(self) -> int:
         return len(self.worse_hour_indices)
+
+    @property
+    def floor_worse_hour_indices(self) -> list[int]:
+        """The drive-hours in which the reference-free floor itself is worse than the factory set: on the arc the
+        drive visited that hour, the factory's drift errors happened to cancel part of the zero's own drift, which
+        no refit without a reference can see (a clean reversing drive, s3-0.5hz-03: five such hours)."""
+        return worse_than(self.floor_hour_deg, self.factory_hour_deg)
+
+    @property
+    def floor_shared_worse_hours(self) -> int:
+        """Worse hours that the floor shares: a perfect reference-free refit would be worse there too."""
+        return len(set(self.worse_hour_indices) & set(self.floor_worse_hour_indices))
+
+
+def worse_than(hour_deg, factory_hour_deg) -> list[int]:
+    """The hours in which `hour_deg` is worse than the factory's (WORSE_MARGIN and WORSE_MIN_DEG both)."""
+    err, factory = np.array(hour_deg), np.array(factory_hour_deg)
+    return np.flatnonzero((err > factory * (1 + WORSE_MARGIN)) & (err > factory + WORSE_MIN_DEG)).tolist()
 
 
 def fleet_specs(
@@ -415,6 +432,8 @@ def summarise(results: list[DriveResult]) -> dict:
         "worse_hours": worse,
         "worse_hours_pct": 100.0 * worse / max(hours, 1),
         "max_drive_worse_hours_pct": max(100.0 * r.worse_hours / max(len(r.fleet_hour_deg), 1) for r in results),
+        "worse_hours_floor_shares": sum(r.floor_shared_worse_hours for r in results),
+        "floor_worse_hours": sum(len(r.floor_worse_hour_indices) for r in results),
     }
 
 
@@ -452,6 +471,7 @@ def run_bench(
         row = {k: v for k, v in asdict(r).items() if not k.endswith("hour_deg")}
         row.update(factory_deg=r.factory_deg, fleet_deg=r.fleet_deg, gain=r.gain, worse_hours=r.worse_hours)
         row.update(floor_deg=r.floor_deg, floor_gain=r.floor_gain, worse_hour_indices=r.worse_hour_indices)
+        row.update(floor_worse_hour_indices=r.floor_worse_hour_indices)
         report["drives"].append(row)
     return report
 
@@ -464,15 +484,16 @@ def default_window(rate_hz: float) -> float:
 def format_report(report: dict) -> str:
     lines = [
         "| regime | drives | drive-hours | factory ° | fleet ° | median gain | reference-free floor | worst drive gain "
-        "| worse hours |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| worse hours | of which the floor shares | floor's own worse hours |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, s in report["regimes"].items():
         lines.append(
             f"| {name} | {s['drives']} | {s['drive_hours']} | {s['factory_deg']:.4f} | {s['fleet_deg']:.4f} | "
             f"{s['median_gain']:.1f}× | {s['floor_median_gain']:.1f}× | {s['worst_gain']:.2f}× | "
             f"{s['worse_hours']} ({s['worse_hours_pct']:.1f} %, "
-            f"worst drive {s['max_drive_worse_hours_pct']:.1f} %) |"
+            f"worst drive {s['max_drive_worse_hours_pct']:.1f} %) | {s['worse_hours_floor_shares']} | "
+            f"{s['floor_worse_hours']} |"
         )
     lines.append(f"\n{len(report['drives'])} drives in {report['elapsed_s']:.0f} s")
     return "\n".join(lines)

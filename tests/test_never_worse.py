@@ -16,7 +16,7 @@ from encoder_core.physics import band_of
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from encoder_fleet.fleet_accuracy import run_bench
+from encoder_fleet.fleet_accuracy import DriveResult, run_bench, summarise
 from encoder_fleet.recording import write_recording
 from service.refit import refit_device
 
@@ -54,6 +54,21 @@ def test_a_small_fleet_of_independent_drives_is_never_worse_and_gains():
     # hours where what the drive ran was worse than the factory's: 2 of 96 here (the issue asks for 1 %, README)
     assert fleet["worse_hours_pct"] <= 2.5, fleet
     assert fleet["worst_gain"] >= 0.95 and fleet["median_gain"] >= 1.5, fleet
+
+
+def test_worse_hours_the_reference_free_floor_shares_are_counted_apart():
+    """A worse hour in which the floor (the best set without a reference) is worse too is no refit's to avoid."""
+    r = DriveResult(
+        "d", "reverse", None, 0.5, 1,
+        factory_hour_deg=[0.10, 0.10, 0.10, 0.10, 0.10],
+        fleet_hour_deg=[0.15, 0.10, 0.15, 0.1005, 0.05],  # worse in hours 0 and 2 (hour 3 is within the margin)
+        floor_hour_deg=[0.12, 0.12, 0.05, 0.05, 0.12],  # the floor worse in hours 0, 1 and 4
+    )  # fmt: skip
+    assert r.worse_hour_indices == [0, 2] and r.floor_worse_hour_indices == [0, 1, 4]
+    assert r.floor_shared_worse_hours == 1
+    summary = summarise([r, r])
+    assert summary["worse_hours"] == 4 and summary["worse_hours_floor_shares"] == 2
+    assert summary["floor_worse_hours"] == 6
 
 
 @pytest.mark.parametrize("seed", [3, 4])
