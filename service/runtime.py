@@ -379,6 +379,8 @@ class FleetService:
                     if suffix == keys.STATS:
                         self._changed.add(device)
                         self._monitor_changed.add(device)
+                    elif suffix == keys.ACK:
+                        self._changed.add(device)  # a refused set is answered in the next refit pass
                     if self._alive_unknown and self._alive_unknown.pop(device, None) is not None:
                         came_alive.append(device)
             for device in came_alive:  # its token came before its first valid message
@@ -536,7 +538,9 @@ class FleetService:
         for device in filter(self.partitions.serves, changed):
             drive_now = self._drive_now(device)
             try:
-                version = self.watch(device, drive_now) if self._watch_due(device, drive_now) else None
+                version = self.answer_refusal(device)
+                if version is None and self._watch_due(device, drive_now):
+                    version = self.watch(device, drive_now)
             except Exception:
                 log.exception("%s: watch failed", device)
                 version = None
@@ -598,6 +602,22 @@ class FleetService:
         self.store.restart_band_memory(device, after=drive_now - WATCH_S)
         self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
         return version
+
+    def answer_refusal(self, device: str) -> int | None:
+        """The newest published set was refused by the drive's agent (an ack `rejected`: a set its checks or its
+        schema do not accept), so the drive still runs one before it. The refused set ends rolled back with the
+        agent's words, and the last confirmed set goes out again (basis rollback, with its own die lag), so the
+        record says what the drive runs: a refused trial was otherwise confirmed after TRIAL_MAX_S on no evidence,
+        and the watch judged a set the drive never ran. Returns the version published."""
+        version = self.store.published_version(device)
+        if not version or self.rollouts.holds(device):
+            return None  # the factory set cannot be refused; a staged rollout answers its own refusals
+        refused = self.store.refusals(device, version)
+        before = self.store.last_confirmed(device, before=version) if refused else None
+        if before is None:
+            return None
+        reason = f"the agent refused v{version}: {refused[0]['reason']}"
+        return self.roll_back(device, version, before, reason, thermal_lag_s=before.get("thermal_lag_s", 0.0))
 
     def _correction(self, device: str, version: int) -> BandedCorrection | None:
         """A stored set, decoded once: (device, version) never changes content (insert refuses a reuse)."""
@@ -674,6 +694,8 @@ class FleetService:
         lag = lag_to_send(estimate, running_lag)
         if lag is None:
             return None
+        if any("thermal_lag_s" in r["reason"] for r in self.store.refusals(device)):
+            return None  # an agent older than the field refused it once (docs/wire.md): it would refuse it again
         running = self.store.coefficient_set(device, running_version)
         reason = (
             f"die lag {lag:.0f} s (± {estimate[1]:.0f} s) measured from the windows' amplitude against temperature "
@@ -804,10 +826,18 @@ class FleetService:
         return self.judge(TrialEvidence(trial, before, soak, factory=self.store.coefficient_set(device, 0)))
 
     def roll_back(
-        self, device: str, version: int | None, before: dict, reason: str, then: Callable[[], None] | None = None
+        self,
+        device: str,
+        version: int | None,
+        before: dict,
+        reason: str,
+        then: Callable[[], None] | None = None,
+        *,
+        thermal_lag_s: float | None = None,
     ) -> int:
         """Mark set `version` rolled back (None: a confirmed set runs, nothing to mark) and publish `before`'s bands
-        again (basis rollback, confirmed); `then()` runs inside that transaction."""
+        again (basis rollback, confirmed; with the running die lag unless given one); `then()` runs inside that
+        transaction."""
 
         def mark_rolled_back(_: int, drive_now: float) -> None:
             if version is not None:
@@ -822,6 +852,7 @@ class FleetService:
             restores_version=before["version"],
             before=mark_rolled_back,
             after=None if then is None else lambda _: then(),
+            thermal_lag_s=thermal_lag_s,
         )
         with self._lock:
             self.counters.rollbacks += 1

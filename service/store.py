@@ -859,6 +859,15 @@ class Store:
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
+    def refusals(self, device: str, version: int | None = None) -> list[dict]:
+        """The sets the device's agent refused (acks with status rejected): {version, reason}, oldest first;
+        with `version`, that set's only."""
+        sql = "SELECT version, reason FROM acks WHERE device = ? AND status = 'rejected'"
+        args: tuple = (device,)
+        if version is not None:
+            sql, args = sql + " AND version = ?", (device, version)
+        return [{"version": r["version"], "reason": r["reason"] or ""} for r in self._rows(sql + " ORDER BY id", args)]
+
     def acks(self, device: str, *, with_received_at: bool = False) -> list[dict]:
         """Every ack (wire message), in the order the agent sent them; with_received_at adds the service's
         receipt time (unix s) as "received_at"."""

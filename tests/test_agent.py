@@ -32,7 +32,7 @@ def setup(tmp_path):
     def make_agent(session):
         return EdgeAgent(DEVICE, SimulatedDrive(SEED, hours=1), session, Outbox(outbox_path), factory)
 
-    yield store, router, client, factory, make_agent
+    yield store, router, client, factory, make_agent, service
     client.close()
     service.stop()
     router.close()
@@ -54,7 +54,7 @@ def wait_for(predicate, timeout=10.0):
 
 
 def test_agent_applies_good_sets_and_refuses_bad_ones(setup):
-    store, router, client, factory, make_agent = setup
+    store, router, client, factory, make_agent, _ = setup
     agent = make_agent(client)
     agent.start()
     assert wait_for(lambda: store.current_coefficients(DEVICE) is not None)  # the factory announcement
@@ -77,8 +77,39 @@ def test_agent_applies_good_sets_and_refuses_bad_ones(setup):
     agent.close()
 
 
+def test_a_set_the_agent_refuses_is_rolled_back_and_the_set_it_runs_sent_again(setup):
+    """A set the agent will not run (here an implausible gain, as a refit gone wrong could make): it refuses it and
+    says why; the service's next refit pass ends that set rolled back, with the agent's words, and publishes the
+    set the drive runs again, which the agent applies. Before, a refused trial was confirmed after an hour on no
+    evidence, and the watch judged a set the drive never ran."""
+    store, router, client, factory, make_agent, service = setup
+    agent = make_agent(client)
+    agent.start()
+    assert wait_for(lambda: store.current_coefficients(DEVICE) is not None)  # v0, the factory's
+    bands = coefficient_set(factory, 1, scale_w1=100.0)["bands"]
+    assert service._issue_set(DEVICE, "fit", bands, state="trial", reason="a refit gone wrong") == 1
+    assert wait_for(lambda: agent.inbox.qsize() >= 1)
+    agent.step()
+    assert agent.version == 0  # refused: the drive runs its factory set on
+    assert wait_for(lambda: {(a["version"], a["status"]) for a in store.acks(DEVICE)} == {(1, "rejected")})
+    assert service.refit_all() == [2]
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert history[1]["state"] == "rolled_back" and "the agent refused v1: " in history[1]["state_reason"]
+    assert "w1" in history[1]["state_reason"]  # the agent's own reason, kept
+    assert history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
+    assert history[2]["state"] == "confirmed" and history[2]["message"]["bands"] == history[0]["message"]["bands"]
+    assert wait_for(lambda: agent.inbox.qsize() >= 1)
+    agent.step()
+    agent.step()  # the ack goes with the quality of the block after the set was applied
+    assert agent.version == 2
+    acked = {(1, "rejected"), (2, "applied")}
+    assert wait_for(lambda: {(a["version"], a["status"]) for a in store.acks(DEVICE)} == acked)
+    assert service.refit_all() == []  # answered once: v2 is what runs
+    agent.close()
+
+
 def test_restarted_agent_resumes_with_its_set(setup):
-    store, router, client, factory, make_agent = setup
+    store, router, client, factory, make_agent, _ = setup
     agent = make_agent(client)
     agent.start()
     router.put(f"encoders/{DEVICE}/coefficients", wire.encode("coefficients", coefficient_set(factory, 7, 1.02)))
@@ -98,7 +129,7 @@ def test_agent_reads_the_die_temperature_with_the_lag_its_set_carries(setup):
     from encoder_core.stats import rejected_by_reason
     from encoder_core.thermal import DieTemperature
 
-    store, router, client, factory, make_agent = setup
+    store, router, client, factory, make_agent, _ = setup
     agent = make_agent(client)
     agent.start()
     agent.step()  # a window at the factory set: the temperature as reported

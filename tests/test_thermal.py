@@ -106,10 +106,8 @@ def test_a_drive_whose_die_does_not_lag_gets_no_lag():
     assert lag_to_send(estimate.tau(), 0.0) is None
 
 
-def test_the_service_sends_the_lag_it_measures_and_every_later_set_keeps_it(fleet):
-    """Windows of a drive with a hidden lag, stored as the agent sends them (the real store, its monitor and the
-    refit pass): the next set carries the lag (confirmed, the bands as they ran), and the sets after it keep it."""
-    store, service = fleet
+def stored_drive_with_hidden_lag(store, service):
+    """Windows of a drive with a hidden lag, stored as its agent sends them, and the monitor run over them."""
     phys, factory, run = drive_with_hidden_lag(85)
     store.insert_coefficient_set(factory_set(DEVICE, factory))
     store.mark_published(DEVICE, 0)
@@ -122,6 +120,14 @@ def test_the_service_sends_the_lag_it_measures_and_every_later_set_keeps_it(flee
         )  # fmt: skip
     service.monitor.process(DEVICE)
     service._changed.add(DEVICE)
+    return phys
+
+
+def test_the_service_sends_the_lag_it_measures_and_every_later_set_keeps_it(fleet):
+    """Windows of a drive with a hidden lag, stored as the agent sends them (the real store, its monitor and the
+    refit pass): the next set carries the lag (confirmed, the bands as they ran), and the sets after it keep it."""
+    store, service = fleet
+    phys = stored_drive_with_hidden_lag(store, service)
     assert service.refit_all()
     sent = store.coefficient_set(DEVICE, 1)
     history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
@@ -139,3 +145,20 @@ def test_the_service_sends_the_lag_it_measures_and_every_later_set_keeps_it(flee
         if c.topic.endswith("/coefficients")
     }
     assert exported == {0: None, 1: sent["thermal_lag_s"], 2: sent["thermal_lag_s"]}
+
+
+def test_an_agent_older_than_the_lag_refuses_it_once_and_is_sent_none_again(fleet):
+    """The lag is a field newer agents know (docs/wire.md): an older one refuses the set, with its schema's words.
+    The service rolls the set back to the one the drive runs, with no lag, and does not send it a lag again."""
+    store, service = fleet
+    stored_drive_with_hidden_lag(store, service)
+    assert service.refit_all() == [1] and store.coefficient_set(DEVICE, 1)["thermal_lag_s"] > 0
+    refusal = "coefficients message: $: Additional properties are not allowed ('thermal_lag_s' was unexpected)"
+    store.insert_ack(wire.ack_message(DEVICE, 1, "rejected", service._drive_now(DEVICE), reason=refusal))
+    service._changed.add(DEVICE)
+    assert service.refit_all() == [2]
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert history[1]["state"] == "rolled_back" and "thermal_lag_s" in history[1]["state_reason"]
+    assert history[2]["restores_version"] == 0 and "thermal_lag_s" not in history[2]["message"]  # it can run it
+    assert service.monitor.thermal_lag(DEVICE) is not None  # the windows still measure the lag ...
+    assert service.publish_lag(DEVICE) is None  # ... but this drive's agent is not sent it again
