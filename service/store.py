@@ -151,6 +151,9 @@ class Store:
         self._bands: dict[str, dict[int, list]] = {}
         self._max_seq: dict[str, int] = {}  # device -> highest seq stored or staged (read with its bands)
         self._max_end: dict[str, float] = {}  # device -> that window's end on the drive clock
+        # device -> it had no stored window when its bands were read: a band of it that has no sum has no window
+        # either, so a new band's sum starts at seq 1 without asking (a fleet's first windows, after a start)
+        self._unwritten: dict[str, bool] = {}
 
     @classmethod
     def open(
@@ -240,6 +243,7 @@ class Store:
                 if not depth:
                     self._max_seq.clear()
                     self._max_end.clear()
+                    self._unwritten.clear()
                     self._bands.clear()  # sums may hold what the rollback took back: read them again
                 # SQLite ends the transaction itself on some errors (a full disk, an I/O error): then there is
                 # nothing to roll back, and trying would hide the real error behind "no transaction is active"
@@ -324,13 +328,14 @@ class Store:
                 return False  # the server is not back yet: the next call tries again
             self._max_seq.clear()
             self._max_end.clear()
+            self._unwritten.clear()
             self._bands.clear()
             return True
 
     def forget_partitions(self, parts: set[int]) -> None:
         """Drop the sums and seqs kept in memory for some partitions' devices: read again when next needed."""
         with self._lock:
-            for cache in (self._bands, self._max_seq, self._max_end):
+            for cache in (self._bands, self._max_seq, self._max_end, self._unwritten):
                 for device in [d for d in cache if keys.partition(d) in parts]:
                     del cache[device]
 
@@ -401,6 +406,7 @@ class Store:
             ).fetchone()
             self._max_seq[device] = 0 if newest is None else newest["seq"]
             self._max_end[device] = -math.inf if newest is None else newest["window_end"]
+            self._unwritten[device] = newest is None
         return bands
 
     @staticmethod
@@ -481,6 +487,8 @@ class Store:
     def _first_seq_of_new_band(self, device: str, band: int) -> int:
         """Windows a band's sum may hold: none of those stored before it started (a restart after a step forgot
         them and deleted the sum), any that arrive later, catch-up windows with a lower seq included."""
+        if self._unwritten.get(device):
+            return 1
         row = self._conn.execute(
             "SELECT max(seq) AS seq FROM windows WHERE device = ? AND band = ?", (device, band)
         ).fetchone()
@@ -521,6 +529,7 @@ class Store:
                     ),
                 )
             self._bands.pop(device, None)  # the kept sums are read again, from what was just written
+            self._unwritten.pop(device, None)
         return changed
 
     def _forget_before(self, device, band, entry, pending, cutoff: float):
