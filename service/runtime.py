@@ -539,6 +539,10 @@ class FleetService:
             drive_now = self._drive_now(device)
             try:
                 version = self.answer_refusal(device)
+            except Exception:
+                log.exception("%s: answering a refused set failed", device)
+                version = None
+            try:
                 if version is None and self._watch_due(device, drive_now):
                     version = self.watch(device, drive_now)
             except Exception:
@@ -604,20 +608,39 @@ class FleetService:
         return version
 
     def answer_refusal(self, device: str) -> int | None:
-        """The newest published set was refused by the drive's agent (an ack `rejected`: a set its checks or its
-        schema do not accept), so the drive still runs one before it. The refused set ends rolled back with the
-        agent's words, and the last confirmed set goes out again (basis rollback, with its own die lag), so the
-        record says what the drive runs: a refused trial was otherwise confirmed after TRIAL_MAX_S on no evidence,
-        and the watch judged a set the drive never ran. Returns the version published."""
+        """The newest published set was refused by the drive's agent (an ack `rejected`: a set its checks, its
+        signature check or its schema do not accept), so the drive still runs one before it. The refused set ends
+        rolled back with the agent's words, and the set the drive runs goes out again (basis rollback; the last
+        confirmed one if the drive has not said), so the record says what the drive runs: a refused trial was
+        otherwise confirmed after TRIAL_MAX_S on no evidence, and the watch judged a set the drive never ran.
+        A refused rollback is not answered with another (that would not end): it is marked, logged, and the drive
+        runs on what it ran. Returns the version published."""
         version = self.store.published_version(device)
         if not version or self.rollouts.holds(device):
             return None  # the factory set cannot be refused; a staged rollout answers its own refusals
         refused = self.store.refusals(device, version)
-        before = self.store.last_confirmed(device, before=version) if refused else None
-        if before is None:
+        if not refused:
             return None
         reason = f"the agent refused v{version}: {refused[0]['reason']}"
-        return self.roll_back(device, version, before, reason, thermal_lag_s=before.get("thermal_lag_s", 0.0))
+        runs = self.store.running_version(device)
+        if runs is not None and runs < version and self.store.state_of(device, runs) != "rolled_back":
+            before = self.store.coefficient_set(device, runs)
+        else:  # the drive has not said, or it runs a set the guard has rolled back: the last confirmed one
+            before = self.store.last_confirmed(device, before=version)
+        if before is None or self.store.coefficient_set(device, version)["basis"] == "rollback":
+            self.store.set_state(device, version, "rolled_back", at=self._drive_now(device), reason=reason)
+            log.error("a refused set is not answered again", extra={"device": device, "version": version})
+            return None
+        lag = 0.0 if self._lag_refused(device) else before.get("thermal_lag_s", 0.0)
+        return self.roll_back(device, version, before, reason, thermal_lag_s=lag)
+
+    def _lag_refused(self, device: str) -> bool:
+        """The device's agent refused a set for carrying `thermal_lag_s` (its schema is older than the field:
+        docs/wire.md); it is sent no lag again."""
+        return any(
+            "thermal_lag_s" in r["reason"] and ("unexpected" in r["reason"] or "unknown field" in r["reason"])
+            for r in self.store.refusals(device)
+        )
 
     def _correction(self, device: str, version: int) -> BandedCorrection | None:
         """A stored set, decoded once: (device, version) never changes content (insert refuses a reuse)."""
@@ -694,8 +717,8 @@ class FleetService:
         lag = lag_to_send(estimate, running_lag)
         if lag is None:
             return None
-        if any("thermal_lag_s" in r["reason"] for r in self.store.refusals(device)):
-            return None  # an agent older than the field refused it once (docs/wire.md): it would refuse it again
+        if self._lag_refused(device):
+            return None  # an agent older than the field refused it once: it would refuse it again
         running = self.store.coefficient_set(device, running_version)
         reason = (
             f"die lag {lag:.0f} s (± {estimate[1]:.0f} s) measured from the windows' amplitude against temperature "
@@ -746,6 +769,8 @@ class FleetService:
         carries the die lag the device runs (a property of the drive, not of a fit) unless given a new one."""
         drive_now = self._drive_now(device)
         lag = self._running_lag(device) if thermal_lag_s is None else thermal_lag_s
+        if lag and self._lag_refused(device):
+            lag = 0.0
         with self.store.transaction():
             version = self.store.next_version(device)
             if before is not None:

@@ -765,17 +765,31 @@ class Store:
         """The latest coefficient set (wire message), or None."""
         rows = self._rows(
             "SELECT body_json FROM coefficient_sets WHERE device = ?"
-            + (" AND published_at IS NOT NULL" if published_only else "")
+            + (" AND published_at IS NOT NULL AND state != 'rolled_back'" if published_only else "")
             + " ORDER BY version DESC LIMIT 1",
             (device,),
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
     def published_version(self, device: str) -> int | None:
-        """The version of the latest published set (what current_coefficients(published_only=True) returns)."""
+        """The version of the latest published set (what current_coefficients(published_only=True) returns): a
+        set rolled back is not it (a rollback publishes a newer one, or the drive refused it and runs the one
+        before)."""
         return self._rows(
-            "SELECT max(version) AS v FROM coefficient_sets WHERE device = ? AND published_at IS NOT NULL", (device,)
+            "SELECT max(version) AS v FROM coefficient_sets WHERE device = ? AND published_at IS NOT NULL "
+            "AND state != 'rolled_back'",
+            (device,),
         )[0]["v"]
+
+    def state_of(self, device: str, version: int) -> str | None:
+        """A set's guard state (trial, confirmed, rolled_back), or None when there is no such set."""
+        rows = self._rows("SELECT state FROM coefficient_sets WHERE device = ? AND version = ?", (device, version))
+        return rows[0]["state"] if rows else None
+
+    def running_version(self, device: str) -> int | None:
+        """The version the device says it runs: its newest window's, or its newest applied ack's."""
+        rows = self._rows("SELECT current_version FROM devices WHERE id = ?", (device,))
+        return rows[0]["current_version"] if rows else None
 
     def coefficient_set(self, device: str, version: int) -> dict | None:
         """One set (wire message) by version; version 0 is the factory's."""
@@ -869,9 +883,13 @@ class Store:
         return json.loads(rows[0]["body_json"]) if rows else None
 
     def refusals(self, device: str, version: int | None = None) -> list[dict]:
-        """The sets the device's agent refused (acks with status rejected): {version, reason}, oldest first;
-        with `version`, that set's only."""
-        sql = "SELECT version, reason FROM acks WHERE device = ? AND status = 'rejected'"
+        """The sets the device's agent refused and never applied (acks with status rejected, none applied: a
+        forged or damaged copy refused before the real one was applied does not count): {version, reason}, oldest
+        first; with `version`, that set's only."""
+        sql = (
+            "SELECT version, reason FROM acks a WHERE device = ? AND status = 'rejected' AND NOT EXISTS "
+            "(SELECT 1 FROM acks b WHERE b.device = a.device AND b.version = a.version AND b.status = 'applied')"
+        )
         args: tuple = (device,)
         if version is not None:
             sql, args = sql + " AND version = ?", (device, version)

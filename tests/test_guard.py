@@ -108,6 +108,39 @@ def test_a_trial_the_drive_gives_no_evidence_for_is_kept_after_an_hour_not_held_
     assert state["state"] == "confirmed" and "not measured within 1 drive hours" in state["state_reason"]
 
 
+def test_a_refused_set_is_answered_with_the_set_the_drive_runs_and_a_refused_answer_is_not_answered(fleet):
+    """The drive runs v1 (its windows say so); v2 is refused: v3 restores v1, not the factory set. If the agent
+    refuses v3 too (say its key does not match), nothing more is sent: the record says both were refused, and
+    that the drive runs v1."""
+    store, service = fleet
+    service.min_band_samples = 10**9  # no refit of the windows here: the test is about the answers
+    factory = factory_set(store)
+    v1 = wire.coefficients_message(DEVICE, 1, 5000.0, "fit", [dict(b) for b in factory["bands"]])
+    store.insert_coefficient_set(v1, state="confirmed")
+    service._publish(v1)
+    run_on(store, 1, hours=0.5)
+    bands = [{**b, "zero_offset_rad": b["zero_offset_rad"] + 1e-3} for b in factory["bands"]]
+    store.insert_coefficient_set(wire.coefficients_message(DEVICE, 2, 16_000.0, "fit", bands), state="trial")
+    service._publish(store.coefficient_set(DEVICE, 2))
+
+    def refuse(version: int, reason: str) -> None:
+        store.insert_ack(wire.ack_message(DEVICE, version, "rejected", 17_000.0 + version, reason=reason))
+        service._changed.add(DEVICE)
+
+    refuse(2, "band at 20.0 °C: w1 = 0.06 is 100x the factory's")
+    assert service.refit_all() == [3]
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert history[2]["state"] == "rolled_back" and "100x" in history[2]["state_reason"]
+    assert history[3]["basis"] == "rollback" and history[3]["restores_version"] == 1  # what the drive runs
+    refuse(3, "signature does not verify")
+    assert service.refit_all() == []
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert history[3]["state"] == "rolled_back" and "the agent refused v3: signature" in history[3]["state_reason"]
+    assert store.published_version(DEVICE) == 1
+    assert store.current_coefficients(DEVICE, published_only=True)["version"] == 1  # what a restarted agent gets
+    assert service.refit_all() == [] and max(history) == 3  # and nothing after
+
+
 def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
     from fleet_wire import alarms
 
