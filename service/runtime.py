@@ -618,7 +618,14 @@ class FleetService:
         version = self.store.published_version(device)
         if not version or self.rollouts.holds(device):
             return None  # the factory set cannot be refused; a staged rollout answers its own refusals
-        refused = self.store.refusals(device, version)
+        refusals = self.store.refusals(device)
+        for late in {r["version"]: r for r in refusals if r["version"] < version}.values():
+            # refused after a newer set went out: nothing to send (the newer one is what counts now), but the
+            # record says the drive never ran it, and no rollback restores it
+            if self.store.state_of(device, late["version"]) not in (None, "rolled_back"):
+                why = f"the agent refused v{late['version']}: {late['reason']}"
+                self.store.set_state(device, late["version"], "rolled_back", at=self._drive_now(device), reason=why)
+        refused = [r for r in refusals if r["version"] == version]
         if not refused:
             return None
         reason = f"the agent refused v{version}: {refused[0]['reason']}"

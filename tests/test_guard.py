@@ -141,6 +141,22 @@ def test_a_refused_set_is_answered_with_the_set_the_drive_runs_and_a_refused_ans
     assert service.refit_all() == [] and max(history) == 3  # and nothing after
 
 
+def test_a_refusal_that_comes_after_a_newer_set_marks_the_refused_set_and_sends_nothing(fleet):
+    store, service = fleet
+    service.min_band_samples = 10**9
+    factory = factory_set(store)
+    for version in (1, 2):
+        msg = wire.coefficients_message(DEVICE, version, 5000.0 * version, "fit", [dict(b) for b in factory["bands"]])
+        store.insert_coefficient_set(msg, state="confirmed")
+        service._publish(msg)
+    store.insert_ack(wire.ack_message(DEVICE, 1, "rejected", 12_000.0, reason="signature does not verify"))
+    service._changed.add(DEVICE)
+    assert service.refit_all() == []  # v2 is what counts now
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert history[1]["state"] == "rolled_back" and "the agent refused v1: signature" in history[1]["state_reason"]
+    assert history[2]["state"] == "confirmed" and store.published_version(DEVICE) == 2 and max(history) == 2
+
+
 def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
     from fleet_wire import alarms
 
