@@ -799,18 +799,12 @@ class FleetService:
         runs inside that transaction (a rollout records its part with the set, or neither lands)."""
 
         def record_fits(version: int, drive_now: float) -> None:
-            for decision in result.decisions:
-                fit = decision.candidate
-                correction = {k: v for k, v in fit.items() if k not in ("band", "quality")}
-                self.store.record_fit(
-                    device,
-                    decision.band,
-                    correction,
-                    fit["quality"],
-                    created_at=drive_now,
-                    version=version,
-                    adopted=decision.adopted,
-                )
+            fits = [
+                (d.band, {k: v for k, v in d.candidate.items() if k not in ("band", "quality")},
+                 d.candidate["quality"], d.adopted)
+                for d in result.decisions
+            ]  # fmt: skip
+            self.store.record_fits(device, fits, created_at=drive_now, version=version)
 
         version = self._issue_set(
             device, "fit", result.bands, state="trial", reason=reason, before=record_fits, after=then
