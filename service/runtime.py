@@ -615,10 +615,12 @@ class FleetService:
         otherwise confirmed after TRIAL_MAX_S on no evidence, and the watch judged a set the drive never ran.
         A refused rollback is not answered with another (that would not end): it is marked, logged, and the drive
         runs on what it ran. Returns the version published."""
+        refusals = self.store.refusals(device)  # one query per device and pass: most have none
+        if not refusals:
+            return None
         version = self.store.published_version(device)
         if not version or self.rollouts.holds(device):
             return None  # the factory set cannot be refused; a staged rollout answers its own refusals
-        refusals = self.store.refusals(device)
         for late in {r["version"]: r for r in refusals if r["version"] < version}.values():
             # refused after a newer set went out: nothing to send (the newer one is what counts now), but the
             # record says the drive never ran it, and no rollback restores it
@@ -638,8 +640,8 @@ class FleetService:
             self.store.set_state(device, version, "rolled_back", at=self._drive_now(device), reason=reason)
             log.error("a refused set is not answered again", extra={"device": device, "version": version})
             return None
-        lag = 0.0 if self._lag_refused(device) else before.get("thermal_lag_s", 0.0)
-        return self.roll_back(device, version, before, reason, thermal_lag_s=lag)
+        # the set's own lag (_issue_set drops a lag the agent refused)
+        return self.roll_back(device, version, before, reason, thermal_lag_s=before.get("thermal_lag_s", 0.0))
 
     def _lag_refused(self, device: str) -> bool:
         """The device's agent refused a set for carrying `thermal_lag_s` (its schema is older than the field:

@@ -679,14 +679,16 @@ class Store:
         adopted: bool = True,
     ) -> int:
         """correction: Correction.to_dict(); quality: as in a coefficient set's band entry;
-        created_at: the drive's clock, like the coefficient set the fit goes into (`version`)."""
-        return self.record_fits(device, [(band, correction, quality, adopted)], created_at=created_at, version=version)
+        created_at: the drive's clock, like the coefficient set the fit goes into (`version`). Returns its id."""
+        with self._tx() as c:
+            self.record_fits(device, [(band, correction, quality, adopted)], created_at=created_at, version=version)
+            return c.execute("SELECT max(id) AS id FROM fits WHERE device = ?", (device,)).fetchone()["id"]
 
     def record_fits(
         self, device: str, fits: list[tuple[int, dict, dict, bool]], *, created_at: float, version: int | None = None
-    ) -> int:
+    ) -> None:
         """Several fits of one refit, (band, correction, quality, adopted) each, in one statement (a refit of a
-        dozen bands made three dozen statements); returns the last one's id."""
+        dozen bands made three dozen statements)."""
         with self._tx() as c:
             self._touch(c, device, time.time(), heard=False)
             rows = [
@@ -699,7 +701,6 @@ class Store:
                 " version, adopted) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                 rows,
             )
-            return c.execute("SELECT max(id) AS id FROM fits WHERE device = ?", (device,)).fetchone()["id"]
 
     def latest_fits(self, device: str) -> list[dict]:
         """The newest fit of each band, by band."""
@@ -885,18 +886,17 @@ class Store:
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
-    def refusals(self, device: str, version: int | None = None) -> list[dict]:
+    def refusals(self, device: str) -> list[dict]:
         """The sets the device's agent refused and never applied (acks with status rejected, none applied: a
         forged or damaged copy refused before the real one was applied does not count): {version, reason}, oldest
-        first; with `version`, that set's only."""
-        sql = (
+        first."""
+        rows = self._rows(
             "SELECT version, reason FROM acks a WHERE device = ? AND status = 'rejected' AND NOT EXISTS "
-            "(SELECT 1 FROM acks b WHERE b.device = a.device AND b.version = a.version AND b.status = 'applied')"
+            "(SELECT 1 FROM acks b WHERE b.device = a.device AND b.version = a.version AND b.status = 'applied') "
+            "ORDER BY id",
+            (device,),
         )
-        args: tuple = (device,)
-        if version is not None:
-            sql, args = sql + " AND version = ?", (device, version)
-        return [{"version": r["version"], "reason": r["reason"] or ""} for r in self._rows(sql + " ORDER BY id", args)]
+        return [{"version": r["version"], "reason": r["reason"] or ""} for r in rows]
 
     def acks(self, device: str, *, with_received_at: bool = False) -> list[dict]:
         """Every ack (wire message), in the order the agent sent them; with_received_at adds the service's
