@@ -357,8 +357,10 @@ class Rollouts:
         for d in self._devices(rollout):
             if d["wave"] != wave or d["state"] not in ("in_progress", "succeeded"):
                 continue
-            if self.store.published_version(d["device"]) != d["version"]:
+            newest = self.store.newest_set(d["device"])
+            if newest is None or newest["version"] != d["version"]:
                 continue  # the device has moved on since (a later fit): that set is the guard's, not ours
+            # (its set may not be published yet: a put that failed; rolled back here, deliver does not send it)
             self._revert(rollout, d, "rolled_back", f"wave rolled back: {reason}", now)
         self._set_state(rollout, "aborted", reason)
         log.warning("rollout aborted", extra={"rollout": rollout, "reason": reason})

@@ -60,6 +60,9 @@ REFIT_EVERY_S = 3600.0
 # the monitor does not name (gain, axis) is caught within this, not at the next refit (bench-fleet-accuracy, 48
 # drives: worse hours 21 -> 16 at 0.5 Hz and 52 -> 40 at 20 Hz)
 WATCH_EVERY_S = 900.0
+# wall seconds after which a set the drive's windows do not show yet is put again: a set is otherwise put once, and
+# an agent cut off from the router at that moment would run its old set for good (the agent ignores a version it has)
+RESEND_AFTER_S = 60.0
 
 
 @dataclass
@@ -68,6 +71,7 @@ class ServiceCounters:
     refits: int = 0
     rollouts: int = 0  # sets published: fits and rollbacks
     rollbacks: int = 0
+    resends: int = 0  # sets put again: the drive's windows did not show them RESEND_AFTER_S after they went out
     storage_failures: int = 0  # batches the database refused (disk full, read-only, I/O): agents resend them
     storage_error: str | None = None  # the last refusal, until a batch is stored again (/healthz fails meanwhile)
     database_reconnects: int = 0  # PostgreSQL sessions lost (server restart, failover) and opened again
@@ -100,6 +104,7 @@ class ServiceCounters:
             "refits": self.refits,
             "rollouts": self.rollouts,
             "rollbacks": self.rollbacks,
+            "resends": self.resends,
             "storage_failures": self.storage_failures,
             "database_reconnects": self.database_reconnects,
         }
@@ -149,6 +154,7 @@ class FleetService:
         clock: Callable[[], float] = time.time,
         refit_every_s: float = REFIT_EVERY_S,
         member: str | None = None,
+        resend_after_s: float = RESEND_AFTER_S,
     ):
         self.store = store
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
@@ -172,6 +178,9 @@ class FleetService:
         self.refit_every_s = refit_every_s
         self._fitted_at: dict[str, float] = {}  # device -> drive time of its last refit
         self._watched_at: dict[str, float] = {}  # device -> drive time of its last watch against the factory
+        self.resend_after_s = resend_after_s
+        self._clock = clock
+        self._resent: dict[str, tuple[int, float]] = {}  # device -> (version, wall time) of its last resend
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
         self._step_moves: dict[str, tuple] = {}  # device -> the step the monitor measured (cause, size, raised_at)
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
@@ -543,6 +552,12 @@ class FleetService:
                 log.exception("%s: answering a refused set failed", device)
                 version = None
             try:
+                if version is None:
+                    version = self.deliver(device)
+            except Exception:
+                log.exception("%s: delivering its set failed", device)
+                version = None
+            try:
                 if version is None and self._watch_due(device, drive_now):
                     version = self.watch(device, drive_now)
             except Exception:
@@ -589,6 +604,9 @@ class FleetService:
         restarted at that hour, so the next refit learns the drive as it is now. Returns the version published."""
         self._watched_at[device] = drive_now
         running_version = self.store.published_version(device)
+        runs = self.store.running_version(device)
+        if runs and runs != running_version and self.store.state_of(device, runs) == "rolled_back":
+            running_version = runs  # its rollback was refused: the drive runs a set the guard rolled back
         if not running_version or self.rollouts.holds(device):
             return None  # the factory set itself runs (or nothing yet), or a rollout has the device
         factory, running = self._correction(device, 0), self._correction(device, running_version)
@@ -606,6 +624,39 @@ class FleetService:
         self.store.restart_band_memory(device, after=drive_now - WATCH_S)
         self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
         return version
+
+    def deliver(self, device: str) -> int | None:
+        """What the service means the drive to run reaches it. A set stored but never put (the put, or the record
+        of it, failed after the set's commit: a rollback marked in the database while the drive ran on) is
+        published now; returns its version. The newest published set, when the drive's windows still show an
+        older one `resend_after_s` after it went out, is put again (counted; returns None)."""
+        newest = self.store.newest_set(device)
+        if newest is None or newest["version"] == 0:
+            return None  # the factory set is the agent's own
+        if newest["published_at"] is None:
+            self._publish(self.store.coefficient_set(device, newest["version"]))
+            log.warning(
+                "a set stored but never published is published", extra={"device": device, "version": newest["version"]}
+            )
+            return newest["version"]
+        runs = self.store.running_version(device)
+        if runs is None or runs >= newest["version"]:
+            self._resent.pop(device, None)
+            return None
+        resent_version, resent_at = self._resent.get(device, (None, 0.0))
+        last = max(newest["published_at"], resent_at if resent_version == newest["version"] else 0.0)
+        now = self._clock()
+        if now - last < self.resend_after_s:
+            return None
+        self._put(self.store.coefficient_set(device, newest["version"]))
+        self._resent[device] = (newest["version"], now)
+        with self._lock:
+            self.counters.resends += 1
+        log.info(
+            "coefficient set sent again: the drive's windows still show an older one",
+            extra={"device": device, "version": newest["version"], "runs": runs},
+        )
+        return None
 
     def answer_refusal(self, device: str) -> int | None:
         """The newest published set was refused by the drive's agent (an ack `rejected`: a set its checks, its
@@ -837,6 +888,9 @@ class FleetService:
         verdict = self.judge_set(device, trial["message"], before)
         drive_now = self._drive_now(device)
         if verdict.action == "wait" and drive_now - trial["message"]["created_at"] >= TRIAL_MAX_S:
+            runs = self.store.running_version(device)
+            if runs is not None and runs < trial["version"]:
+                return None  # the drive has not run it: not kept on no evidence (deliver sends it again)
             verdict.action = "confirm"
             verdict.reason = f"{verdict.reason}; not measured within {TRIAL_MAX_S / 3600:g} drive hours: kept"
         if verdict.action == "wait":
@@ -895,14 +949,17 @@ class FleetService:
         return self.signer.sign(msg) if self.signer is not None else msg
 
     def _publish(self, msg: dict) -> None:
+        self._put(msg)
+        self.store.mark_published(msg["device"], msg["version"])
+        with self._lock:
+            self.counters.rollouts += 1
+
+    def _put(self, msg: dict) -> None:
         self.session.put(
             keys.key(msg["device"], keys.COEFFICIENTS),
             wire.encode("coefficients", msg, checked=True),  # made by _issue_set's coefficients_message
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
-        self.store.mark_published(msg["device"], msg["version"])
-        with self._lock:
-            self.counters.rollouts += 1
 
     def _stepped_recently(self, device: str) -> bool:
         """A step raised within STEP_OPEN_S of drive time: the refit may move bands it has no data for."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import time
 
 import pytest
 from fastapi.testclient import TestClient
@@ -14,6 +15,7 @@ from mcap.reader import make_reader
 from edge_agent.agent import factory_message
 from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
 from encoder_core.stats import normalisation_scale, window_stats
+from fleet_wire import keys
 from fleet_wire import messages as wire
 from service.api import create_app
 from service.mcap_export import iter_mcap
@@ -155,6 +157,100 @@ def test_a_refusal_that_comes_after_a_newer_set_marks_the_refused_set_and_sends_
     history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
     assert history[1]["state"] == "rolled_back" and "the agent refused v1: signature" in history[1]["state_reason"]
     assert history[2]["state"] == "confirmed" and store.published_version(DEVICE) == 2 and max(history) == 2
+
+
+def versions_put(service) -> tuple[list[int], object]:
+    """The versions of the sets the service puts for DEVICE, as a subscriber on its session receives them."""
+    got: list[int] = []
+    sub = service.session.declare_subscriber(
+        keys.key(DEVICE, keys.COEFFICIENTS),
+        lambda s: got.append(wire.decode("coefficients", s.payload.to_bytes(), key_device=DEVICE)["version"]),
+    )
+    return got, sub
+
+
+def received(got: list[int], version: int, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while version not in got and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return version in got
+
+
+def test_a_set_the_drive_never_got_is_sent_again_and_not_kept_unmeasured(fleet):
+    """A set is put once; an agent cut off from the router then runs its old set, and its windows say so. An hour
+    on, the trial is not confirmed on no evidence (it would become what a later rollback restores): it is put
+    again, and judged on the windows once the drive runs it."""
+    store, service = fleet
+    service.min_band_samples = 10**9  # no refit of the windows here: the test is about the set's delivery
+    service.resend_after_s = 0.0
+    got, sub = versions_put(service)
+    try:
+        factory = factory_set(store)
+        bands = [{**b, "zero_offset_rad": b["zero_offset_rad"] + 1e-6} for b in factory["bands"]]
+        publish_trial(store, service, bands)  # v1, made at drive time 5,000 s
+        run_on(store, 0, hours=2.0, after_s=5000.0)  # the drive runs on v0 until 12,200 s
+        service._watched_at[DEVICE] = service._drive_now(DEVICE)  # the watch is not what this is about
+        service._changed.add(DEVICE)
+        assert service.refit_all() == [] and service.counters.resends == 1 and received(got, 1)
+        assert store.set_on_trial(DEVICE)["version"] == 1  # two drive hours on: still on trial, not kept
+        run_on(store, 1, hours=1.0, after_s=2300.0)  # the agent got it: its windows say v1
+        service._changed.add(DEVICE)
+        assert service.refit_all() == [] and service.counters.resends == 1  # nothing more to send
+        history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+        assert history[1]["state"] == "confirmed" and "not measured" not in history[1]["state_reason"]
+    finally:
+        sub.undeclare()
+
+
+def test_a_set_stored_but_never_put_is_published_by_the_next_pass(fleet):
+    """The put (or its record) failed after the set's commit: the next pass publishes it; a set rolled back
+    meanwhile is not sent."""
+    store, service = fleet
+    service.min_band_samples = 10**9
+    got, sub = versions_put(service)
+    try:
+        factory = factory_set(store)
+        run_on(store, 0, hours=0.5)
+        for version, state in ((1, "rolled_back"), (2, "trial")):
+            msg = wire.coefficients_message(
+                DEVICE, version, 100.0 * version, "fit", [dict(b) for b in factory["bands"]]
+            )
+            store.insert_coefficient_set(msg, state=state)
+        service._watched_at[DEVICE] = service._drive_now(DEVICE)
+        service._changed.add(DEVICE)
+        assert service.refit_all() == [2] and received(got, 2) and 1 not in got
+        assert store.published_version(DEVICE) == 2
+        history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+        assert history[2]["published_at"] is not None and history[1]["published_at"] is None
+    finally:
+        sub.undeclare()
+
+
+def test_a_drive_left_on_a_rolled_back_set_by_a_refused_rollback_is_watched_on_that_set(fleet):
+    """The guard rolled v2 back and the agent refused the rollback v3: the drive runs v2 still. The watch judges
+    v2, the set the windows say runs (not v1, the newest set not rolled back), and restores the factory set."""
+    store, service = fleet
+    service.min_band_samples = 10**9
+    factory = factory_set(store)
+    v1 = wire.coefficients_message(DEVICE, 1, 100.0, "fit", [dict(b) for b in factory["bands"]])
+    store.insert_coefficient_set(v1, state="confirmed")
+    service._publish(v1)
+    bands = [{**b, "w": [b["w"][0], b["w"][1] + 0.03, *b["w"][2:]]} for b in factory["bands"]]
+    v2 = wire.coefficients_message(DEVICE, 2, 5000.0, "fit", bands)
+    store.insert_coefficient_set(v2, state="rolled_back")  # the guard's verdict
+    service._publish(v2)
+    v3 = wire.coefficients_message(
+        DEVICE, 3, 19_000.0, "rollback", [dict(b) for b in factory["bands"]], restores_version=1
+    )
+    store.insert_coefficient_set(v3, state="rolled_back", reason="the agent refused v3")
+    service._publish(v3)
+    run_on(store, 2, hours=1.0)  # the drive's windows: v2
+    assert store.running_version(DEVICE) == 2 and store.published_version(DEVICE) == 1
+    service._changed.add(DEVICE)
+    version = service.refit_all()
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert version == [4] and history[4]["basis"] == "rollback" and history[4]["restores_version"] == 0
+    assert "worse than the factory set" in history[4]["state_reason"]
 
 
 def test_an_offset_step_alarm_restarts_the_bands_memory(fleet):
