@@ -267,11 +267,16 @@ def window_features(
     coef = 2 * (z[None, :] ** _CYCLES[:, None]) @ dev  # Σ w·dev·e^{ikφ}: cos part real, sin part imaginary
     harm = np.column_stack([coef.real, coef.imag]).ravel()
     resid = max(residual, 1e-5)
-    s_center = resid * math.sqrt(2.0 / n)
     s_amp = resid * math.sqrt(1.0 / n)
+    # the centre (the offsets) from the fit weighted per angle bin, as the shape (ratio_skew): weighted by the
+    # samples it moved with where a reversing drive lingered, against the field's harmonics (s5-20hz-11, a 1.1 %
+    # third harmonic: false offset steps, each moved for, the drive worse than its factory set for an hour)
+    per_bin = _ellipse_per_bin(b)
+    centre = per_bin[0] if per_bin is not None else c
+    s_center = resid * math.sqrt(2.0 / (cnt.size**2 / float(np.sum(1.0 / cnt))))  # Kish's size, as _shape_per_bin
     y = np.empty(N_FEATURES)
-    y[0] = c[0] + stats.center_d / stats.scale
-    y[1] = c[1] + stats.center_q / stats.scale
+    y[0] = centre[0] + stats.center_d / stats.scale
+    y[1] = centre[1] + stats.center_q / stats.scale
     y[2], y[3] = log_amp, imbalance
     y[4:] = harm
     if not np.all(np.isfinite(y)):
