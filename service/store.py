@@ -241,10 +241,7 @@ class Store:
                 yield self._conn
             except BaseException:
                 if not depth:
-                    self._max_seq.clear()
-                    self._max_end.clear()
-                    self._unwritten.clear()
-                    self._bands.clear()  # sums may hold what the rollback took back: read them again
+                    self._forget_sums()  # they may hold what the rollback took back: read them again
                 # SQLite ends the transaction itself on some errors (a full disk, an I/O error): then there is
                 # nothing to roll back, and trying would hide the real error behind "no transaction is active"
                 if self._conn.in_transaction:
@@ -256,7 +253,23 @@ class Store:
                 self._depth -= 1
                 if not self._depth:
                     self._writing = None
-            self._conn.execute(f"RELEASE sp{depth}" if depth else "COMMIT")
+            try:
+                self._conn.execute(f"RELEASE sp{depth}" if depth else "COMMIT")
+            except BaseException:
+                # a COMMIT can fail too (in WAL mode a full disk usually fails here): nothing of the batch was
+                # stored, so the sums must not hold it either, or the agents' resend is summed twice
+                if not depth:
+                    self._forget_sums()
+                    if self._conn.in_transaction:
+                        self._conn.execute("ROLLBACK")
+                raise
+
+    def _forget_sums(self) -> None:
+        """Drop the band sums and seqs kept in memory: read again from the database when next needed."""
+        self._max_seq.clear()
+        self._max_end.clear()
+        self._unwritten.clear()
+        self._bands.clear()
 
     def _rows(self, sql: str, args=()) -> list[sqlite3.Row]:
         if self._read_pool is not None and self._writing != threading.get_ident() and _READ.match(sql):
@@ -326,10 +339,7 @@ class Store:
                 self._conn.reconnect()
             except db.database_errors():
                 return False  # the server is not back yet: the next call tries again
-            self._max_seq.clear()
-            self._max_end.clear()
-            self._unwritten.clear()
-            self._bands.clear()
+            self._forget_sums()
             return True
 
     def forget_partitions(self, parts: set[int]) -> None:

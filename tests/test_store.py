@@ -292,6 +292,35 @@ def test_a_corrupt_database_is_refused_at_start(tmp_path):
     assert err.value.reason == "unavailable" and str(path) in str(err.value)
 
 
+def test_a_commit_failed_by_a_full_disk_leaves_the_batch_out_of_the_band_sums(tmp_path):
+    """In WAL mode a full disk fails the COMMIT, after the batch was summed in memory. The agents resend the
+    batch: each window must be summed once (the sums kept the failed batch: 75 windows summed for 39 stored)."""
+    import resource
+    import signal
+
+    msgs = [window(seq=seq) for seq in range(1, 40)]
+    items = [(keys.key("drive-001", keys.STATS), wire.encode("window", m)) for m in msgs]
+    samples = sum(m["samples"] for m in msgs)
+    with Store.open(tmp_path / "fleet.db") as store:
+        assert store.ingest_many(items[:3]) == ["stored"] * 3
+        # the files may grow by one page: the batch's statements fit in the page cache, its WAL append does not
+        limit = max(p.stat().st_size for p in tmp_path.glob("fleet.db*")) + 4096
+        old_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+        old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails, not the process
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, old_limit[1]))
+        try:
+            with pytest.raises(sqlite3.OperationalError):
+                store.ingest_many(items[3:])
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
+            signal.signal(signal.SIGXFSZ, old_handler)
+        assert store.max_seq("drive-001") == 3  # nothing of the batch was stored
+        assert store.ingest_many(items[3:]) == ["stored"] * 36  # the resend
+        assert store.band_stats("drive-001")[2][1:] == (39, samples)
+    with Store.open(tmp_path / "fleet.db") as store:  # the sum written is right too
+        assert store.band_stats("drive-001")[2][1:] == (39, samples)
+
+
 def test_restarting_band_memory_keeps_only_windows_after_the_step(store):
     from encoder_core.stats import WindowStats
 
