@@ -518,6 +518,8 @@ def _parse_json(kind: str, payload: bytes):
         ) from None
     except _DuplicateKey as exc:
         raise WireError("not_json", f"{kind} message: key {exc.args[0]!r} appears twice in one object") from None
+    except ValueError as exc:  # valid JSON Python will not read: an integer of more than 4300 digits
+        raise WireError("not_json", f"{kind} message: unreadable JSON: {str(exc).split(';')[0]}") from None
     found = _find_non_finite(msg)
     if found:
         raise WireError(
@@ -536,7 +538,7 @@ def decode_window(payload: bytes, *, key_device: str | None) -> Window:
         except msgspec.ValidationError as exc:
             try:
                 found = _find_non_finite(msgspec.msgpack.decode(payload))  # a NaN also fails its bound: name it
-            except msgspec.DecodeError as bad:
+            except (msgspec.DecodeError, UnicodeDecodeError) as bad:
                 raise WireError("not_json", f"window message: not MessagePack: {bad}") from None
             except RecursionError:
                 raise WireError(
@@ -545,7 +547,7 @@ def decode_window(payload: bytes, *, key_device: str | None) -> Window:
             if found:
                 raise WireError("non_finite", f"window message: {found[0]}: non-finite number {found[1]}") from None
             raise WireError("schema", f"window message: {_where(exc)}") from None
-        except msgspec.DecodeError as exc:
+        except (msgspec.DecodeError, UnicodeDecodeError) as exc:  # msgspec raises the latter for a string not UTF-8
             raise WireError("not_json", f"window message: not MessagePack: {exc}") from None
     else:
         win = window_from_dict(_parse_json("window", payload))

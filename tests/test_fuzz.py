@@ -224,6 +224,9 @@ def test_an_ack_the_wire_refuses_leaves_no_mark_on_the_replay_guard(tmp_path, pk
         payload = json.dumps({**ws.ack("drive-a", 1, at=161.0), **change}).encode()
         assert guard.refuse(key, payload) is None, change  # the decoder's to refuse …
         assert store.ingest(key, payload) not in ("stored", "duplicate"), change  # … and it does
+    # valid JSON Python's int() will not read: the guard raised (a traceback in the Zenoh callback)
+    huge = json.dumps({**ws.ack("drive-a", 1), "at": 0}).encode().replace(b'"at": 0', b'"at": ' + b"1" * 5000)
+    assert guard.refuse(key, huge) is None and store.ingest(key, huge) == "not_json"
     genuine = json.dumps(ws.ack("drive-a", 1, at=160.0)).encode()
     assert guard.refuse(key, genuine) is None
     assert store.ingest(key, genuine) == "stored"

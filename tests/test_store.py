@@ -171,6 +171,31 @@ def test_ingest_keeps_every_bad_input(store):
     assert "$.seq" in next(d for d in letters if d["reason"] == "schema")["detail"]
 
 
+def test_a_message_python_cannot_read_is_dead_lettered_alone_and_its_batch_stored(store):
+    """A JSON integer of 5000 digits made Python's parser raise a plain ValueError: the whole batch rolled back,
+    its good windows with it, and nothing was dead-lettered. Now each such message is refused alone, with why."""
+    good = [(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=seq))) for seq in range(1, 4)]
+    huge = b"9" * 5000
+    bad = [
+        (
+            keys.key("drive-001", keys.STATS),
+            wire.encode_json("window", window(seq=9)).replace(b'"seq":9', b'"seq":' + huge),
+        ),
+        (keys.key("drive-001", keys.ACK), wire.encode("ack", ack()).replace(b'"version":1', b'"version":' + huge)),
+        (
+            keys.key("drive-001", keys.STATS),
+            wire.encode("window", window(seq=8)).replace(b"\xa9drive-001", b"\xa9\xffrive-001"),
+        ),
+    ]
+    outcomes = store.ingest_many([good[0], bad[0], good[1], bad[1], bad[2], good[2]])
+    assert outcomes == ["stored", "not_json", "stored", "not_json", "not_json", "stored"]
+    assert store.max_seq("drive-001") == 3 and store.band_stats("drive-001")[2][1] == 3
+    letters = sorted(store.dead_letters(limit=10), key=lambda d: d["payload"])
+    assert [d["payload"] for d in letters] == sorted(payload for _, payload in bad)
+    assert ["5000 digits" in d["detail"] for d in letters] == [True, True, False]  # window and ack; not MessagePack
+    assert "not MessagePack" in letters[2]["detail"]
+
+
 def test_coefficients_fits_acks_and_devices(store):
     assert store.next_version("drive-001") == 1 and store.current_coefficients("drive-001") is None
     store.insert_window(window(seq=1, version=0), received_at=5.0)

@@ -163,6 +163,10 @@ def mutate(path, value):
         (payload([1, 2]), "schema", "$"),
         (payload(window()).replace(b'"seq": 1,', b'"seq": 1, "seq": 2,'), "not_json", "'seq' appears twice"),
         (mutate(["window_start"], 2e10), "schema", "$.window_start"),
+        # valid JSON that Python's int() will not read (it raised a bare ValueError, which took its batch down)
+        (payload(window()).replace(b'"seq": 1,', b'"seq": ' + b"9" * 5000 + b","), "not_json", "5000 digits"),
+        # msgspec raises UnicodeDecodeError, no DecodeError, for a MessagePack string that is not UTF-8
+        (wire.encode("window", window()).replace(b"\xa9drive-001", b"\xa9\xffrive-001"), "not_json", "MessagePack"),
     ],
 )
 def test_bad_window_input_is_named(data, reason, where):
