@@ -390,10 +390,15 @@ class FleetService:
                         self._monitor_changed.add(device)
                     elif suffix == keys.ACK:
                         self._changed.add(device)  # a refused set is answered in the next refit pass
-                    if self._alive_unknown and self._alive_unknown.pop(device, None) is not None:
-                        came_alive.append(device)
-            for device in came_alive:  # its token came before its first valid message
-                self.store.set_online(device, True)
+                    if self._alive_unknown and (since := self._alive_unknown.pop(device, None)) is not None:
+                        came_alive.append((device, since))
+            for device, since in came_alive:  # its token came before its first valid message
+                try:
+                    self.store.set_online(device, True)
+                except Exception:  # the writer must go on (it died here): the device's next stored message retries
+                    log.exception("marking %s online failed; retried with its next stored message", device)
+                    with self._lock:
+                        self._alive_unknown.setdefault(device, since)
 
     def _renew_if_lost(self) -> None:
         """PostgreSQL dropped the session (restarted, failed over): open it again, and take the partitions again
@@ -455,6 +460,9 @@ class FleetService:
             if self.store.device(device) is None:
                 return
             with self._lock:  # its first window was stored meanwhile
+                self._alive_unknown.pop(device, None)
+        elif self._alive_unknown:
+            with self._lock:  # a retry _write_loop kept must not undo this newer token
                 self._alive_unknown.pop(device, None)
         self.store.set_online(device, online)
         try:

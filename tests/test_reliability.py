@@ -224,6 +224,37 @@ def test_liveliness_tokens_alone_make_no_devices(fleet):
         client.close()
 
 
+def test_a_device_marked_online_late_survives_a_database_error_and_the_writer_goes_on(fleet, monkeypatch):
+    """A token seen before the device's first window marks it online once that window is stored. A database error
+    there killed the writer thread: nothing was stored after it. Now it is logged and retried with the next window."""
+    import sqlite3
+
+    fleet.start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    token = client.liveliness().declare_token(keys.key("drive-001", keys.ALIVE))
+    real, calls = fleet.store.set_online, []
+
+    def full_once(device, online, at=None):  # the disk is full for this one write
+        calls.append((device, online))
+        if len(calls) == 1:
+            raise sqlite3.OperationalError("database or disk is full")
+        real(device, online, at)
+
+    monkeypatch.setattr(fleet.store, "set_online", full_once)
+    try:
+        assert wait_for(lambda: "drive-001" in fleet.service._alive_unknown)
+        client.put(keys.key("drive-001", keys.STATS), wire.encode("window", ws.window(seq=1)))
+        assert wait_for(lambda: len(calls) == 1) and fleet.store.device("drive-001")["online"] is False
+        for seq in (2, 3):
+            client.put(keys.key("drive-001", keys.STATS), wire.encode("window", ws.window(seq=seq)))
+        assert wait_for(lambda: fleet.seqs("drive-001") == [1, 2, 3])
+        assert fleet.service._writer.is_alive() and calls == [("drive-001", True)] * 2  # retried once, then done
+        assert fleet.store.device("drive-001")["online"] is True
+    finally:
+        token.undeclare()
+        client.close()
+
+
 # --- bounded ---------------------------------------------------------------------------------------
 
 
