@@ -40,6 +40,7 @@ MAX_HARMONIC_RAD = 0.1
 @dataclass
 class AgentCounters:
     windows: int = 0
+    unsent_windows: int = 0  # windows the wire cannot carry (no usable sample: no temperature, no band)
     resent: int = 0
     applied: list[int] = field(default_factory=list)
     refused: list[tuple[int, str]] = field(default_factory=list)
@@ -125,7 +126,8 @@ class EdgeAgent:
             if not self.step():
                 break
             if real_time_factor > 0:
-                ahead = self.counters.windows * self.window_s / real_time_factor - (time.monotonic() - started)
+                windows = self.counters.windows + self.counters.unsent_windows
+                ahead = windows * self.window_s / real_time_factor - (time.monotonic() - started)
                 if ahead > 0:
                     time.sleep(ahead)
         if stop is None or not stop.is_set():
@@ -151,19 +153,38 @@ class EdgeAgent:
             self.send_ack(self.pending_ack, "applied", quality)
             self.pending_ack = None
         stats = window_stats(block, self.scale, usable)
+        start, end = float(block.t[0]) + self.time_offset, float(block.t[-1]) + self.time_offset
+        try:
+            msg = wire.window_message(
+                device=self.device,
+                seq=self.seq + 1,
+                window_start=start,
+                window_end=end,
+                stats=stats,
+                coefficients_version=self.version,
+                angle_quality_deg=quality,
+                temp_rate_c_per_s=temp_rate(block),
+                rejected_by_reason=by_reason,
+            )
+            payload = wire.encode("window", msg)
+        except wire.WireError as exc:
+            # not sent, and no seq used: the service's watermark needs seqs without gaps. A window of no usable
+            # sample has no temperature and so no band, which the schema requires; carrying it would mean a
+            # schema and store change, so the monitor does not see this window's rejections (logged here)
+            log.warning(
+                "%s: window %.1f-%.1f s (drive clock) not sent, %d of %d samples rejected %s: %s",
+                self.device,
+                start,
+                end,
+                stats.rejected,
+                len(block),
+                by_reason,
+                exc,
+            )
+            self.counters.unsent_windows += 1
+            self.sync()  # what the outbox holds is still resent
+            return True
         self.seq += 1
-        msg = wire.window_message(
-            device=self.device,
-            seq=self.seq,
-            window_start=float(block.t[0]) + self.time_offset,
-            window_end=float(block.t[-1]) + self.time_offset,
-            stats=stats,
-            coefficients_version=self.version,
-            angle_quality_deg=quality,
-            temp_rate_c_per_s=temp_rate(block),
-            rejected_by_reason=by_reason,
-        )
-        payload = wire.encode("window", msg)
         self.outbox.add(self.seq, payload, window_end=msg["window_end"])
         self.put(self.keys["stats"], payload)
         self.outbox.mark_sent([("window", self.seq)], self.clock())

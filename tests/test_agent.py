@@ -152,3 +152,34 @@ def test_agent_reads_the_die_temperature_with_the_lag_its_set_carries(setup):
         if k > 0:
             assert abs(expected - reported) > 0.05  # the lag is seen: the drive's temperature moves
     agent.close()
+
+
+def test_a_window_with_no_usable_sample_is_skipped_without_a_seq_and_the_agent_goes_on(setup, caplog, tmp_path):
+    """A minute in which the hall channels read nothing (unplugged: NaN) has no usable sample, so no temperature
+    and no band, and the wire refuses it. The agent raised and stopped there, with a seq used and never sent. Now
+    it logs the window, sends none for it, and the windows after it go with the next seqs (the service's watermark
+    needs seqs without gaps)."""
+    import numpy as np
+
+    from edge_agent.sources import ReplaySource
+    from encoder_core.samples import Samples
+    from encoder_core.simulator import simulate
+
+    store, _, client, factory, _, _ = setup
+    rng = np.random.default_rng(SEED)
+    t = np.arange(0.0, 240.0, 0.05)
+    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
+    unplugged = (t >= 60.0) & (t < 120.0)  # the second of four minutes
+    d, q = np.where(unplugged, np.nan, s.d), np.where(unplugged, np.nan, s.q)
+    source = ReplaySource(Samples(t=t, d=d, q=q, temp_c=s.temp_c))
+    agent = EdgeAgent(DEVICE, source, client, Outbox(tmp_path / "replay-outbox.sqlite"), factory)
+    agent.start()
+    counters = agent.run()
+    assert source.pos == t.size and counters.windows == 3 and counters.unsent_windows == 1 and agent.seq == 3
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
+    stored = store.windows(DEVICE)
+    assert [w["seq"] for w in stored] == [1, 2, 3]
+    assert [round(w["window_start"]) for w in stored] == [0, 120, 180]  # the unplugged minute is not there
+    assert "window 60.0-120.0 s (drive clock) not sent, 1200 of 1200 samples rejected" in caplog.text
+    assert len(agent.outbox) == 0  # the watermark passed every window: no gap held it back
+    agent.close()
