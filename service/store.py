@@ -461,9 +461,12 @@ class Store:
         stats = win.stats.window_stats()
         entry = bands.get(band)
         pending = batch.by_band.setdefault((device, band), [])
-        if entry is None:  # a band's sum starts here; its stored windows, if any, were forgotten by a restart
-            entry = [stats, 1, win.samples, self._first_seq_of_new_band(device, band)]
-        elif seq >= entry[3]:  # older ones are past the band's horizon: kept, not summed
+        first_seq = entry[3] if entry is not None else self._first_seq_of_new_band(device, band)
+        if seq < first_seq:  # past the band's horizon, or forgotten by a restart (a late catch-up): kept, not summed
+            entry = None
+        elif entry is None:  # a band's sum starts here; its stored windows, if any, were forgotten by a restart
+            entry = [stats, 1, win.samples, first_seq]
+        else:
             try:
                 total = entry[0].merge(stats)
             except InputError as exc:
@@ -472,8 +475,6 @@ class Store:
             if self.band_horizon_s:
                 cutoff = win.window_end - self.band_horizon_s
                 entry = self._forget_before(device, band, entry, pending, cutoff)
-        else:
-            entry = None
         # nothing can fail from here on: the window is staged and its band's sum replaced
         batch.staged[(device, seq)] = (win.window_start, win.window_end, blob)
         batch.rows.append(
@@ -495,8 +496,8 @@ class Store:
         return True
 
     def _first_seq_of_new_band(self, device: str, band: int) -> int:
-        """Windows a band's sum may hold: none of those stored before it started (a restart after a step forgot
-        them and deleted the sum), any that arrive later, catch-up windows with a lower seq included."""
+        """The first seq a band's new sum may hold: none of those stored before it started (a restart after a step
+        forgot them and deleted the sum), nor a catch-up window with a lower seq, which ended before them."""
         if self._unwritten.get(device):
             return 1
         row = self._conn.execute(

@@ -415,6 +415,33 @@ def test_a_band_restarted_to_nothing_starts_again_from_its_new_windows(tmp_path)
     np.testing.assert_allclose(total.moments, expected.moments, rtol=1e-9)
 
 
+@pytest.mark.parametrize("horizon_s", [None, 150.0])
+def test_a_catch_up_window_from_before_a_step_is_stored_but_not_summed(tmp_path, horizon_s):
+    """The drive was offline: windows 3 and 4 wait in its outbox while 1, 2, 5, 6 arrive live, and a step at 6's
+    end forgets the band. The late 3 and 4 ended before the step: they started a new sum of pre-step windows
+    (one that a horizon never took out again: its first seq was above theirs)."""
+    from encoder_core.stats import WindowStats
+
+    msgs = {seq: window(seq=seq, temp_c=23.0) for seq in range(1, 13)}
+    with Store.open(tmp_path / "fleet.db", band_horizon_s=horizon_s) as store:
+        for seq in (1, 2, 5, 6):
+            store.insert_window(msgs[seq])
+        assert store.restart_band_memory("drive-001", after=msgs[6]["window_end"]) == [2]
+        items = [(keys.key("drive-001", keys.STATS), wire.encode("window", msgs[seq])) for seq in (3, 4)]
+        assert store.ingest_many(items) == ["stored", "stored"]
+        assert store.band_stats("drive-001") == {} and store.window_summary("drive-001")["windows"] == 6
+        for seq in range(7, 13):
+            store.insert_window(msgs[seq])
+        total, windows, samples = store.band_stats("drive-001")[2]
+    newest = msgs[12]["window_end"]
+    mine = [msgs[seq] for seq in range(7, 13) if horizon_s is None or msgs[seq]["window_end"] >= newest - horizon_s]
+    expected = WindowStats.from_dict(mine[0]["stats"])
+    for m in mine[1:]:
+        expected = expected.merge(WindowStats.from_dict(m["stats"]))
+    assert windows == len(mine) and samples == sum(m["samples"] for m in mine) == total.n
+    np.testing.assert_allclose(total.moments, expected.moments, rtol=1e-9)
+
+
 STEP = st.one_of(
     st.tuples(st.just("windows"), st.lists(st.sampled_from([23.0, 27.0, 33.0]), min_size=1, max_size=6), st.booleans()),
     st.tuples(st.just("restart"), st.integers(0, 3), st.just(False)),
