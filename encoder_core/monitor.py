@@ -186,11 +186,12 @@ def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, fl
     return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
 
 
-def _shape_per_bin(b: np.ndarray, residual: float) -> tuple[float, float, float] | None:
-    """(gain ratio, skew, standard error) of the ellipse fitted per angle bin (b: the bins the window saw); the
-    error from the samples' own scatter (`residual`, of the fit weighted by them) over the sample count a per-bin
-    weighting is worth."""
-    fit = _ellipse_per_bin(b)
+def _shape_per_bin(
+    fit: tuple[np.ndarray, np.ndarray, float] | None, b: np.ndarray, residual: float
+) -> tuple[float, float, float] | None:
+    """(gain ratio, skew, standard error) of `fit`, the ellipse fitted per angle bin (b: the bins the window saw);
+    the error from the samples' own scatter (`residual`, of the fit weighted by them) over the sample count a
+    per-bin weighting is worth."""
     if fit is None:
         return None
     q00, q01, q11 = fit[1][0, 0], fit[1][0, 1], fit[1][1, 1]
@@ -282,7 +283,7 @@ def window_features(
     if not np.all(np.isfinite(y)):
         return f
     f.y = y
-    f.ratio_skew = _shape_per_bin(b, residual)
+    f.ratio_skew = _shape_per_bin(per_bin, b, residual)
     f.sigma = np.full(N_FEATURES, s_center)
     f.sigma[2:4] = s_amp
     return f
