@@ -81,7 +81,10 @@ class Settings:
     held_step_z: float = 8.0  # ... and this many standard deviations at every position that shows it
     held_step_max: float = 0.012  # ... and no larger (the planted steps: 0.003-0.01): two positions a few degrees
     # apart can share an angle bin, and a drive switching between them moves the bin's point by 0.01-0.07
-    held_match_c: float = 2.0  # a held position is compared with its last visit this close in temperature
+    held_match_c: float = 1.0  # a held position is compared with its last visit this close in temperature (at
+    # 2 °C the channels' common gain, 0.15 %/K on s6-20hz-02, moved a lone held position radially by the whole
+    # held_step_min: a false step at +61 °C, moved for; 1 °C kept all 17 steps of the 20 Hz dwelling drives of
+    # seeds 1-6)
     held_match_s: float = 180.0  # ... and this recent: over minutes the die's lag moves it by up to 0.002
     rate_tau_s: float = 3 * HOUR_S  # memory of the rate regressions (drive time)
     rates_after_s: float = 12 * HOUR_S  # rates are judged once the device has been judged this long
