@@ -183,7 +183,8 @@ def refit_from_bench(
     moved = offset_move(moves, anchors[0][1].radius) if after_step else None
     if moved is not None:
         result.moved_bands = sorted({band_index(c) for c in running.bands} - set(chosen))
-    result.bands = with_running_bands(chosen, running if moved is None else running.offsets_moved(*moved))
+    adopted = {d.band for d in result.decisions if d.adopted}
+    result.bands = with_running_bands(chosen, running if moved is None else running.offsets_moved(*moved), adopted)
     return result
 
 
@@ -399,14 +400,33 @@ def refit_legacy(
     return result
 
 
-def with_running_bands(chosen: dict[int, dict], running: BandedCorrection) -> list[dict]:
+def with_running_bands(
+    chosen: dict[int, dict], running: BandedCorrection, adopted: set[int] = frozenset()
+) -> list[dict]:
     """The set's band entries: the refit's, and the running set's bands it says nothing about, as the device
-    runs them (a set of one fitted band would otherwise hold that band's correction at every temperature)."""
+    runs them (a set of one fitted band would otherwise hold that band's correction at every temperature).
+
+    The agent interpolates between bands, so an adopted band whose neighbour in the set is more than a band away
+    gets the running set, as it runs there, one band width toward that neighbour: its drift reaches only as far as
+    the data that measured it. (s5-20hz-06, a dwelling drive: one band fitted at +63 °C beside the bench's at
+    +20 °C carried its drift by a straight line across +30..+44 °C, where the offsets' drift, a line plus a square,
+    has the other sign: three hours worse than the factory set, and the set ran for three days.) Beyond the
+    outermost band the set is flat, the nearest fitted band's, as before."""
     out = dict(chosen)
     for corr in running.bands:
         band = band_index(corr)
         if band not in out:
             out[band] = band_entry(band, Correction.from_dict({**corr.to_dict(), "bench_locus": None}), {"samples": 0})
+    for band in sorted(adopted):
+        for side in (-1, 1):
+            beyond = [b for b in out if (b - band) * side > 0]
+            if not beyond or min(abs(b - band) for b in beyond) <= 1:
+                continue
+            temp_c = out[band]["temp_c"] + side * BAND_WIDTH_C
+            hold = band_of(temp_c)
+            if hold not in out and hold != band:
+                held = Correction.from_dict({**running.at(temp_c).to_dict(), "bench_locus": None})
+                out[hold] = band_entry(hold, held, {"samples": 0})
     return [out[b] for b in sorted(out)]
 
 
