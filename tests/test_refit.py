@@ -247,3 +247,26 @@ def test_near_the_bench_a_refitted_set_is_no_worse_than_the_factory():
             if errors[1] > errors[0] * 1.01 + 1e-3:
                 worse.append((seed, temp_c, *errors))
     assert worse == []
+
+
+@pytest.mark.parametrize("fitted_c", [63.2, -12.5])
+def test_an_adopted_band_far_from_its_neighbour_reaches_one_band_width_then_the_running_set(fitted_c):
+    """The agent interpolates between bands: a band fitted far from the next one in the set would carry its drift
+    by a straight line to temperatures no window measured. One band width toward the neighbour the set holds the
+    running correction as it runs there; between the fitted band and that point it interpolates as before."""
+    from service.refit import band_entry, with_running_bands
+
+    running = BandedCorrection([Correction(w1=1.0, w2=0.0, w3=1.0, w4=0.0, w5=0.0, temp_c=20.0)])
+    fitted = Correction(w1=1.01, w2=0.02, w3=0.99, w4=-0.01, w5=0.001, temp_c=fitted_c)
+    band = band_of(fitted_c)
+    bands = with_running_bands({band: band_entry(band, fitted, {"samples": 5000})}, running, {band})
+    result = BandedCorrection.from_dict({"bands": bands})
+    toward_bench = -1.0 if fitted_c > 20.0 else 1.0
+    held_c = fitted_c + 10.0 * toward_bench
+    assert [b["band"] for b in bands] == sorted({band, band_of(held_c), band_of(20.0)})
+    for temp_c in (held_c, (held_c + 20.0) / 2, 20.0):  # from the held point to the bench: the running set
+        assert result.at(temp_c).w2 == pytest.approx(0.0, abs=1e-12)
+    halfway = result.at((held_c + fitted_c) / 2)  # between: half the fitted band's drift
+    assert halfway.w2 == pytest.approx(0.01, abs=1e-9)
+    # not adopted (the running band kept as it was), or next to its neighbour: nothing is added
+    assert len(with_running_bands({band: band_entry(band, fitted, {"samples": 5000})}, running, set())) == 2
