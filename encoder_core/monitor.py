@@ -189,6 +189,11 @@ def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, fl
     return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
 
 
+def _equal_weight_size(counts: np.ndarray) -> float:
+    """Kish's effective sample size of the bins weighted alike, whatever their counts."""
+    return counts.size**2 / float(np.sum(1.0 / counts))
+
+
 def _shape_per_bin(
     fit: tuple[np.ndarray, np.ndarray, float] | None, b: np.ndarray, residual: float
 ) -> tuple[float, float, float] | None:
@@ -200,8 +205,7 @@ def _shape_per_bin(
     q00, q01, q11 = fit[1][0, 0], fit[1][0, 1], fit[1][1, 1]
     if not (q00 > 0 and q11 > 0 and q00 * q11 > q01 * q01):
         return None
-    counts = b[:, 0]
-    n_equal = counts.size**2 / float(np.sum(1.0 / counts))  # Kish's effective size of equal weights per bin
+    n_equal = _equal_weight_size(b[:, 0])
     shape = (0.5 * math.log(q11 / q00), float(q01 / math.sqrt(q00 * q11)), max(residual, 1e-5) / math.sqrt(n_equal))
     return shape if all(math.isfinite(v) for v in shape) else None
 
@@ -277,7 +281,7 @@ def window_features(
     # third harmonic: false offset steps, each moved for, the drive worse than its factory set for an hour)
     per_bin = _ellipse_per_bin(b)
     centre = per_bin[0] if per_bin is not None else c
-    s_center = resid * math.sqrt(2.0 / (cnt.size**2 / float(np.sum(1.0 / cnt))))  # Kish's size, as _shape_per_bin
+    s_center = resid * math.sqrt(2.0 / _equal_weight_size(cnt))
     y = np.empty(N_FEATURES)
     y[0] = centre[0] + stats.center_d / stats.scale
     y[1] = centre[1] + stats.center_q / stats.scale

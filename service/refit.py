@@ -413,7 +413,7 @@ def with_running_bands(
     gets the running set, as it runs there, one band width toward that neighbour: its drift reaches only as far as
     the data that measured it. (s5-20hz-06, a dwelling drive: one band fitted at +63 °C beside the bench's at
     +20 °C carried its drift by a straight line across +30..+44 °C, where the offsets' drift, a line plus a square,
-    has the other sign: three hours worse than the factory set, and the set ran for three days.) Beyond the
+    has the other sign: six hours worse than the factory set, and the set ran for three days.) Beyond the
     outermost band the set is flat, the nearest fitted band's, as before."""
     out = dict(chosen)
     for corr in running.bands:
