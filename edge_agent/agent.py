@@ -367,9 +367,14 @@ def continued_clock(t: np.ndarray, last_window_end: float | None) -> float:
 
 
 def temp_rate(block: Samples) -> float:
-    if block.temp_c is None or len(block) < 2 or block.t[-1] == block.t[0]:
+    """The window's temperature slope, °C/s, from its finite readings (a NaN one is rejected, not fitted)."""
+    if block.temp_c is None:
         return 0.0
-    return float(np.polyfit(block.t - block.t[0], block.temp_c, 1)[0])
+    ok = np.isfinite(block.temp_c) & np.isfinite(block.t)
+    t, temp = block.t[ok], block.temp_c[ok]
+    if t.size < 2 or t[-1] == t[0]:
+        return 0.0
+    return float(np.polyfit(t - t[0], temp, 1)[0])
 
 
 MAX_VERSION = 2**53 - 1  # the schemas' bound: an ack can carry no larger version

@@ -226,8 +226,12 @@ def pinned_mask(d, q, *, min_count: int = 4) -> np.ndarray:
 
 
 def rejection_masks(samples: Samples) -> dict[str, np.ndarray]:
-    """Why samples are kept out of the statistics, one mask per reason of REJECT_REASONS (disjoint)."""
+    """Why samples are kept out of the statistics, one mask per reason of REJECT_REASONS (disjoint). A sample whose
+    temperature reads NaN or inf is non_finite too: summed, one such reading made the whole window's temperature
+    NaN and the window unsendable."""
     finite = np.isfinite(samples.d) & np.isfinite(samples.q)
+    if samples.temp_c is not None:
+        finite &= np.isfinite(samples.temp_c)
     clipped = pinned_mask(samples.d, samples.q) & finite
     if samples.halls is not None:
         for hall in samples.halls.values():

@@ -183,3 +183,32 @@ def test_a_window_with_no_usable_sample_is_skipped_without_a_seq_and_the_agent_g
     assert "window 60.0-120.0 s (drive clock) not sent, 1200 of 1200 samples rejected" in caplog.text
     assert len(agent.outbox) == 0  # the watermark passed every window: no gap held it back
     agent.close()
+
+
+def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_path):
+    """One temperature sample that reads NaN (a dropped conversion of the sensor) summed into the window's
+    temperature made it NaN, and the wire refused the whole window. Now that sample is rejected as non_finite and
+    the window goes, its temperature from the others."""
+    import numpy as np
+
+    from edge_agent.sources import ReplaySource
+    from encoder_core.samples import Samples
+    from encoder_core.simulator import simulate
+
+    store, _, client, factory, _, _ = setup
+    rng = np.random.default_rng(SEED)
+    t = np.arange(0.0, 120.0, 0.05)
+    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
+    bad = rng.integers(0, t.size // 2)  # in the first of two minutes
+    temp = s.temp_c.copy()
+    temp[bad] = np.nan
+    agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=temp)), client,
+                      Outbox(tmp_path / "nan-temp-outbox.sqlite"), factory)  # fmt: skip
+    agent.start()
+    counters = agent.run()
+    assert counters.windows == 2 and counters.unsent_windows == 0
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 2)
+    first = store.monitor_windows(DEVICE, 0, 1)[0]
+    assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"]["rejected"] == 1
+    assert np.isfinite(first["temp_mean_c"]) and abs(first["temp_mean_c"] - 25.0) < 1.0
+    agent.close()
