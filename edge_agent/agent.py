@@ -77,6 +77,7 @@ class EdgeAgent:
         self.verifier = verifier  # fleet_wire.security.SetVerifier: sets must carry the service's signature
         self.clock = clock  # paces resends only: nothing the agent keeps depends on it
         self.time_offset: float | None = None  # added to the drive clock so it never runs back (set at first block)
+        self.resume_end: float | None = None  # the service's last window end, when it is past the outbox's
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
         self.counters = AgentCounters()
@@ -100,7 +101,30 @@ class EdgeAgent:
                 self.keys["coefficients"], lambda sample: self.inbox.put(sample.payload.to_bytes())
             )
         )
+        self.resume_after_service()
         self.ask_for_set()
+
+    def resume_after_service(self) -> None:
+        """An agent whose outbox was lost (a new disk, a container without its volume) would number its windows
+        from 1 again and start its drive clock at 0: the service, which has those seqs, refuses every window as a
+        seq conflict until the count passes its own. Where the service has stored more of us than the outbox
+        remembers, go on after its last window, seq and drive time."""
+        replies = self._get(self.keys["received"])
+        if not replies:
+            return  # no service yet: the outbox is all we know
+        try:
+            last = wire.parse_resume_point(replies[0], self.device)
+        except wire.WireError as exc:
+            log.warning("%s: %s", self.device, exc)
+            return
+        if last is not None and last[0] > self.seq:
+            log.warning(
+                "%s: the service has windows up to seq %d (drive clock %.1f s), the outbox only up to %d: "
+                "going on from there (outbox lost or replaced?)",
+                self.device, last[0], last[1], self.seq,
+            )  # fmt: skip
+            self.seq = last[0]
+            self.resume_end = last[1]
 
     def ask_for_set(self) -> None:
         """Ask the service for our set; when it has none (or is not there), tell it what the factory wrote.
@@ -144,7 +168,8 @@ class EdgeAgent:
         if len(block) == 0:
             return True
         if self.time_offset is None:
-            self.time_offset = continued_clock(block.t, self.outbox.last_window_end())
+            ends = [e for e in (self.outbox.last_window_end(), self.resume_end) if e is not None]
+            self.time_offset = continued_clock(block.t, max(ends, default=None))
         block = self.at_die_temperature(block)  # the correction and the window's temperatures: the die's
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
         usable, by_reason = rejected_by_reason(block)  # spikes and clipping counted per reason, for the monitor

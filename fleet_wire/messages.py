@@ -847,12 +847,16 @@ def ack_message(
     return check("ack", msg)
 
 
-def watermark_reply(device: str, contiguous_seq: int, acked_version: int = 0) -> bytes:
+def watermark_reply(
+    device: str, contiguous_seq: int, acked_version: int = 0, last: tuple[int, float] | None = None
+) -> bytes:
     """The service's answer on `received`: every window of `device` with seq <= contiguous_seq is stored, and
-    an ack for every coefficient version <= acked_version (the agent stops resending those)."""
-    return json.dumps(
-        {"device": device, "contiguous_seq": int(contiguous_seq), "acked_version": int(acked_version)}
-    ).encode()
+    an ack for every coefficient version <= acked_version (the agent stops resending those). `last`: the highest
+    seq stored and that window's end (drive clock), where an agent that lost its outbox resumes."""
+    body = {"device": device, "contiguous_seq": int(contiguous_seq), "acked_version": int(acked_version)}
+    if last is not None:
+        body.update(max_seq=int(last[0]), last_window_end=float(last[1]))
+    return json.dumps(body).encode()
 
 
 def parse_watermark_reply(payload: bytes, device: str) -> tuple[int, int]:
@@ -866,6 +870,19 @@ def parse_watermark_reply(payload: bytes, device: str) -> tuple[int, int]:
     except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
         raise WireError("schema", f"not a watermark reply for {device}: {bytes(payload)[:200]!r}") from None
     return seq, acked
+
+
+def parse_resume_point(payload: bytes, device: str) -> tuple[int, float] | None:
+    """(max_seq, last_window_end) of a watermark reply for `device`, None when it names none (no window stored,
+    or a service that does not send them); WireError when it is not a watermark reply."""
+    parse_watermark_reply(payload, device)
+    body = json.loads(payload)
+    seq, end = body.get("max_seq"), body.get("last_window_end")
+    if seq is None and end is None:
+        return None
+    if not _count(seq) or isinstance(end, bool) or not isinstance(end, (int, float)) or not math.isfinite(end):
+        raise WireError("schema", f"a watermark reply for {device} with a bad resume point: {bytes(payload)[:200]!r}")
+    return seq, float(end)
 
 
 def parse_watermark(payload: bytes, device: str) -> int:

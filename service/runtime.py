@@ -521,9 +521,8 @@ class FleetService:
             device = wire.device_from_key(query.key_expr)
         except wire.WireError:
             return
-        query.reply(
-            query.key_expr, wire.watermark_reply(device, self.watermark(device), self.store.acked_version(device))
-        )
+        mark, acked, last = self.watermark(device), self.store.acked_version(device), self.store.last_window(device)
+        query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last))
 
     def watermark(self, device: str) -> int:
         """Highest seq with every window up to it stored (so the agent may forget them)."""
@@ -734,8 +733,9 @@ class FleetService:
             # a rollout goes first (the refit after it sees the step); a set on trial fitted after the step has
             # nothing to move; otherwise the move waits for the trial's verdict, then moves what runs (s4-20hz-08:
             # an axis step during a trial was dropped, and the drive ran 0.13-0.22° for a day against 0.02-0.04°)
-            with self._lock:
-                self._step_moves.pop(device, None)
+            with self._lock:  # only the step read above: one the monitor raised since waits for the next pass
+                if self._step_moves.get(device) is step:
+                    self._step_moves.pop(device, None)
         if held:
             return None
         if trial is not None:

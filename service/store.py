@@ -998,6 +998,11 @@ class Store:
         """Highest coefficient version the device has acknowledged, either way (0 when none)."""
         return self._rows("SELECT coalesce(max(version), 0) AS v FROM acks WHERE device = ?", (device,))[0]["v"]
 
+    def last_window(self, device: str) -> tuple[int, float] | None:
+        """(seq, window_end) of the device's highest-seq window stored, None when it has none."""
+        rows = self._rows("SELECT seq, window_end FROM windows WHERE device = ? ORDER BY seq DESC LIMIT 1", (device,))
+        return (rows[0]["seq"], rows[0]["window_end"]) if rows else None
+
     def max_seq(self, device: str) -> int:
         """Highest window seq stored (0 when none): where an agent's catch-up resumes."""
         return self._rows("SELECT coalesce(max(seq), 0) AS s FROM windows WHERE device = ?", (device,))[0]["s"]

@@ -212,3 +212,32 @@ def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_pa
     assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"]["rejected"] == 1
     assert np.isfinite(first["temp_mean_c"]) and abs(first["temp_mean_c"] - 25.0) < 1.0
     agent.close()
+
+
+def test_an_agent_that_lost_its_outbox_goes_on_after_the_service_s_last_window(setup, tmp_path, caplog):
+    """A drive's agent restarted with a new, empty outbox (its disk replaced): it numbered its windows from 1 and
+    restarted the drive clock, and the service refused each as a seq conflict with the windows it had. Now the
+    agent asks the service where it stands and goes on after its last window, in seq and in drive time."""
+    import numpy as np
+
+    from edge_agent.sources import ReplaySource
+    from encoder_core.samples import Samples
+    from encoder_core.simulator import simulate
+
+    store, _, client, factory, _, _ = setup
+    rng = np.random.default_rng(SEED)
+    t = np.arange(0.0, 180.0, 0.05)
+    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
+    runs = []
+    for name in ("first-outbox", "new-outbox"):  # the same three minutes of drive clock, twice
+        agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c)), client,
+                          Outbox(tmp_path / f"{name}.sqlite"), factory)  # fmt: skip
+        agent.start()
+        runs.append(agent.run())
+        agent.close()
+        assert wait_for(lambda n=3 * len(runs): len(store.windows(DEVICE)) == n)
+    stored = store.windows(DEVICE)
+    assert [w["seq"] for w in stored] == [1, 2, 3, 4, 5, 6]
+    ends = [w["window_end"] for w in stored]
+    assert all(b["window_start"] > a["window_end"] for a, b in zip(stored, stored[1:])), ends
+    assert "outbox only up to 0" in caplog.text

@@ -317,6 +317,32 @@ def test_a_step_moves_the_running_set_at_once(fleet, cause, parameters):
     assert store.published_version(DEVICE) == 1
 
 
+def test_a_step_raised_while_a_pass_refits_the_device_is_moved_for_by_the_next_pass(fleet):
+    """The monitor's thread raised a step while the refit thread was inside refit() for the device, after it had
+    read the pending steps: the refit's clean-up dropped the new step unread and the drive was never moved for it.
+    The step is raised here at that moment (the rollouts' check, between the read and the clean-up, on a pass in
+    which a staged rollout holds the device); the next pass must move for it."""
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_set(store)
+    run_on(store, 0, hours=1.0)
+    step = {"id": 1, "device": DEVICE, "cause": "gain_step", "parameters": {"delta_imbalance": 0.006}}
+    step |= {"evidence": "a test step", "raised_at": 3000.0, "cleared_at": None}
+    holds, raised = service.rollouts.holds, []
+
+    def holds_and_meanwhile_a_step(device):  # a staged rollout holds the device this pass: nothing is fitted
+        raised.append(service._publish_alarm(*alarms.encode(step)))
+        return True
+
+    service.rollouts.holds = holds_and_meanwhile_a_step
+    service.refit(DEVICE)
+    assert raised and DEVICE in service._step_moves  # the new step survived the pass that was under way
+    service.rollouts.holds = holds
+    assert service.refit(DEVICE) == 1  # the next pass, the rollout over: the move
+    assert "gain step" in store.coefficient_history(DEVICE)[0]["state_reason"]
+
+
 @pytest.mark.parametrize("offset_error", [0.0, 0.03])
 def test_a_step_during_a_trial_moves_what_runs_after_the_verdict(fleet, offset_error):
     """A step named while a set fitted before it is on trial: the trial is judged first, and the next pass moves

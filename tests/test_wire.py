@@ -300,3 +300,20 @@ def test_errors_with_a_reason_survive_pickling():
         assert type(back) is type(err) and str(back) == str(err)
         assert getattr(back, "reason", None) == getattr(err, "reason", None)
         assert getattr(back, "status", None) == getattr(err, "status", None)
+
+
+def test_a_watermark_reply_carries_the_resume_point_and_refuses_a_bad_one():
+    """Where an agent that lost its outbox goes on (the service's last seq and its window's end): read back, absent
+    from a service that has no window of the device, and a reply with a bad one refused by name."""
+    reply = wire.watermark_reply("d-1", 5, 2, (7, 420.5))
+    assert wire.parse_watermark_reply(reply, "d-1") == (5, 2)
+    assert wire.parse_resume_point(reply, "d-1") == (7, 420.5)
+    assert wire.parse_resume_point(wire.watermark_reply("d-1", 0), "d-1") is None
+    for bad in ({"max_seq": -1, "last_window_end": 1.0}, {"max_seq": 3}, {"max_seq": 3, "last_window_end": "x"},
+                {"max_seq": True, "last_window_end": 1.0}):  # fmt: skip
+        body = json.dumps({"device": "d-1", "contiguous_seq": 1, **bad}).encode()
+        with pytest.raises(wire.WireError, match="bad resume point"):
+            wire.parse_resume_point(body, "d-1")
+    body = json.dumps({"device": "d-1", "contiguous_seq": 1, "max_seq": 3, "last_window_end": float("nan")})
+    with pytest.raises(wire.WireError, match="bad resume point"):
+        wire.parse_resume_point(body.encode(), "d-1")
