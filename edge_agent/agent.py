@@ -118,12 +118,16 @@ class EdgeAgent:
             log.warning("%s: %s", self.device, exc)
             return
         if last is not None and last[0] > self.seq:
+            # seqs from the service's contiguous watermark, time after its newest window: a gap (windows lost
+            # with the outbox) is filled by new ones, or the watermark and the monitor would wait at it forever;
+            # a new window that lands on a seq the service has past the gap is refused as a seq conflict
+            contiguous, _ = wire.parse_watermark_reply(replies[0], self.device)
             log.warning(
-                "%s: the service has windows up to seq %d (drive clock %.1f s), the outbox only up to %d: "
-                "going on from there (outbox lost or replaced?)",
-                self.device, last[0], last[1], self.seq,
+                "%s: the service has windows up to seq %d (contiguous to %d, drive clock %.1f s), the outbox only "
+                "up to %d: going on from seq %d (outbox lost or replaced?)",
+                self.device, last[0], contiguous, last[1], self.seq, contiguous + 1,
             )  # fmt: skip
-            self.seq = last[0]
+            self.seq = max(self.seq, contiguous)
             self.resume_end = last[1]
 
     def ask_for_set(self) -> None:
@@ -224,7 +228,13 @@ class EdgeAgent:
         return replace(block, temp_c=self.die(block.t, block.temp_c, self.correction.thermal_lag_s))
 
     def correct(self, block: Samples) -> np.ndarray:
-        return self.correction.angle(block.d, block.q, block.temp_c)
+        """The corrected angle of every sample. A temperature that reads NaN is corrected at the die's last finite
+        estimate (the interpolation across bands would make the angle handed to the drive NaN); the sample itself
+        stays rejected from the statistics."""
+        temp = block.temp_c
+        if temp is not None and not np.all(np.isfinite(temp)) and self.die.last is not None:
+            temp = np.where(np.isfinite(temp), temp, self.die.last[2])
+        return self.correction.angle(block.d, block.q, temp)
 
     def angle_quality_deg(self, block: Samples, usable: np.ndarray) -> float:
         """Reference-free: how far the corrected signals are from a circle (radius ripple, as an angle)."""

@@ -80,6 +80,10 @@ class RolloutSpec(BaseModel):
     abort_criteria: list[AbortCriterion] = Field(default_factory=list, max_length=10)
 
 
+class RolloutStopped(Exception):
+    """The rollout was paused or aborted while this process started one of its devices: the set is not issued."""
+
+
 class RolloutError(ValueError):
     """A request the rollouts cannot take: `status` is the HTTP status that says so."""
 
@@ -271,7 +275,7 @@ class Rollouts:
 
     def _start(self, rollout: int, spec: RolloutSpec, device: str, now: float) -> None:
         """Publish the change to one device, on trial; a device with a set already on trial waits for it."""
-        service, store = self.service, self.store
+        store = self.store
         if store.set_on_trial(device) is not None:
             return  # the guard is judging a fit: the change starts after it, on a known-good base
         running = store.published_version(device)
@@ -283,12 +287,25 @@ class Rollouts:
 
         def started(version: int) -> None:  # inside the set's transaction: a crash keeps both or neither
             with store._tx() as c:
+                # still running, checked where the set is written: an abort or pause by another process (a REST
+                # call on any member) between this step's read and here must not let its set out
+                cur = c.execute("UPDATE rollouts SET updated_at = ? WHERE id = ? AND state = 'running'", (now, rollout))
+                if cur.rowcount != 1:
+                    raise RolloutStopped(rollout)
                 c.execute(
                     "UPDATE rollout_devices SET state = 'in_progress', before_version = ?, version = ?, "
                     "started_at = ? WHERE rollout = ? AND device = ?",
                     (running, version, now, rollout, device),
                 )
 
+        try:
+            self._publish_change(rollout, spec, device, running, before, why, started, now)
+        except RolloutStopped:
+            log.info("rollout stopped while it started a device", extra={"rollout": rollout, "device": device})
+
+    def _publish_change(self, rollout, spec, device, running, before, why, started, now) -> None:
+        """The rollout's change as a new set for the device (`started` records it, in the set's transaction)."""
+        service, store = self.service, self.store
         if spec.change.kind == "reset_to_factory":
             factory = store.coefficient_set(device, 0)
             if factory is None or _same_bands(factory["bands"], before["bands"]):
@@ -351,8 +368,11 @@ class Rollouts:
         return None
 
     def _abort(self, rollout: int, reason: str) -> None:
-        """Stop, and roll the current wave back: its devices still on the rollout's set run their set before."""
+        """Stop, and roll the current wave back: its devices still on the rollout's set run their set before.
+        The state first: a device another process starts after it is refused (`started`), one it started before
+        is in the list read after it."""
         now = self.clock()
+        self._set_state(rollout, "aborted", reason)
         wave = self.store._rows("SELECT wave FROM rollouts WHERE id = ?", (rollout,))[0]["wave"]
         for d in self._devices(rollout):
             if d["wave"] != wave or d["state"] not in ("in_progress", "succeeded"):
@@ -362,7 +382,6 @@ class Rollouts:
                 continue  # the device has moved on since (a later fit): that set is the guard's, not ours
             # (its set may not be published yet: a put that failed; rolled back here, deliver does not send it)
             self._revert(rollout, d, "rolled_back", f"wave rolled back: {reason}", now)
-        self._set_state(rollout, "aborted", reason)
         log.warning("rollout aborted", extra={"rollout": rollout, "reason": reason})
 
     def _revert(self, rollout: int, d: dict, outcome: str, reason: str, now: float) -> None:

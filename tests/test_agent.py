@@ -211,6 +211,14 @@ def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_pa
     first = store.monitor_windows(DEVICE, 0, 1)[0]
     assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"]["rejected"] == 1
     assert np.isfinite(first["temp_mean_c"]) and abs(first["temp_mean_c"] - 25.0) < 1.0
+    # the angle handed to the drive: with two bands the set interpolates in temperature, and a NaN one made it NaN
+    from encoder_core.correction import BandedCorrection, Correction
+
+    warm = Correction.from_dict({**factory.bands[0].to_dict(), "temp_c": 45.0})
+    agent.correction = BandedCorrection([factory.bands[0], warm])
+    block = Samples(t=t[:1200], d=s.d[:1200], q=s.q[:1200], temp_c=temp[:1200])
+    angle = agent.correct(agent.at_die_temperature(block))
+    assert np.all(np.isfinite(angle))
     agent.close()
 
 
@@ -240,4 +248,42 @@ def test_an_agent_that_lost_its_outbox_goes_on_after_the_service_s_last_window(s
     assert [w["seq"] for w in stored] == [1, 2, 3, 4, 5, 6]
     ends = [w["window_end"] for w in stored]
     assert all(b["window_start"] > a["window_end"] for a, b in zip(stored, stored[1:])), ends
-    assert "outbox only up to 0" in caplog.text
+    assert "the outbox only up to 0" in caplog.text
+
+
+def test_an_agent_that_lost_its_outbox_fills_the_service_s_gap_first(setup, tmp_path):
+    """The service had seqs 1-3 and 5 (4 was still in the outbox that was lost). Going on after 5 would leave 4
+    missing for good: the watermark and the drift monitor stop at 3. The agent goes on from the contiguous
+    watermark instead (its new window fills 4; the one that lands on 5 is refused as a seq conflict), in drive
+    time after the service's newest window."""
+    import numpy as np
+
+    from edge_agent.sources import ReplaySource
+    from encoder_core.samples import Samples
+    from encoder_core.simulator import simulate
+
+    store, _, client, factory, _, _ = setup
+    rng = np.random.default_rng(SEED)
+    t = np.arange(0.0, 300.0, 0.05)
+    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
+    first = Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c)
+    agent = EdgeAgent(DEVICE, ReplaySource(first), client, Outbox(tmp_path / "lost.sqlite"), factory)
+    agent.start()
+    sent = []
+    agent.put = lambda key, payload: sent.append((key, payload))  # the windows leave the agent, then the outbox goes
+    while agent.step():
+        pass
+    agent.close()
+    for key, payload in sent:
+        if key == agent.keys["stats"] and wire.decode_window(payload, key_device=DEVICE).seq != 4:
+            client.put(key, payload)
+    assert wait_for(lambda: [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3, 5])
+    again = EdgeAgent(DEVICE, ReplaySource(first), client, Outbox(tmp_path / "new.sqlite"), factory)
+    again.start()
+    assert again.seq == 3
+    again.run()
+    again.close()
+    assert wait_for(lambda: sorted(w["seq"] for w in store.windows(DEVICE)) == list(range(1, 9)))
+    assert store.contiguous_seq(DEVICE) == 8 and len(again.outbox) == 0
+    by_seq = {w["seq"]: w for w in store.windows(DEVICE)}
+    assert by_seq[4]["window_start"] > by_seq[5]["window_end"]  # the new seq 4 after the old seq 5, in drive time

@@ -438,3 +438,31 @@ def test_the_rollout_command_drives_the_rest_api_as_an_operator_would(fleet, tmp
         assert missing.returncode == 2 and "404 no rollout 9" in missing.stderr
     finally:
         http.stop()
+
+
+def test_an_abort_by_another_process_while_a_device_starts_lets_no_set_out(fleet, clock):
+    """Two service processes share the database: the leader steps the rollout, and an operator's abort reaches
+    another member's REST. The abort landed after the leader had read the rollout as running and before it
+    wrote the device's set: the set went out, recorded in_progress in an aborted rollout, and nothing rolled it
+    back. Now the set's transaction checks the rollout is still running, and the abort marks it first."""
+    from service.rollout import Rollouts
+
+    store, service = fleet
+    install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, base_per_minute=1, soak_windows=60)
+    )
+    other = Rollouts(store, service, clock=clock)  # the member the operator's REST call reached
+    publish_bands = service.publish_bands
+
+    def aborted_meanwhile(*args, **kwargs):
+        other.abort(1, "aborted by an operator on another member")
+        return publish_bands(*args, **kwargs)
+
+    service.publish_bands = aborted_meanwhile
+    service.rollouts.step()
+    service.publish_bands = publish_bands
+    rollout = service.rollouts.get(1)
+    assert rollout["state"] == "aborted"
+    assert store.published_version(DEVICE_0) == 1 and store.next_version(DEVICE_0) == 2  # nothing issued
+    assert rollout["by_state"] == {"pending": 1} and not service.rollouts.holds(DEVICE_0)
