@@ -21,6 +21,7 @@ reference-free floor (`floor_set`): the best any refit without a reference could
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import tempfile
 import time
@@ -315,6 +316,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     "basis": "rollback",
                     "version": len(timeline),
                     "created_at": end_s,
+                    "bands_from": -math.inf,  # the factory's bands: from the bench
                 }
                 confirmed, trial = pending, None
                 sums.restart(after_s=end_s - WATCH_S)
@@ -331,16 +333,18 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 confirmed, trial = trial[0], None
             elif verdict.action == "rollback":
                 pending, trial = {**confirmed, "basis": "rollback", "created_at": end_s}, None
+                pending["bands_from"] = bands_from(confirmed)
             continue
         if watch is not None and pending is None and deferred is None:
             lag = lag_to_send(watch.thermal_lag(), running.thermal_lag_s)
             if lag is not None:  # service.runtime.publish_lag: the bands as they run, read at the new die estimate
                 pending = {"bands": running_msg["bands"], "basis": "fit", "version": len(timeline), "created_at": end_s}
-                pending.update(thermal_lag_s=lag, lag_only=True)
+                pending.update(thermal_lag_s=lag, lag_only=True, bands_from=bands_from(running_msg))
                 continue
         band_sums = sums.band_sums()
         bin_temps = {b: s.bin_temps() for b, s in band_sums.items()}  # what service.runtime passes
-        after_step = step_at is not None and end_s - step_at < STEP_OPEN_S
+        # service.runtime: only a set whose bands predate the step has bands to move for it
+        after_step = step_at is not None and end_s - step_at < STEP_OPEN_S and bands_from(running_msg) < step_at
         result = refit_device(band_sums, running, factory, bin_temps=bin_temps, after_step=after_step)
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})
@@ -350,6 +354,14 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 continue  # the agent refuses it and keeps running what it has
             pending = {"bands": result.bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
     return timeline
+
+
+def bands_from(msg: dict) -> float:
+    """Drive time the set's bands were made at: a rollback's or a new die lag's are the restored set's, the
+    factory's the bench's."""
+    if msg.get("basis") == "factory":
+        return -math.inf
+    return msg.get("bands_from", msg.get("created_at", -math.inf))
 
 
 def score(run: fieldsim.FieldRun, factory: BandedCorrection, timeline) -> tuple[list[float], list[float]]:

@@ -796,6 +796,13 @@ class Store:
             (device,),
         )[0]["v"]
 
+    def newest_created_at(self, device: str) -> float | None:
+        """Drive time the device's newest set (any state) was made at; None when it has none."""
+        rows = self._rows(
+            "SELECT created_at FROM coefficient_sets WHERE device = ? ORDER BY version DESC LIMIT 1", (device,)
+        )
+        return rows[0]["created_at"] if rows else None
+
     def newest_set(self, device: str) -> dict | None:
         """The newest set not rolled back, published or not: {version, published_at (None: never put)}. What the
         service means the drive to run."""

@@ -24,18 +24,24 @@ from service.refit import step_moved_bands
 DEVICE, SEED = "drive-7", 7
 
 
-def run_on(store, version: int, hours: float = 2.0, after_s: float = 0.0) -> None:
-    """Windows of the simulated drive as an agent running set `version` would send them."""
+def run_on(store, version: int, hours: float = 2.0, after_s: float = 0.0, band: int | None = None) -> None:
+    """Windows of the simulated drive as an agent running set `version` would send them (those of `band` only:
+    a drive that stayed in one band)."""
+    from encoder_core.physics import band_of
+
     factory = factory_calibration(drive_model(SEED), SEED)
     scale = normalisation_scale(factory)
     source = SimulatedDrive(SEED, hours=hours, t_min=15.0, t_max=35.0, cycle_hours=1.0)
     seq = store.max_seq(DEVICE)
     while (block := source.read(60.0)) is not None:
+        stats = window_stats(block, scale)
+        if band is not None and band_of(stats.temp_mean) != band:
+            continue
         seq += 1
         msg = wire.window_message(
             DEVICE,
             seq,
-            window_stats(block, scale),
+            stats,
             window_start=float(block.t[0]) + 10_000 * version + after_s,
             window_end=float(block.t[-1]) + 10_000 * version + after_s,
             temp_rate_c_per_s=0.0,
@@ -341,6 +347,72 @@ def test_a_step_raised_while_a_pass_refits_the_device_is_moved_for_by_the_next_p
     service.rollouts.holds = holds
     assert service.refit(DEVICE) == 1  # the next pass, the rollout over: the move
     assert "gain step" in store.coefficient_history(DEVICE)[0]["state_reason"]
+
+
+def test_after_a_step_only_a_set_whose_bands_predate_it_moves_its_unvisited_bands(fleet):
+    """After a step the refit moves the bands it has no data for by the offset change its fitted bands agree on:
+    right for a set made before the step, wrong for one made since (the step's own move, or a fit after it),
+    which the same rule moved again at every refit (bench-fleet-accuracy s6-20hz-10-dwell: the cold bands of the
+    set 40, then 67, 145, 218 millidegrees off, three hours worse than the factory set). A rollback's bands and a
+    new die lag's are as old as the set they copy."""
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_msg = factory_set(store)
+    run_on(store, 0, hours=2.0, band=2)  # the bands around it are not visited
+    base = {k: v for k, v in factory_msg["bands"][0].items() if k != "bench_locus"}
+    base["w"] = [base["w"][0], base["w"][1] + 0.03, *base["w"][2:]]  # its offsets off: the fitted bands disagree
+
+    def issue(version, created_at, basis="fit", zero=0.0, **extra):
+        bands = [{**base, "band": b, "temp_c": t, "zero_offset_rad": base["zero_offset_rad"] + zero}
+                 for b, t in ((-2, -15.0), (2, 20.0), (6, 65.0))]  # fmt: skip
+        msg = wire.coefficients_message(DEVICE, version, created_at, basis, bands, **extra)
+        store.insert_coefficient_set(msg)
+        store.mark_published(DEVICE, version)
+        return msg
+
+    event = {"kind": "raise", "cause": "offset_step", "at": 3600.0, "parameters": {"delta_d": 0.01, "delta_q": 0.0}}
+    (step,) = store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
+    service._publish_alarm(*alarms.encode(step))  # as the monitor does: band memory restarts at the step
+    issue(1, 100.0)  # made before the step
+    assert service.fit(DEVICE).moved_bands == [-2, 6] and service._bands_made_at(DEVICE, 1) == 100.0
+    issue(2, 5000.0, zero=1e-6)  # made after it
+    assert service.fit(DEVICE).moved_bands == [] and service._bands_made_at(DEVICE, 2) == 5000.0
+    issue(3, 6000.0, basis="rollback", restores_version=1)
+    assert service.fit(DEVICE).moved_bands == [-2, 6] and service._bands_made_at(DEVICE, 3) == 100.0
+    issue(4, 6500.0, basis="rollback", restores_version=0)
+    assert service._bands_made_at(DEVICE, 4) == float("-inf")
+    issue(5, 7000.0)  # the same bands as v4's with a new die lag: as old as v4's
+    assert service._bands_made_at(DEVICE, 5) == float("-inf")
+
+
+def test_a_step_whose_move_a_restart_lost_is_moved_for_by_the_process_after_it(fleet):
+    """The monitor raised a step and the process stopped before its refit pass made the move (kept in memory
+    only): the next process found nothing pending, and the drive ran its set from before the step until band
+    memory refilled. A process that starts (or adopts the device's partition) makes the move of every open step
+    that no set has followed, once."""
+    from fleet_wire import alarms
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+
+    store, service = fleet
+    factory_set(store)
+    run_on(store, 0, hours=1.0)
+    event = {"kind": "raise", "cause": "gain_step", "at": 3000.0, "parameters": {"delta_imbalance": 0.006}}
+    (step,) = store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
+    service._publish_alarm(*alarms.encode(step))
+    service.stop()  # before any refit pass
+    session = open_session(listen=[loopback_endpoint()])
+    after = FleetService(store, session, refit_interval_s=0).start()
+    try:
+        assert after.refit(DEVICE) == 1
+        assert "gain step" in store.coefficient_history(DEVICE)[0]["state_reason"]
+        after.stop()
+        again = FleetService(store, session, refit_interval_s=0).start()  # a set follows the step now: no move
+        assert DEVICE not in again._step_moves
+        again.stop()
+    finally:
+        session.close()
 
 
 @pytest.mark.parametrize("offset_error", [0.0, 0.03])
