@@ -328,9 +328,12 @@ class FleetService:
                 if owned(device) and alarm["raised_at"] > newest.get(device, {"raised_at": -math.inf})["raised_at"]:
                     newest[device] = alarm
         for device, alarm in newest.items():
-            made = self.store.newest_created_at(device)
-            if made is not None and made >= alarm["raised_at"]:
-                continue  # a set was made since (the move, or a fit after the step)
+            since = self.store.versions_since(device, alarm["raised_at"])
+            if any(self._bands_made_at(device, v) >= alarm["raised_at"] for v in since):
+                continue  # a set with bands made since (the move, or a fit after the step; a rollback's are older)
+            # the process may have stopped between storing the alarm and publishing it (which restarts band
+            # memory): restart it here too (it keeps the same windows if it was)
+            self.store.restart_band_memory(device, after=alarm["raised_at"])
             with self._lock:
                 if device not in self._step_moves:
                     self._step_moves[device] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
@@ -841,7 +844,8 @@ class FleetService:
             factory,
             min_samples=self.min_band_samples if min_band_samples is None else min_band_samples,
             bin_temps=bin_temps,
-            after_step=self._stepped_recently(device) and self._bands_made_at(device, running_version) < step_at,
+            after_step=self._stepped_recently(device, step_at)
+            and self._bands_made_at(device, running_version) < step_at,
         )
 
     def _issue_set(
@@ -1001,21 +1005,23 @@ class FleetService:
         after it) again by what its fitted bands disagree with it moved the cold bands of a dwelling drive
         further at every refit (s6-20hz-10: 40 -> 218 millidegrees, three hours worse than the factory set)."""
         msg = self.store.coefficient_set(device, version)
-        for _ in range(32):
+        while True:  # versions only go down along the chain
             if msg is None or msg["basis"] == "factory":
                 return -math.inf
             if msg["basis"] == "rollback" and msg.get("restores_version") is not None:
-                msg = self.store.coefficient_set(device, msg["restores_version"])
+                restored = self.store.coefficient_set(device, msg["restores_version"])
+                if restored is None or restored["version"] >= msg["version"]:
+                    return float(msg["created_at"])
+                msg = restored
                 continue
             before = self.store.coefficient_set(device, msg["version"] - 1) if msg["version"] > 0 else None
             if before is None or before["bands"] != msg["bands"]:
                 return float(msg["created_at"])
             msg = before
-        return -math.inf
 
-    def _stepped_recently(self, device: str) -> bool:
-        """A step raised within STEP_OPEN_S of drive time: the refit may move bands it has no data for."""
-        step_at = self._last_step_at(device)
+    def _stepped_recently(self, device: str, step_at: float | None) -> bool:
+        """A step raised (at `step_at`, _last_step_at's) within STEP_OPEN_S of drive time: the refit may move
+        bands it has no data for."""
         return step_at is not None and self._drive_now(device) - step_at < STEP_OPEN_S
 
     def _last_step_at(self, device: str) -> float | None:

@@ -796,12 +796,13 @@ class Store:
             (device,),
         )[0]["v"]
 
-    def newest_created_at(self, device: str) -> float | None:
-        """Drive time the device's newest set (any state) was made at; None when it has none."""
+    def versions_since(self, device: str, at: float) -> list[int]:
+        """The device's sets (any state) made at or after drive time `at`, newest first."""
         rows = self._rows(
-            "SELECT created_at FROM coefficient_sets WHERE device = ? ORDER BY version DESC LIMIT 1", (device,)
+            "SELECT version FROM coefficient_sets WHERE device = ? AND created_at >= ? ORDER BY version DESC",
+            (device, at),
         )
-        return rows[0]["created_at"] if rows else None
+        return [r["version"] for r in rows]
 
     def newest_set(self, device: str) -> dict | None:
         """The newest set not rolled back, published or not: {version, published_at (None: never put)}. What the

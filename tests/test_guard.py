@@ -390,8 +390,7 @@ def test_a_step_whose_move_a_restart_lost_is_moved_for_by_the_process_after_it(f
     """The monitor raised a step and the process stopped before its refit pass made the move (kept in memory
     only): the next process found nothing pending, and the drive ran its set from before the step until band
     memory refilled. A process that starts (or adopts the device's partition) makes the move of every open step
-    that no set has followed, once."""
-    from fleet_wire import alarms
+    that no set with new bands has followed, once, and restarts band memory at it."""
     from fleet_wire.session import loopback_endpoint
     from service.runtime import FleetService, open_session
 
@@ -399,18 +398,45 @@ def test_a_step_whose_move_a_restart_lost_is_moved_for_by_the_process_after_it(f
     factory_set(store)
     run_on(store, 0, hours=1.0)
     event = {"kind": "raise", "cause": "gain_step", "at": 3000.0, "parameters": {"delta_imbalance": 0.006}}
-    (step,) = store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
-    service._publish_alarm(*alarms.encode(step))
-    service.stop()  # before any refit pass
+    store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
+    service.stop()  # the alarm stored, not yet published (which restarts band memory), no refit pass
     session = open_session(listen=[loopback_endpoint()])
     after = FleetService(store, session, refit_interval_s=0).start()
     try:
+        kept = sum(windows for _, windows, _ in store.band_stats(DEVICE).values())
+        assert kept == len([w for w in store.windows(DEVICE) if w["window_end"] > 3000.0])  # memory restarted
         assert after.refit(DEVICE) == 1
         assert "gain step" in store.coefficient_history(DEVICE)[0]["state_reason"]
         after.stop()
         again = FleetService(store, session, refit_interval_s=0).start()  # a set follows the step now: no move
         assert DEVICE not in again._step_moves
         again.stop()
+    finally:
+        session.close()
+
+
+def test_a_step_waiting_for_a_rolled_back_trial_is_still_moved_for_after_a_restart(fleet):
+    """A step named while a set fitted before it was on trial: the pass rolled the trial back (a new set, made
+    after the step, with the factory's bands from before it) and the process stopped before the move. The set
+    made since carries no new bands, so the move is still owed."""
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+
+    store, service = fleet
+    factory_msg = factory_set(store)
+    publish_trial(store, service, factory_msg["bands"])  # v1, made at 5000
+    run_on(store, 1, hours=1.0)
+    event = {"kind": "raise", "cause": "gain_step", "at": 12000.0, "parameters": {"delta_imbalance": 0.006}}
+    store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
+    rollback = wire.coefficients_message(DEVICE, 2, 13000.0, "rollback", factory_msg["bands"], restores_version=0)
+    store.insert_coefficient_set(rollback)
+    store.mark_published(DEVICE, 2)
+    service.stop()
+    session = open_session(listen=[loopback_endpoint()])
+    try:
+        after = FleetService(store, session, refit_interval_s=0).start()
+        assert after._step_moves.get(DEVICE, (None,))[0] == "gain_step"
+        after.stop()
     finally:
         session.close()
 
