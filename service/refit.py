@@ -186,7 +186,9 @@ def refit_from_bench(
     # without a drift curve (one band fitted) nothing measured the drift between that band and its neighbours
     # (with one, the curve through the bench says it, and reaches MODEL_REACH_C past the fitted bands: holding the
     # running set a band away from every adopted band there cost evenly turning drives 5-25 % of their gain)
-    adopted = {d.band for d in result.decisions if d.adopted} if model is None else set()
+    # and only where the drive dwelt: a reversing drive's arc spreads its samples over the circle and its lone
+    # band's reach cost three reversing drives an hour each after axis steps
+    adopted = {d.band for d in result.decisions if d.adopted and dwelt(fits[d.band][1])} if model is None else set()
     result.bands = with_running_bands(chosen, running if moved is None else running.offsets_moved(*moved), adopted)
     return result
 
@@ -401,6 +403,15 @@ def refit_legacy(
         result.moved_bands = sorted({band_index(c) for c in running.bands} - set(kept))
     result.bands = with_running_bands(kept, running if moved is None else running.offsets_moved(*moved))
     return result
+
+
+DWELT_BINS = 16.0  # a band whose samples fill fewer angle bins than this (Kish's count) was a drive holding positions
+
+
+def dwelt(stats: WindowStats) -> bool:
+    """The band's samples sit in a few angle bins (a drive holding positions), by Kish's effective count."""
+    counts = stats.bins[:, 0]
+    return float(counts.sum() ** 2 / max(float(np.sum(counts**2)), 1e-12)) < DWELT_BINS
 
 
 def with_running_bands(
