@@ -299,25 +299,22 @@ class Rollouts:
                 )
 
         try:
-            self._publish_change(rollout, spec, device, running, before, why, started, now)
+            if spec.change.kind == "reset_to_factory":
+                factory = store.coefficient_set(device, 0)
+                if factory is None or _same_bands(factory["bands"], before["bands"]):
+                    reason = "already runs its factory set"
+                    self._record(rollout, device, "unchanged", now, before=running, reason=reason)
+                    return
+                self.service.publish_bands(device, factory["bands"], restores_version=0, reason=why, then=started)
+            else:
+                result = self.service.fit(device, min_band_samples=spec.change.min_band_samples)
+                if result is None or not result.changed:
+                    reason = "the refit changes nothing"
+                    self._record(rollout, device, "unchanged", now, before=running, reason=reason)
+                    return
+                self.service.publish_fit(device, result, reason=why, then=started)
         except RolloutStopped:
             log.info("rollout stopped while it started a device", extra={"rollout": rollout, "device": device})
-
-    def _publish_change(self, rollout, spec, device, running, before, why, started, now) -> None:
-        """The rollout's change as a new set for the device (`started` records it, in the set's transaction)."""
-        service, store = self.service, self.store
-        if spec.change.kind == "reset_to_factory":
-            factory = store.coefficient_set(device, 0)
-            if factory is None or _same_bands(factory["bands"], before["bands"]):
-                self._record(rollout, device, "unchanged", now, before=running, reason="already runs its factory set")
-                return
-            service.publish_bands(device, factory["bands"], restores_version=0, reason=why, then=started)
-        else:
-            result = service.fit(device, min_band_samples=spec.change.min_band_samples)
-            if result is None or not result.changed:
-                self._record(rollout, device, "unchanged", now, before=running, reason="the refit changes nothing")
-                return
-            service.publish_fit(device, result, reason=why, then=started)
 
     def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float) -> None:
         device, version = d["device"], d["version"]

@@ -321,12 +321,12 @@ class FleetService:
         """The steps whose move no set has made yet, pending again as the monitor's alarm left them: the process
         that raised one kept its move in memory only, so a restart or a partition handed over lost it, and the
         drive ran the set from before the step until band memory refilled (a day, for a drive that dwells)."""
-        newest: dict[str, dict] = {}
+        newest: dict[str, dict] = {}  # device -> its newest open step alarm
         for cause in STEP_CAUSES:
             for alarm in self.store.alarms(cause=cause, open_=True, limit=1_000_000):
-                device = alarm["device"]
-                if owned(device) and alarm["raised_at"] > newest.get(device, {"raised_at": -math.inf})["raised_at"]:
-                    newest[device] = alarm
+                known = newest.get(alarm["device"])
+                if owned(alarm["device"]) and (known is None or alarm["raised_at"] > known["raised_at"]):
+                    newest[alarm["device"]] = alarm
         for device, alarm in newest.items():
             since = self.store.versions_since(device, alarm["raised_at"])
             if any(self._bands_made_at(device, v) >= alarm["raised_at"] for v in since):

@@ -1013,7 +1013,8 @@ class Store:
 
     def max_seq(self, device: str) -> int:
         """Highest window seq stored (0 when none): where an agent's catch-up resumes."""
-        return self._rows("SELECT coalesce(max(seq), 0) AS s FROM windows WHERE device = ?", (device,))[0]["s"]
+        last = self.last_window(device)
+        return last[0] if last else 0
 
     @staticmethod
     def _window(r: sqlite3.Row, stats: bool) -> dict:
