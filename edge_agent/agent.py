@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
+import msgspec
 import numpy as np
 import zenoh
 
@@ -80,6 +81,8 @@ class EdgeAgent:
         self.resume_end: float | None = None  # the service's last window end, when it is past the outbox's
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
+        self.start_seq = self.seq  # what the outbox knew at start: the windows after it are this process's
+        self.resumed = False  # whether the service has said where it stands (resume_after_service)
         self.counters = AgentCounters()
         self.inbox: queue.Queue[bytes] = queue.Queue()
         self.pending_ack: int | None = None
@@ -104,31 +107,71 @@ class EdgeAgent:
         self.resume_after_service()
         self.ask_for_set()
 
-    def resume_after_service(self) -> None:
+    def resume_after_service(self, reply: bytes | None = None) -> None:
         """An agent whose outbox was lost (a new disk, a container without its volume) would number its windows
         from 1 again and start its drive clock at 0: the service, which has those seqs, refuses every window as a
         seq conflict until the count passes its own. Where the service has stored more of us than the outbox
-        remembers, go on after its last window, seq and drive time."""
-        replies = self._get(self.keys["received"])
-        if not replies:
-            return  # no service yet: the outbox is all we know
+        remembered at start, go on after its last window, seq and drive time. Asked at start; when the service
+        was away then, answered by the first watermark reply, and the windows numbered meanwhile are renumbered
+        (`reply`: that watermark reply)."""
+        if reply is None:
+            replies = self._get(self.keys["received"])
+            if not replies:
+                return  # no service yet: the outbox is all we know (sync asks again)
+            reply = replies[0]
         try:
-            last = wire.parse_resume_point(replies[0], self.device)
+            last = wire.parse_resume_point(reply, self.device)
+            contiguous, _ = wire.parse_watermark_reply(reply, self.device)
         except wire.WireError as exc:
             log.warning("%s: %s", self.device, exc)
             return
-        if last is not None and last[0] > self.seq:
-            # seqs from the service's contiguous watermark, time after its newest window: a gap (windows lost
-            # with the outbox) is filled by new ones, or the watermark and the monitor would wait at it forever;
-            # a new window that lands on a seq the service has past the gap is refused as a seq conflict
-            contiguous, _ = wire.parse_watermark_reply(replies[0], self.device)
-            log.warning(
-                "%s: the service has windows up to seq %d (contiguous to %d, drive clock %.1f s), the outbox only "
-                "up to %d: going on from seq %d (outbox lost or replaced?)",
-                self.device, last[0], contiguous, last[1], self.seq, contiguous + 1,
-            )  # fmt: skip
-            self.seq = max(self.seq, contiguous)
-            self.resume_end = last[1]
+        self.resumed = True
+        if last is None or last[0] <= self.start_seq or self._numbered_here(*last):
+            return
+        # seqs from the service's contiguous watermark, time after its newest window: a gap (windows lost with
+        # the outbox) is filled by new ones, or the watermark and the monitor would wait at it forever; a new
+        # window that lands on a seq the service has past the gap is refused as a seq conflict
+        first = max(self.start_seq, contiguous)
+        log.warning(
+            "%s: the service has windows up to seq %d (contiguous to %d, drive clock %.1f s), the outbox only "
+            "up to %d: going on from seq %d (outbox lost or replaced?)",
+            self.device, last[0], contiguous, last[1], self.start_seq, first + 1,
+        )  # fmt: skip
+        self.resume_end = last[1]
+        if self.seq == self.start_seq:  # nothing numbered yet: the next window is the first after the service's
+            self.seq = first
+            return
+        # windows numbered while the service was away: moved after the service's, in seq and in drive time
+        shift_seq, shift_t = first - self.start_seq, [0.0]
+
+        def moved(rows: list[tuple[int, bytes]]) -> list[tuple[int, bytes, float]]:
+            wins = [wire.decode_window(payload, key_device=self.device) for _, payload in rows]
+            shift_t[0] = max(0.0, last[1] - wins[0].window_start + RESUME_GAP_S)
+            wins = [
+                msgspec.structs.replace(
+                    w,
+                    seq=w.seq + shift_seq,
+                    window_start=w.window_start + shift_t[0],
+                    window_end=w.window_end + shift_t[0],
+                )
+                for w in wins
+            ]
+            return [(w.seq, wire.encode_window(w), w.window_end) for w in wins]
+
+        renumbered = self.outbox.renumber_after(self.start_seq, moved)
+        if not renumbered:  # all dropped from a full outbox: the windows to come follow the service's newest
+            shift_t[0] = max(0.0, last[1] - (self.outbox.last_window_end() or 0.0) + RESUME_GAP_S)
+        self.seq += shift_seq
+        self.time_offset = (self.time_offset or 0.0) + shift_t[0]  # the windows still to come follow them
+        log.warning("%s: %d window(s) numbered while the service was away moved after its own", self.device, renumbered)
+
+    def _numbered_here(self, seq: int, window_end: float) -> bool:
+        """Whether the service's newest window is one this process numbered (its puts arrived while its
+        questions went unanswered), not one of a lost outbox's."""
+        if seq > self.seq:
+            return False
+        payload = self.outbox.window(seq)
+        return payload is not None and wire.decode_window(payload, key_device=self.device).window_end == window_end
 
     def ask_for_set(self) -> None:
         """Ask the service for our set; when it has none (or is not there), tell it what the factory wrote.
@@ -259,6 +302,8 @@ class EdgeAgent:
         except wire.WireError as exc:
             log.warning("%s: %s", self.device, exc)
             return False
+        if not self.resumed:
+            self.resume_after_service(replies[0])
         if not self.service_has_set:
             self.ask_for_set()
         self.outbox.confirm_through(watermark, acked)
@@ -412,6 +457,7 @@ def temp_rate(block: Samples) -> float:
     return float(np.polyfit(t - t[0], temp, 1)[0])
 
 
+RESUME_GAP_S = 1e-3  # drive time between the service's newest window and the first one renumbered after it
 MAX_VERSION = 2**53 - 1  # the schemas' bound: an ack can carry no larger version
 
 

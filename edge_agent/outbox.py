@@ -72,6 +72,30 @@ class Outbox:
                 self._set_meta("dropped", self.dropped)
             self.db.execute("COMMIT")
 
+    def window(self, seq: int) -> bytes | None:
+        """The payload of window `seq`, None when the outbox does not hold it."""
+        with self.lock:
+            row = self.db.execute("SELECT payload FROM outbox WHERE seq = ?", (seq,)).fetchone()
+            return None if row is None else bytes(row[0])
+
+    def renumber_after(self, seq: int, rewrite) -> int:
+        """Replace every window after `seq` by what `rewrite([(seq, payload), ...]) -> [(seq, payload, window_end),
+        ...]` makes of them, in one transaction (windows an agent numbered before it learnt where the service
+        stands). Returns how many it rewrote."""
+        with self.lock:
+            rows = self.db.execute("SELECT seq, payload FROM outbox WHERE seq > ? ORDER BY seq", (seq,)).fetchall()
+            if not rows:
+                return 0
+            new = rewrite([(int(s), bytes(p)) for s, p in rows])  # before the transaction: a failure changes nothing
+            self.db.execute("BEGIN")
+            self.db.execute("DELETE FROM outbox WHERE seq > ?", (seq,))
+            self.db.executemany("INSERT INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", [n[:2] for n in new])
+            self._set_meta("last_seq", max(n[0] for n in new))
+            self._set_meta("last_window_end", max(n[2] for n in new))
+            self.db.execute("COMMIT")
+            self._sent = {k: t for k, t in self._sent.items() if not (k[0] == "window" and k[1] > seq)}
+            return len(new)
+
     def last_window_end(self) -> float | None:
         """The drive clock at the end of the newest window ever issued (a restarted drive continues past it)."""
         with self.lock:
