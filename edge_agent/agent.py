@@ -81,8 +81,10 @@ class EdgeAgent:
         self.resume_end: float | None = None  # the service's last window end, when it is past the outbox's
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
-        self.start_seq = self.seq  # what the outbox knew at start: the windows after it are this process's
-        self.resumed = False  # whether the service has said where it stands (resume_after_service)
+        # the windows after start_seq were numbered with no word from the service (by this process, or by one
+        # that stopped before the service answered): they are not sent until it has said where it stands
+        self.start_seq = outbox.unresumed_after()
+        self.resumed = False
         self.counters = AgentCounters()
         self.inbox: queue.Queue[bytes] = queue.Queue()
         self.pending_ack: int | None = None
@@ -111,9 +113,9 @@ class EdgeAgent:
         """An agent whose outbox was lost (a new disk, a container without its volume) would number its windows
         from 1 again and start its drive clock at 0: the service, which has those seqs, refuses every window as a
         seq conflict until the count passes its own. Where the service has stored more of us than the outbox
-        remembered at start, go on after its last window, seq and drive time. Asked at start; when the service
-        was away then, answered by the first watermark reply, and the windows numbered meanwhile are renumbered
-        (`reply`: that watermark reply)."""
+        knew, go on after its last window, seq and drive time. Asked at start; when the service is away then, the
+        first watermark reply answers it (`reply`), and the windows numbered meanwhile, kept back until then,
+        are moved after the service's."""
         if reply is None:
             replies = self._get(self.keys["received"])
             if not replies:
@@ -125,8 +127,9 @@ class EdgeAgent:
         except wire.WireError as exc:
             log.warning("%s: %s", self.device, exc)
             return
-        self.resumed = True
-        if last is None or last[0] <= self.start_seq or self._numbered_here(*last):
+        if last is None or last[0] <= self.start_seq:
+            self.outbox.resumed()
+            self.resumed = True
             return
         # seqs from the service's contiguous watermark, time after its newest window: a gap (windows lost with
         # the outbox) is filled by new ones, or the watermark and the monitor would wait at it forever; a new
@@ -138,40 +141,30 @@ class EdgeAgent:
             self.device, last[0], contiguous, last[1], self.start_seq, first + 1,
         )  # fmt: skip
         self.resume_end = last[1]
-        if self.seq == self.start_seq:  # nothing numbered yet: the next window is the first after the service's
-            self.seq = first
-            return
-        # windows numbered while the service was away: moved after the service's, in seq and in drive time
-        shift_seq, shift_t = first - self.start_seq, [0.0]
+        shift_t = [0.0]
 
         def moved(rows: list[tuple[int, bytes]]) -> list[tuple[int, bytes, float]]:
+            # numbered on from `first` (windows a full outbox dropped leave no gap), after the service's newest
             wins = [wire.decode_window(payload, key_device=self.device) for _, payload in rows]
             shift_t[0] = max(0.0, last[1] - wins[0].window_start + RESUME_GAP_S)
             wins = [
                 msgspec.structs.replace(
-                    w,
-                    seq=w.seq + shift_seq,
-                    window_start=w.window_start + shift_t[0],
-                    window_end=w.window_end + shift_t[0],
+                    w, seq=first + i, window_start=w.window_start + shift_t[0], window_end=w.window_end + shift_t[0]
                 )
-                for w in wins
+                for i, w in enumerate(wins, start=1)
             ]
             return [(w.seq, wire.encode_window(w), w.window_end) for w in wins]
 
-        renumbered = self.outbox.renumber_after(self.start_seq, moved)
-        if not renumbered:  # all dropped from a full outbox: the windows to come follow the service's newest
-            shift_t[0] = max(0.0, last[1] - (self.outbox.last_window_end() or 0.0) + RESUME_GAP_S)
-        self.seq += shift_seq
-        self.time_offset = (self.time_offset or 0.0) + shift_t[0]  # the windows still to come follow them
-        log.warning("%s: %d window(s) numbered while the service was away moved after its own", self.device, renumbered)
-
-    def _numbered_here(self, seq: int, window_end: float) -> bool:
-        """Whether the service's newest window is one this process numbered (its puts arrived while its
-        questions went unanswered), not one of a lost outbox's."""
-        if seq > self.seq:
-            return False
-        payload = self.outbox.window(seq)
-        return payload is not None and wire.decode_window(payload, key_device=self.device).window_end == window_end
+        moved_count = self.outbox.resumed(moved)
+        self.seq = first + moved_count
+        if moved_count:  # the windows still to come follow the moved ones
+            self.time_offset = (self.time_offset or 0.0) + shift_t[0]
+            log.warning(
+                "%s: %d window(s) numbered while the service was away moved after its own", self.device, moved_count
+            )
+        else:  # nothing numbered yet: the drive clock is set again at the next block, after resume_end
+            self.time_offset = None
+        self.resumed = True
 
     def ask_for_set(self) -> None:
         """Ask the service for our set; when it has none (or is not there), tell it what the factory wrote.
@@ -258,8 +251,9 @@ class EdgeAgent:
             return True
         self.seq += 1
         self.outbox.add(self.seq, payload, window_end=msg["window_end"])
-        self.put(self.keys["stats"], payload)
-        self.outbox.mark_sent([("window", self.seq)], self.clock())
+        if self.resumed:  # before the service has said where it stands, a window's seq and time may still move
+            self.put(self.keys["stats"], payload)
+            self.outbox.mark_sent([("window", self.seq)], self.clock())
         self.counters.windows += 1
         self.sync()
         return True
@@ -304,6 +298,8 @@ class EdgeAgent:
             return False
         if not self.resumed:
             self.resume_after_service(replies[0])
+            if not self.resumed:
+                return False
         if not self.service_has_set:
             self.ask_for_set()
         self.outbox.confirm_through(watermark, acked)

@@ -72,28 +72,46 @@ class Outbox:
                 self._set_meta("dropped", self.dropped)
             self.db.execute("COMMIT")
 
-    def window(self, seq: int) -> bytes | None:
-        """The payload of window `seq`, None when the outbox does not hold it."""
+    def unresumed_after(self) -> int:
+        """The seq after which windows were numbered with no word from the service yet (kept on disk, so that a
+        restart before the service answers still knows which windows may have to move): set at first call."""
         with self.lock:
-            row = self.db.execute("SELECT payload FROM outbox WHERE seq = ?", (seq,)).fetchone()
-            return None if row is None else bytes(row[0])
+            value = self._meta("unresumed_after", None)
+            if value is None:
+                value = max(
+                    int(self._meta("last_seq", 0)), self.db.execute("SELECT max(seq) FROM outbox").fetchone()[0] or 0
+                )
+                self._set_meta("unresumed_after", value)
+            return int(value)
 
-    def renumber_after(self, seq: int, rewrite) -> int:
-        """Replace every window after `seq` by what `rewrite([(seq, payload), ...]) -> [(seq, payload, window_end),
-        ...]` makes of them, in one transaction (windows an agent numbered before it learnt where the service
-        stands). Returns how many it rewrote."""
+    def resumed(self, rewrite=None) -> int:
+        """The service has said where it stands: the windows numbered since `unresumed_after` are replaced by what
+        `rewrite([(seq, payload), ...]) -> [(seq, payload, window_end), ...]` makes of them (when given), in one
+        transaction with forgetting the mark. Returns how many it rewrote."""
         with self.lock:
-            rows = self.db.execute("SELECT seq, payload FROM outbox WHERE seq > ? ORDER BY seq", (seq,)).fetchall()
-            if not rows:
-                return 0
-            new = rewrite([(int(s), bytes(p)) for s, p in rows])  # before the transaction: a failure changes nothing
+            after = self._meta("unresumed_after", None)
+            rows = (
+                []
+                if after is None or rewrite is None
+                else self.db.execute("SELECT seq, payload FROM outbox WHERE seq > ? ORDER BY seq", (after,)).fetchall()
+            )
+            new = rewrite([(int(s), bytes(p)) for s, p in rows]) if rows else []  # a failure here changes nothing
             self.db.execute("BEGIN")
-            self.db.execute("DELETE FROM outbox WHERE seq > ?", (seq,))
-            self.db.executemany("INSERT INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", [n[:2] for n in new])
-            self._set_meta("last_seq", max(n[0] for n in new))
-            self._set_meta("last_window_end", max(n[2] for n in new))
-            self.db.execute("COMMIT")
-            self._sent = {k: t for k, t in self._sent.items() if not (k[0] == "window" and k[1] > seq)}
+            try:
+                if new:
+                    self.db.execute("DELETE FROM outbox WHERE seq > ?", (after,))
+                    self.db.executemany(
+                        "INSERT INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", [n[:2] for n in new]
+                    )
+                    self._set_meta("last_seq", max(n[0] for n in new))
+                    self._set_meta("last_window_end", max(n[2] for n in new))
+                self.db.execute("DELETE FROM meta WHERE key = 'unresumed_after'")
+                self.db.execute("COMMIT")
+            except BaseException:
+                self.db.execute("ROLLBACK")
+                raise
+            if new:
+                self._sent = {k: t for k, t in self._sent.items() if not (k[0] == "window" and k[1] > int(after))}
             return len(new)
 
     def last_window_end(self) -> float | None:

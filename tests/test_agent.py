@@ -289,8 +289,8 @@ def test_an_agent_that_lost_its_outbox_fills_the_service_s_gap_first(setup, tmp_
     assert by_seq[4]["window_start"] > by_seq[5]["window_end"]  # the new seq 4 after the old seq 5, in drive time
 
 
-def _three_minutes(seed: int = SEED, t0: float = 0.0):
-    """Three minutes of a drive from a clock that starts at `t0`."""
+def _three_minutes(seed: int = SEED):
+    """Three minutes of a drive, its clock from 0."""
     import numpy as np
 
     from edge_agent.sources import ReplaySource
@@ -298,16 +298,17 @@ def _three_minutes(seed: int = SEED, t0: float = 0.0):
     from encoder_core.simulator import simulate
 
     rng = np.random.default_rng(seed)
-    t = np.arange(0.0, 180.0, 0.05) + t0
+    t = np.arange(0.0, 180.0, 0.05)
     s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
     return lambda: ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c))
 
 
-def test_an_agent_that_lost_its_outbox_while_the_service_was_away_renumbers_what_it_numbered(setup, tmp_path):
+def test_an_agent_that_lost_its_outbox_while_the_service_was_away_moves_what_it_numbered(setup, tmp_path):
     """The outbox lost and the service away at start (a site's power back, the drive's controller up before the
-    network): the agent could not ask where to go on, numbered its windows from 1 and restarted the drive clock.
-    Every one of them was a seq conflict for good once the service was back. Now the first watermark reply moves
-    the windows numbered meanwhile after the service's newest, in seq and drive time, and they are stored."""
+    network): the agent could not ask where to go on, numbered its windows from 1 and restarted the drive clock on
+    the same grid of sample times. Every one of them was a seq conflict for good once the service was back. Now
+    those windows wait in the outbox (a restart meanwhile included), and the first watermark reply moves them all
+    after the service's newest, in seq and drive time."""
     store, router, client, factory, _, service = setup
     first = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(tmp_path / "first.sqlite"), factory)
     first.start()
@@ -316,12 +317,17 @@ def test_an_agent_that_lost_its_outbox_while_the_service_was_away_renumbers_what
     assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
     service.stop()  # the service away
 
-    later = _three_minutes(SEED + 1, t0=0.02)()  # the drive's clock from 0 again, its samples not the same
-    agent = EdgeAgent(DEVICE, later, client, Outbox(tmp_path / "new.sqlite"), factory)
+    later = _three_minutes(SEED + 1)  # the drive's clock from 0 again, its samples not the same
+    outbox = tmp_path / "new.sqlite"
+    before_restart = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
+    before_restart.start()
+    assert before_restart.step() and before_restart.step()
+    before_restart.close()  # stopped before the service was back: its two windows wait in the outbox
+    agent = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
     agent.start()
     while agent.step():
         pass
-    assert agent.counters.offline_syncs == 3 and agent.seq == 3 and len(agent.outbox) == 3
+    assert agent.seq == 5 and len(agent.outbox) == 5 and len(store.windows(DEVICE)) == 3
 
     back = FleetService(store, router, refit_interval_s=0).start()
     try:
@@ -330,16 +336,15 @@ def test_an_agent_that_lost_its_outbox_while_the_service_was_away_renumbers_what
         agent.close()
         back.stop()
     stored = store.windows(DEVICE)
-    assert [w["seq"] for w in stored] == [1, 2, 3, 4, 5, 6]
+    assert [w["seq"] for w in stored] == list(range(1, 9))
     assert all(b["window_start"] > a["window_end"] for a, b in zip(stored, stored[1:]))
-    assert store.dead_letters() == [] and agent.seq == 6
+    assert store.dead_letters() == [] and agent.seq == 8
     assert agent.outbox.last_window_end() == stored[-1]["window_end"]
 
 
-def test_windows_that_arrived_while_the_agent_s_questions_went_unanswered_are_not_renumbered(setup, tmp_path):
-    """The other way the service can hold more than the outbox knew at start: this process's own windows
-    arrived while its watermark questions did not. Taking them for a lost outbox's would renumber the rest past
-    them and leave a gap in the seqs for ever."""
+def test_windows_numbered_before_the_service_answers_are_sent_once_it_has(setup, tmp_path):
+    """An agent whose questions go unanswered keeps its windows back (their seq and time may still have to move)
+    and sends them once the service has said where it stands: nothing is refused, nothing renumbered."""
     store, _, client, factory, _, _ = setup
     source = _three_minutes()
     outbox = tmp_path / "kept.sqlite"
@@ -351,11 +356,13 @@ def test_windows_that_arrived_while_the_agent_s_questions_went_unanswered_are_no
 
     agent = EdgeAgent(DEVICE, source(), client, Outbox(outbox), factory)
     asked = agent._get
-    agent._get = lambda key: None  # the questions lost on the way, the windows not
+    agent._get = lambda key: None  # the questions lost on the way
     agent.start()
     while agent.step():
         pass
-    assert wait_for(lambda: len(store.windows(DEVICE)) == 6) and not agent.resumed
+    assert not agent.resumed and len(agent.outbox) == 3
+    time.sleep(0.5)
+    assert len(store.windows(DEVICE)) == 3  # held back
     agent._get = asked
     try:
         assert agent.drain()
