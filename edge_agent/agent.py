@@ -122,11 +122,15 @@ class EdgeAgent:
                 return  # no service yet: the outbox is all we know (sync asks again)
             reply = replies[0]
         try:
-            last = wire.parse_resume_point(reply, self.device)
             contiguous, _ = wire.parse_watermark_reply(reply, self.device)
         except wire.WireError as exc:
             log.warning("%s: %s", self.device, exc)
             return
+        try:
+            last = wire.parse_resume_point(reply, self.device)
+        except wire.WireError as exc:  # a watermark all the same: go on as with a service that names no resume point
+            log.warning("%s: %s", self.device, exc)
+            last = None
         if last is None or last[0] <= self.start_seq:
             self.outbox.resumed()
             self.resumed = True
@@ -157,12 +161,13 @@ class EdgeAgent:
 
         moved_count = self.outbox.resumed(moved)
         self.seq = first + moved_count
-        if moved_count:  # the windows still to come follow the moved ones
-            self.time_offset = (self.time_offset or 0.0) + shift_t[0]
+        if moved_count:
             log.warning(
                 "%s: %d window(s) numbered while the service was away moved after its own", self.device, moved_count
             )
-        else:  # nothing numbered yet: the drive clock is set again at the next block, after resume_end
+        if moved_count and self.time_offset is not None:  # this process's windows to come follow the moved ones
+            self.time_offset += shift_t[0]
+        else:  # set at the next block, after the newest of the moved windows (the outbox's) and the service's
             self.time_offset = None
         self.resumed = True
 

@@ -370,3 +370,54 @@ def test_windows_numbered_before_the_service_answers_are_sent_once_it_has(setup,
         agent.close()
     assert [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3, 4, 5, 6] and agent.seq == 6
     assert store.dead_letters() == []
+
+
+def test_held_windows_moved_at_the_next_start_are_followed_by_that_process_s_own(setup, tmp_path):
+    """The outbox lost and the service away: a process numbers two windows, holds them and stops; the service is
+    back when the next one starts. Its windows follow the two it moved at start, in seq and in drive time (a
+    second reader's script stored the same stretch of drive time twice: the clock started at 0 again)."""
+    store, router, client, factory, _, service = setup
+    first = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(tmp_path / "first.sqlite"), factory)
+    first.start()
+    first.run()
+    first.close()
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
+    service.stop()
+    later, outbox = _three_minutes(SEED + 1), tmp_path / "new.sqlite"
+    away = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
+    away.start()
+    assert away.step() and away.step()
+    away.close()
+    back = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        agent = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
+        agent.start()
+        assert agent.resumed and agent.seq == 5
+        agent.run()
+        agent.close()
+    finally:
+        back.stop()
+    stored = store.windows(DEVICE)
+    assert [w["seq"] for w in stored] == list(range(1, 9)) and store.dead_letters() == []
+    assert all(b["window_start"] > a["window_end"] for a, b in zip(stored, stored[1:]))
+
+
+def test_a_watermark_with_a_bad_resume_point_still_lets_windows_go(setup, tmp_path):
+    """A reply whose resume point is unusable (its window end null) is still a watermark: the agent goes on as
+    with a service that names none, and does not hold its windows back for ever."""
+    store, _, client, factory, _, _ = setup
+    agent = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(tmp_path / "o.sqlite"), factory)
+    asked = agent._get
+
+    def spoiled(key):
+        replies = asked(key)
+        if replies and key == agent.keys["received"]:
+            body = json.loads(replies[0])
+            replies = [json.dumps({**body, "max_seq": 1, "last_window_end": None}).encode()]
+        return replies
+
+    agent._get = spoiled
+    agent.start()
+    agent.run()
+    agent.close()
+    assert agent.resumed and [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3] and len(agent.outbox) == 0
