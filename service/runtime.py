@@ -45,6 +45,7 @@ BURST_PER_KEY = 2_000.0  # … and at once (a catch-up resends at most 500 per s
 # liveliness, factory sets and queries waiting for the control thread: a process's whole share of tokens at
 # start (each item is a reference, not a payload)
 MAX_CONTROL = 200_000
+LAG_RETRY_AFTER_S = 86_400.0  # a lag refused this long before the agent came back online is offered again
 MAX_ALIVE_UNKNOWN = 10_000  # liveliness tokens of devices not yet heard from, remembered for when they speak
 # drive hours a band's sum remembers: short enough to follow a step within half a day, long enough for the
 # drift model that pools all bands (bench-fleet-accuracy: 12 h beat 24 h and a week at 0.5 and 20 Hz)
@@ -730,10 +731,14 @@ class FleetService:
 
     def _lag_refused(self, device: str) -> bool:
         """The device's agent refused a set for carrying `thermal_lag_s` (its schema is older than the field:
-        docs/wire.md); it is sent no lag again."""
+        docs/wire.md): it is sent no lag again, until it has come back online (restarted, perhaps upgraded) more
+        than a day after refusing (an upgraded agent takes the lag; one still old refuses once more and is rolled
+        back once more; a token that flaps with the network does not make it ask every time)."""
+        back = self.store.online_since(device)
+        since = None if back is None else min(back, time.time() - LAG_RETRY_AFTER_S)
         return any(
             "thermal_lag_s" in r["reason"] and ("unexpected" in r["reason"] or "unknown field" in r["reason"])
-            for r in self.store.refusals(device)
+            for r in self.store.refusals(device, since=since)
         )
 
     def _correction(self, device: str, version: int) -> BandedCorrection | None:

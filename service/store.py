@@ -668,6 +668,8 @@ class Store:
         now = time.time() if at is None else at
         with self._tx() as c:
             self._touch(c, device, now)
+            if online:  # back after being gone: perhaps another agent (FleetService._lag_refused)
+                c.execute("UPDATE devices SET online_since = ? WHERE id = ? AND online = 0", (now, device))
             c.execute("UPDATE devices SET online = ? WHERE id = ?", (int(bool(online)), device))
 
     # --- refit and rollout ------------------------------------------------------------------
@@ -915,15 +917,17 @@ class Store:
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
-    def refusals(self, device: str) -> list[dict]:
+    def refusals(self, device: str, *, since: float | None = None) -> list[dict]:
         """The sets the device's agent refused and never applied (acks with status rejected, none applied: a
         forged or damaged copy refused before the real one was applied does not count): {version, reason}, oldest
-        first."""
+        first; `since`: only refusals received after it (service clock)."""
         rows = self._rows(
-            "SELECT version, reason FROM acks a WHERE device = ? AND status = 'rejected' AND NOT EXISTS "
+            "SELECT version, reason FROM acks a WHERE device = ? AND status = 'rejected' "
+            + ("" if since is None else "AND received_at > ? ")
+            + "AND NOT EXISTS "
             "(SELECT 1 FROM acks b WHERE b.device = a.device AND b.version = a.version AND b.status = 'applied') "
             "ORDER BY id",
-            (device,),
+            (device,) if since is None else (device, since),
         )
         return [{"version": r["version"], "reason": r["reason"] or ""} for r in rows]
 
@@ -983,6 +987,11 @@ class Store:
 
     def device_ids(self) -> list[str]:
         return [r["id"] for r in self._rows("SELECT id FROM devices ORDER BY id")]
+
+    def online_since(self, device: str) -> float | None:
+        """When the device's liveliness token last came back after being gone (service clock; None: not seen)."""
+        rows = self._rows("SELECT online_since FROM devices WHERE id = ?", (device,))
+        return rows[0]["online_since"] if rows else None
 
     def device(self, device: str) -> dict | None:
         rows = self._rows(self._DEVICE_SQL + " WHERE d.id = ?", (device,))

@@ -162,3 +162,31 @@ def test_an_agent_older_than_the_lag_refuses_it_once_and_is_sent_none_again(flee
     assert history[2]["restores_version"] == 0 and "thermal_lag_s" not in history[2]["message"]  # it can run it
     assert service.monitor.thermal_lag(DEVICE) is not None  # the windows still measure the lag ...
     assert service.publish_lag(DEVICE) is None  # ... but this drive's agent is not sent it again
+
+
+def test_an_agent_that_refused_the_lag_is_offered_it_again_once_it_came_back_a_day_later(fleet):
+    """An agent older than the lag refused it and got none since; upgraded, it restarts (its liveliness token goes
+    and comes back). A day after the refusal the lag is offered again; a token that merely flaps soon after the
+    refusal does not make the service ask again."""
+    import time
+
+    store, service = fleet
+    stored_drive_with_hidden_lag(store, service)
+    assert service.refit_all() == [1]
+    refusal = "coefficients message: $: Additional properties are not allowed ('thermal_lag_s' was unexpected)"
+    ack = wire.ack_message(DEVICE, 1, "rejected", service._drive_now(DEVICE), reason=refusal)
+    store.insert_ack(ack, received_at=time.time() - 2 * 86_400)  # refused two days ago
+    service._changed.add(DEVICE)
+    assert service.refit_all() == [2]  # rolled back, no lag
+    assert service.publish_lag(DEVICE) is None  # still the agent that refused: no lag
+    store.set_online(DEVICE, True)
+    store.set_online(DEVICE, False)
+    store.set_online(DEVICE, True)  # restarted (upgraded)
+    version = service.publish_lag(DEVICE)
+    assert version == 3 and store.coefficient_set(DEVICE, 3)["thermal_lag_s"] > 0
+
+    again = wire.ack_message(DEVICE, 3, "rejected", service._drive_now(DEVICE), reason=refusal)
+    store.insert_ack(again)  # still old after all: refused just now
+    store.set_online(DEVICE, False)
+    store.set_online(DEVICE, True)  # the token flaps
+    assert service.publish_lag(DEVICE) is None
