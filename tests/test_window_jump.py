@@ -1,10 +1,12 @@
-"""An offset step as small as the smallest planted in bench-fleet-accuracy, on drives that show the circle: named
-within minutes by the window jump test (the monitor's `offset_jump`), sized, and nothing raised on the same drives
-without it. The offset CUSUM alone, whose reference is half its `step_min` (0.25 % of the amplitude), took 3-75
-minutes for these steps (s3-20hz-11-reverse: 0.29 %, named ageing, the pre-step set ran 2.6 hours, two of them
-worse than the factory's). Drives from the independent simulator (encoder_fleet/fieldsim.py); the step's time,
-size (0.25-0.3 % of the amplitude), sign and channel are drawn from the seed, and the monitor sees only window
-statistics."""
+"""The monitor's window-to-window jump test (`encoder_core.monitor.WindowJump`) on drives from the independent
+simulator (encoder_fleet/fieldsim.py): each step's time, size, sign and channel are drawn from the seed, and the
+monitor sees only window statistics.
+
+An offset step as small as the smallest planted in bench-fleet-accuracy, on drives that show the circle: named
+within minutes by the jump test on each channel's offset (the monitor's `offset_jump`), sized, and nothing raised on
+the same drives without it. The offset CUSUM alone, whose reference is half its `step_min` (0.25 % of the
+amplitude), took 3-75 minutes for these steps (s3-20hz-11-reverse: 0.29 %, named ageing, the pre-step set ran
+2.6 hours, two of them worse than the factory's)."""
 
 from __future__ import annotations
 
