@@ -303,6 +303,15 @@ def _three_minutes(seed: int = SEED):
     return lambda: ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c))
 
 
+def _first_three_windows(store, client, factory, outbox_path) -> None:
+    """Three minutes of the drive through an agent and its outbox, stored by the service."""
+    first = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(outbox_path), factory)
+    first.start()
+    first.run()
+    first.close()
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
+
+
 def test_an_agent_that_lost_its_outbox_while_the_service_was_away_moves_what_it_numbered(setup, tmp_path):
     """The outbox lost and the service away at start (a site's power back, the drive's controller up before the
     network): the agent could not ask where to go on, numbered its windows from 1 and restarted the drive clock on
@@ -310,11 +319,7 @@ def test_an_agent_that_lost_its_outbox_while_the_service_was_away_moves_what_it_
     those windows wait in the outbox (a restart meanwhile included), and the first watermark reply moves them all
     after the service's newest, in seq and drive time."""
     store, router, client, factory, _, service = setup
-    first = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(tmp_path / "first.sqlite"), factory)
-    first.start()
-    first.run()
-    first.close()
-    assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
+    _first_three_windows(store, client, factory, tmp_path / "first.sqlite")
     service.stop()  # the service away
 
     later = _three_minutes(SEED + 1)  # the drive's clock from 0 again, its samples not the same
@@ -346,15 +351,9 @@ def test_windows_numbered_before_the_service_answers_are_sent_once_it_has(setup,
     """An agent whose questions go unanswered keeps its windows back (their seq and time may still have to move)
     and sends them once the service has said where it stands: nothing is refused, nothing renumbered."""
     store, _, client, factory, _, _ = setup
-    source = _three_minutes()
     outbox = tmp_path / "kept.sqlite"
-    first = EdgeAgent(DEVICE, source(), client, Outbox(outbox), factory)
-    first.start()
-    first.run()
-    first.close()
-    assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
-
-    agent = EdgeAgent(DEVICE, source(), client, Outbox(outbox), factory)
+    _first_three_windows(store, client, factory, outbox)
+    agent = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(outbox), factory)
     asked = agent._get
     agent._get = lambda key: None  # the questions lost on the way
     agent.start()
@@ -377,11 +376,7 @@ def test_held_windows_moved_at_the_next_start_are_followed_by_that_process_s_own
     back when the next one starts. Its windows follow the two it moved at start, in seq and in drive time (a
     second reader's script stored the same stretch of drive time twice: the clock started at 0 again)."""
     store, router, client, factory, _, service = setup
-    first = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(tmp_path / "first.sqlite"), factory)
-    first.start()
-    first.run()
-    first.close()
-    assert wait_for(lambda: len(store.windows(DEVICE)) == 3)
+    _first_three_windows(store, client, factory, tmp_path / "first.sqlite")
     service.stop()
     later, outbox = _three_minutes(SEED + 1), tmp_path / "new.sqlite"
     away = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
