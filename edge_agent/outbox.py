@@ -53,8 +53,11 @@ class Outbox:
     def last_seq(self) -> int:
         """Highest sequence number ever issued, so a restarted agent continues the series."""
         with self.lock:
-            row = self.db.execute("SELECT max(seq) FROM outbox").fetchone()
-            return max(int(self._meta("last_seq", 0)), row[0] or 0)
+            return self._last_seq()
+
+    def _last_seq(self) -> int:
+        row = self.db.execute("SELECT max(seq) FROM outbox").fetchone()
+        return max(int(self._meta("last_seq", 0)), row[0] or 0)
 
     def add(self, seq: int, payload: bytes, *, window_end: float | None = None) -> None:
         with self.lock:
@@ -78,9 +81,7 @@ class Outbox:
         with self.lock:
             value = self._meta("unresumed_after", None)
             if value is None:
-                value = max(
-                    int(self._meta("last_seq", 0)), self.db.execute("SELECT max(seq) FROM outbox").fetchone()[0] or 0
-                )
+                value = self._last_seq()
                 self._set_meta("unresumed_after", value)
             return int(value)
 
