@@ -222,24 +222,29 @@ def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_pa
     agent.close()
 
 
-def test_an_agent_that_lost_its_outbox_goes_on_after_the_service_s_last_window(setup, tmp_path, caplog):
-    """A drive's agent restarted with a new, empty outbox (its disk replaced): it numbered its windows from 1 and
-    restarted the drive clock, and the service refused each as a seq conflict with the windows it had. Now the
-    agent asks the service where it stands and goes on after its last window, in seq and in drive time."""
+def _replay(seed: int = SEED, seconds: float = 180.0):
+    """A replayable stretch of a drive (three minutes by default), its clock from 0."""
     import numpy as np
 
     from edge_agent.sources import ReplaySource
     from encoder_core.samples import Samples
     from encoder_core.simulator import simulate
 
-    store, _, client, factory, _, _ = setup
-    rng = np.random.default_rng(SEED)
-    t = np.arange(0.0, 180.0, 0.05)
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, 0.05)
     s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
+    return lambda: ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c))
+
+
+def test_an_agent_that_lost_its_outbox_goes_on_after_the_service_s_last_window(setup, tmp_path, caplog):
+    """A drive's agent restarted with a new, empty outbox (its disk replaced): it numbered its windows from 1 and
+    restarted the drive clock, and the service refused each as a seq conflict with the windows it had. Now the
+    agent asks the service where it stands and goes on after its last window, in seq and in drive time."""
+    store, _, client, factory, _, _ = setup
+    replay = _replay()
     runs = []
     for name in ("first-outbox", "new-outbox"):  # the same three minutes of drive clock, twice
-        agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c)), client,
-                          Outbox(tmp_path / f"{name}.sqlite"), factory)  # fmt: skip
+        agent = EdgeAgent(DEVICE, replay(), client, Outbox(tmp_path / f"{name}.sqlite"), factory)
         agent.start()
         runs.append(agent.run())
         agent.close()
@@ -256,18 +261,9 @@ def test_an_agent_that_lost_its_outbox_fills_the_service_s_gap_first(setup, tmp_
     missing for good: the watermark and the drift monitor stop at 3. The agent goes on from the contiguous
     watermark instead (its new window fills 4; the one that lands on 5 is refused as a seq conflict), in drive
     time after the service's newest window."""
-    import numpy as np
-
-    from edge_agent.sources import ReplaySource
-    from encoder_core.samples import Samples
-    from encoder_core.simulator import simulate
-
     store, _, client, factory, _, _ = setup
-    rng = np.random.default_rng(SEED)
-    t = np.arange(0.0, 300.0, 0.05)
-    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
-    first = Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c)
-    agent = EdgeAgent(DEVICE, ReplaySource(first), client, Outbox(tmp_path / "lost.sqlite"), factory)
+    first = _replay(seconds=300.0)
+    agent = EdgeAgent(DEVICE, first(), client, Outbox(tmp_path / "lost.sqlite"), factory)
     agent.start()
     sent = []
     agent.put = lambda key, payload: sent.append((key, payload))  # the windows leave the agent, then the outbox goes
@@ -278,7 +274,7 @@ def test_an_agent_that_lost_its_outbox_fills_the_service_s_gap_first(setup, tmp_
         if key == agent.keys["stats"] and wire.decode_window(payload, key_device=DEVICE).seq != 4:
             client.put(key, payload)
     assert wait_for(lambda: [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3, 5])
-    again = EdgeAgent(DEVICE, ReplaySource(first), client, Outbox(tmp_path / "new.sqlite"), factory)
+    again = EdgeAgent(DEVICE, first(), client, Outbox(tmp_path / "new.sqlite"), factory)
     again.start()
     assert again.seq == 3
     again.run()
@@ -289,23 +285,9 @@ def test_an_agent_that_lost_its_outbox_fills_the_service_s_gap_first(setup, tmp_
     assert by_seq[4]["window_start"] > by_seq[5]["window_end"]  # the new seq 4 after the old seq 5, in drive time
 
 
-def _three_minutes(seed: int = SEED):
-    """Three minutes of a drive, its clock from 0."""
-    import numpy as np
-
-    from edge_agent.sources import ReplaySource
-    from encoder_core.samples import Samples
-    from encoder_core.simulator import simulate
-
-    rng = np.random.default_rng(seed)
-    t = np.arange(0.0, 180.0, 0.05)
-    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
-    return lambda: ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=s.temp_c))
-
-
 def _first_three_windows(store, client, factory, outbox_path) -> None:
     """Three minutes of the drive through an agent and its outbox, stored by the service."""
-    first = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(outbox_path), factory)
+    first = EdgeAgent(DEVICE, _replay()(), client, Outbox(outbox_path), factory)
     first.start()
     first.run()
     first.close()
@@ -322,7 +304,7 @@ def test_an_agent_that_lost_its_outbox_while_the_service_was_away_moves_what_it_
     _first_three_windows(store, client, factory, tmp_path / "first.sqlite")
     service.stop()  # the service away
 
-    later = _three_minutes(SEED + 1)  # the drive's clock from 0 again, its samples not the same
+    later = _replay(SEED + 1)  # the drive's clock from 0 again, its samples not the same
     outbox = tmp_path / "new.sqlite"
     before_restart = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
     before_restart.start()
@@ -353,7 +335,7 @@ def test_windows_numbered_before_the_service_answers_are_sent_once_it_has(setup,
     store, _, client, factory, _, _ = setup
     outbox = tmp_path / "kept.sqlite"
     _first_three_windows(store, client, factory, outbox)
-    agent = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(outbox), factory)
+    agent = EdgeAgent(DEVICE, _replay()(), client, Outbox(outbox), factory)
     asked = agent._get
     agent._get = lambda key: None  # the questions lost on the way
     agent.start()
@@ -378,7 +360,7 @@ def test_held_windows_moved_at_the_next_start_are_followed_by_that_process_s_own
     store, router, client, factory, _, service = setup
     _first_three_windows(store, client, factory, tmp_path / "first.sqlite")
     service.stop()
-    later, outbox = _three_minutes(SEED + 1), tmp_path / "new.sqlite"
+    later, outbox = _replay(SEED + 1), tmp_path / "new.sqlite"
     away = EdgeAgent(DEVICE, later(), client, Outbox(outbox), factory)
     away.start()
     assert away.step() and away.step()
@@ -401,7 +383,7 @@ def test_a_watermark_with_a_bad_resume_point_still_lets_windows_go(setup, tmp_pa
     """A reply whose resume point is unusable (its window end null) is still a watermark: the agent goes on as
     with a service that names none, and does not hold its windows back for ever."""
     store, _, client, factory, _, _ = setup
-    agent = EdgeAgent(DEVICE, _three_minutes()(), client, Outbox(tmp_path / "o.sqlite"), factory)
+    agent = EdgeAgent(DEVICE, _replay()(), client, Outbox(tmp_path / "o.sqlite"), factory)
     asked = agent._get
 
     def spoiled(key):

@@ -15,6 +15,7 @@ from encoder_core.stats import normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from encoder_fleet.fleet_accuracy import windows_of
+from tests.monitor_runs import offset_step_alarms
 
 SEEDS = range(4)
 
@@ -26,30 +27,12 @@ def dwelling_drive(seed: int, event: str | None):
     return phys, factory, fieldsim.field_run(phys, days=1.0, rate_hz=20.0, regime="dwell", rng=rng)
 
 
-def offset_step_alarms(run, factory) -> tuple[list[float], int]:
-    """Drive times of every offset_step raised (each cleared at once, so that every one is counted), and how many
-    windows the ellipse could judge."""
-    scale = normalisation_scale(factory)
-    monitor, raised = DeviceMonitor("holding"), []
-    for start, end in windows_of(run.samples.t, 60.0):
-        stats = window_stats(run.samples.subset(slice(start, end)), scale)
-        if not stats.temp_n:
-            continue
-        end_s = float(run.samples.t[end - 1])
-        features = window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean))
-        for event in monitor.update(features):
-            if event.kind == "raise" and event.cause == "offset_step":
-                raised.append(end_s)
-                monitor.clear("offset_step", end_s, "counted")
-    return raised, monitor.judged
-
-
 def test_offset_steps_are_named_where_the_drive_holds_positions_and_clean_drives_stay_quiet():
     named = 0
     for seed in SEEDS:
         phys, factory, run = dwelling_drive(seed, "offset_step")
         step = phys.events[0].t_s
-        raised, _ = offset_step_alarms(run, factory)
+        raised = [t for t, _ in offset_step_alarms(run, factory)[0]]
         assert not [t for t in raised if t < step], (seed, step, raised)  # nothing before the step
         named += any(step <= t <= step + 3600 for t in raised)
         _, clean_factory, clean = dwelling_drive(seed, None)

@@ -12,12 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from encoder_core.monitor import DeviceMonitor, window_features
-from encoder_core.physics import band_of
-from encoder_core.stats import normalisation_scale, window_stats
+from encoder_core.stats import normalisation_scale
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from encoder_fleet.fleet_accuracy import windows_of
+from tests.monitor_runs import offset_step_alarms
 
 SEEDS = range(4)
 WINDOW_S = 60.0
@@ -42,33 +40,16 @@ def small_step_drive(seed: int, stepped: bool):
     return phys, factory, fieldsim.field_run(phys, days=1.0, rate_hz=20.0, regime=regime, rng=rng)
 
 
-def offset_steps(run, factory) -> list[tuple[float, dict]]:
-    """(drive time, parameters) of every offset_step raised, each cleared at once so that every one counts."""
-    scale = normalisation_scale(factory)
-    monitor, raised = DeviceMonitor("small-step"), []
-    for start, end in windows_of(run.samples.t, WINDOW_S):
-        stats = window_stats(run.samples.subset(slice(start, end)), scale)
-        if not stats.temp_n:
-            continue
-        end_s = float(run.samples.t[end - 1])
-        features = window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean))
-        for event in monitor.update(features):
-            if event.kind == "raise" and event.cause == "offset_step":
-                raised.append((end_s, event.parameters))
-                monitor.clear("offset_step", end_s, "counted")
-    return raised
-
-
 def test_a_small_offset_step_is_named_within_minutes_and_sized_and_clean_drives_stay_quiet():
     for seed in SEEDS:
         phys, factory, run = small_step_drive(seed, stepped=True)
         step = phys.events[0]
         truth = np.array([step.d_offset, step.q_offset]) / normalisation_scale(factory)
-        raised = offset_steps(run, factory)
+        raised, _ = offset_step_alarms(run, factory, WINDOW_S)
         assert len(raised) == 1, (seed, step, raised)
         (at, params) = raised[0]
         assert step.t_s <= at <= step.t_s + 4 * WINDOW_S, (seed, step.t_s, at)  # within four windows
         measured = np.array([params["delta_d"], params["delta_q"]])
         assert np.hypot(*(measured - truth)) < 0.25 * np.hypot(*truth), (seed, measured, truth)
         _, clean_factory, clean = small_step_drive(seed, stepped=False)
-        assert offset_steps(clean, clean_factory) == [], seed
+        assert offset_step_alarms(clean, clean_factory, WINDOW_S)[0] == [], seed

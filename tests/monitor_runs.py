@@ -1,0 +1,26 @@
+"""The drift monitor run over a simulated drive's windows, for the monitor tests."""
+
+from __future__ import annotations
+
+from encoder_core.monitor import DeviceMonitor, window_features
+from encoder_core.physics import band_of
+from encoder_core.stats import normalisation_scale, window_stats
+from encoder_fleet.fleet_accuracy import windows_of
+
+
+def offset_step_alarms(run, factory, window_s: float = 60.0) -> tuple[list[tuple[float, dict]], int]:
+    """(drive time, parameters) of every offset_step raised (each cleared at once, so that every one is counted),
+    and how many windows the ellipse could judge."""
+    scale = normalisation_scale(factory)
+    monitor, raised = DeviceMonitor("under-test"), []
+    for start, end in windows_of(run.samples.t, window_s):
+        stats = window_stats(run.samples.subset(slice(start, end)), scale)
+        if not stats.temp_n:
+            continue
+        end_s = float(run.samples.t[end - 1])
+        features = window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean))
+        for event in monitor.update(features):
+            if event.kind == "raise" and event.cause == "offset_step":
+                raised.append((end_s, event.parameters))
+                monitor.clear("offset_step", end_s, "counted")
+    return raised, monitor.judged
