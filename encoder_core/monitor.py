@@ -73,11 +73,18 @@ class Settings:
     # false step on the independent simulator's 96 drive-runs nor on bench-monitor's seeds 1-3)
     jump_model_sd: float = 0.0002  # added to that: what the slope in temperature leaves between windows
     jump_slope_prior: float = 0.002  # per kelvin: the slope before any pair of windows has shown it
-    jump_match_s: float = 1800.0  # two windows this close in drive time ...
-    jump_match_c: float = 3.0  # ... and in temperature are compared
+    jump_match_s: float = 3600.0  # two windows this close in drive time ...
+    jump_match_c: float = 10.0  # ... and in temperature are compared (s6-20hz-07's 0.59 % axis turn came inside
+    # 40 minutes of an 84° arc, 9 °C apart; compared within 30 min and 3 °C, it went unnamed for a day) ...
+    jump_learn_s: float = 1800.0  # ... and teach the slope when this close (learnt from pairs 10 °C apart, the
+    jump_learn_c: float = 3.0  # slope took the die's lag in: a 0.35 % gain step at 0.5 Hz measured 27 % large)
     jump_max_gap_bins: int = N_BINS // 16  # ... when each saw the whole circle but this many bins (of 64): with a
     # quarter turn unseen, clean reversing drives raised 5 gain steps of 0.3-0.4 % on 8 fleets
     jump_max_rejected: float = 0.001  # ... and each rejected no more than this share of its samples as spikes
+    arc_min_bins: int = 24  # windows through part of the circle: the same steps judged pair by pair over the angle
+    # bins both saw (arc_shape_change), at least this many (135°; s4-20hz-07's 0.54 % axis turn fell inside a
+    # stretch of 230-270° arcs and went unnamed for a day, its drive worse than its factory set for an hour) ...
+    arc_max_sd: float = 0.001  # ... when the pair measures the change this well
     held_step_min: float = 0.003  # a jump of the held positions worth an alarm, fraction of amplitude (they move
     # ~0.0004 per °C, and up to 0.002 in minutes with the die's lag: a jump is judged against a visit within
     # held_match_c and held_match_s; at 0.0015, clean 0.5 Hz drives raised an alarm every few hours)
@@ -134,6 +141,7 @@ class Features:
     start: float | None = None
     temp_rate: float = 0.0
     lag_used_s: float = 0.0
+    bins: np.ndarray | None = None  # the window's angle bins (WindowStats.bins), for arc_shape_change
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -213,6 +221,75 @@ def _shape_per_bin(
     return shape if all(math.isfinite(v) for v in shape) else None
 
 
+@dataclass(frozen=True)
+class RadialProfile:
+    """A window's locus along the circle, for arc_shape_change: which of the 64 angle bins it saw, and for those, in
+    order of angle, each bin's count, mean angle and mean r² − 1 (x² + y², the locus normalised to a unit circle)."""
+
+    seen: np.ndarray  # bool per angle bin
+    index: np.ndarray  # the bins seen, in order of mean angle
+    count: np.ndarray
+    angle: np.ndarray  # rad, ascending
+    r2: np.ndarray
+
+    @classmethod
+    def of(cls, bins: np.ndarray) -> RadialProfile:
+        seen = bins[:, 0] > 0
+        index = np.flatnonzero(seen)
+        b = bins[index]
+        n = b[:, 0]
+        angle = np.arctan2(b[:, 2] / n, b[:, 1] / n)
+        order = np.argsort(angle)
+        return cls(seen, index[order], n[order], angle[order], ((b[:, 3] + b[:, 5]) / n - 1.0)[order])
+
+
+def arc_shape_change(
+    before: RadialProfile, after: RadialProfile, min_bins: int
+) -> tuple[float, float, float, float] | None:
+    """(Δ gain ratio, Δ skew, their standard errors) from one window to the next, over the part of the circle both
+    saw. A drive reversing over an arc gives no ellipse of its own (which part it saw biases the fit), but two
+    windows through the same arc share that bias. A small affine change of the channels, p → (I + M)p + c with
+    M = [[k + g, s], [s, k − g]], changes r² of the normalised locus at angle φ by
+    2·(k + g·cos 2φ + s·sin 2φ + c·(cos φ, sin φ)); the ellipse's gain ratio then moves by 2g and its skew by −2s
+    (to first order). Each shared bin's mean r² is compared with the first window's at the same angle (interpolated
+    along its bins: a shaft lingering elsewhere inside a bin moves nothing), all five terms fitted together by
+    weighted least squares, the errors from the fit's own residuals. None: fewer than min_bins bins shared, or a fit
+    without three spare degrees."""
+    m = before.angle.size
+    if m < 2 or after.angle.size < min_bins:
+        return None
+    # the bin of `before` on either side of each of `after`'s angles, around the circle
+    ang = np.concatenate([before.angle[-1:] - math.tau, before.angle, before.angle[:1] + math.tau])
+    hi = np.searchsorted(ang, after.angle).clip(1, m + 1)
+    lo = hi - 1
+    span = ang[hi] - ang[lo]
+    shared = before.seen[after.index] & (span <= 2 * math.tau / N_BINS) & (span > 0)
+    if np.count_nonzero(shared) < min_bins:
+        return None
+    lo, hi, span, phi = lo[shared], hi[shared], span[shared], after.angle[shared]
+    a = (phi - ang[lo]) / span
+    lo, hi = (lo - 1) % m, (hi - 1) % m  # positions in `before`'s own arrays
+    r2_before = (1 - a) * before.r2[lo] + a * before.r2[hi]
+    n_before = 1.0 / ((1 - a) ** 2 / before.count[lo] + a**2 / before.count[hi])
+    u = after.r2[shared] - r2_before  # = 2·(k + g·cos 2φ + ...): the fit's cos 2φ term is 2g, its sin 2φ term 2s
+    sw = np.sqrt(1.0 / (1.0 / after.count[shared] + 1.0 / n_before))
+    c1, s1 = np.cos(phi), np.sin(phi)
+    xw = np.stack([np.ones_like(phi), c1 * c1 - s1 * s1, 2 * s1 * c1, c1, s1], axis=1) * sw[:, None]
+    uw = u * sw
+    dof = uw.size - 5
+    if dof < 3:
+        return None
+    try:
+        inverse = np.linalg.inv(xw.T @ xw)
+    except np.linalg.LinAlgError:
+        return None
+    beta = inverse @ (xw.T @ uw)
+    residual = uw - xw @ beta
+    variance = float(residual @ residual) / dof
+    out = (float(beta[1]), float(-beta[2]), math.sqrt(variance * inverse[1, 1]), math.sqrt(variance * inverse[2, 2]))
+    return out if all(math.isfinite(v) for v in out) else None
+
+
 def largest_gap_bins(stats: WindowStats) -> int:
     """The longest run of empty angle bins around the circle (N_BINS when the window saw nothing)."""
     seen = np.flatnonzero(stats.bins[:, 0] > 0)
@@ -247,6 +324,7 @@ def window_features(
         centre = np.array([stats.center_d, stats.center_q])
         f.held = [[*((p - centre) / stats.scale).tolist(), math.sqrt(v) / stats.scale] for p, v in held]
     f.gap_bins = largest_gap_bins(stats)
+    f.bins = stats.bins
     if n < MIN_FIT_SAMPLES or f.gap_bins > MAX_GAP_BINS:
         return f
     fit = _ellipse(stats)
@@ -530,6 +608,8 @@ class WindowJump:
         decay = math.exp(-(t - prev[2]) / s.rate_tau_s)
         dt_c, dy = temp - prev[1], y - prev[0]
         learnt = [decay * self.slope[0] + dt_c * dt_c, decay * self.slope[1] + dt_c * dy]
+        if t - prev[2] > s.jump_learn_s or abs(dt_c) > s.jump_learn_c:
+            learnt = list(self.slope)  # a pair this far apart is judged, but teaches nothing of the slope
         if self.pending is None:
             if moving:  # the level before the jump: two windows back, in case the step began inside the last one,
                 # and the slope from before that window's pair too (a step inside it tilted the slope: 2 Hz, 600 s
@@ -590,6 +670,12 @@ class DeviceMonitor:
     step_sum: list = field(default_factory=lambda: [0.0, 0.0])  # Σ (e - level) while the step CUSUM climbs
     gain_jump: WindowJump = field(default_factory=WindowJump)  # the amplitude ratio log(d/q), window to window
     axis_jump: WindowJump = field(default_factory=WindowJump)  # the axes' skew, window to window
+    arc_gain_jump: WindowJump = field(default_factory=WindowJump)  # the same two through arcs (_arc_steps), judged
+    arc_axis_jump: WindowJump = field(default_factory=WindowJump)  # on the sum of their pairs' changes (arc_level)
+    arc_level: list = field(default_factory=lambda: [0.0, 0.0])
+    # the last window's [end, temperature, gap_bins, bins, RadialProfile or None], in memory only: after a restart
+    # the chain of pairs starts again
+    arc_last: tuple | None = field(default=None, repr=False, compare=False)
     offset_jump: list = field(default_factory=lambda: [WindowJump(), WindowJump()])  # d's and q's offset, likewise
     rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
     rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
@@ -639,6 +725,9 @@ class DeviceMonitor:
             "step_sum": self.step_sum,
             "gain_jump": asdict(self.gain_jump),
             "axis_jump": asdict(self.axis_jump),
+            "arc_gain_jump": asdict(self.arc_gain_jump),
+            "arc_axis_jump": asdict(self.arc_axis_jump),
+            "arc_level": self.arc_level,
             "offset_jump": [asdict(j) for j in self.offset_jump],
             "rates": self.rates.to_dict(),
             "rate_cusum": {k: v.to_dict() for k, v in self.rate_cusum.items()},
@@ -675,6 +764,9 @@ class DeviceMonitor:
             step_sum=d["step_sum"],
             gain_jump=WindowJump(**d.get("gain_jump", {})),  # states stored before these steps were judged: new
             axis_jump=WindowJump(**d.get("axis_jump", {})),
+            arc_gain_jump=WindowJump(**d.get("arc_gain_jump", {})),
+            arc_axis_jump=WindowJump(**d.get("arc_axis_jump", {})),
+            arc_level=d.get("arc_level", [0.0, 0.0]),
             offset_jump=[WindowJump(**j) for j in d.get("offset_jump", [{}, {}])],
             rates=EwRegression.from_dict(d["rates"]),
             rate_cusum={k: Cusum.from_dict(v) for k, v in d["rate_cusum"].items()},
@@ -741,6 +833,8 @@ class DeviceMonitor:
         self._fractions(f, dt, events)
         if f.held:
             self._held_step(f, events)
+        if f.bins is not None:
+            self._arc_steps(f, events)
         if f.y is not None:
             self._shape_steps(f, events)
             self._shape(f, fleet, events)
@@ -956,17 +1050,7 @@ class DeviceMonitor:
         ratio, skew, sd = f.ratio_skew
         gain = self.gain_jump.update(ratio, sd, f.temp_c, f.t, s.gain_step_min, s)
         axis = self.axis_jump.update(skew, sd, f.temp_c, f.t, s.axis_step_min, s)
-        for name, step, param in (("axis_step", axis, "delta_skew"), ("gain_step", gain, "delta_imbalance")):
-            if step is not None:
-                parameters = {param: round(step[0], 6)}
-                self._raise(
-                    events,
-                    name,
-                    f.t,
-                    parameters,
-                    f"{cause_of(name).state(**parameters)} between two windows and held there, "
-                    f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
-                )
+        self._shape_stepped(f, events, gain, axis, "between two windows", arc=False)
         offsets = [j.update(float(f.y[i]), float(f.sigma[i]), f.temp_c, f.t, s.offset_jump_min, s)
                    for i, j in enumerate(self.offset_jump)]  # fmt: skip
         if any(o is not None for o in offsets) and self.level is not None:
@@ -982,8 +1066,59 @@ class DeviceMonitor:
                 f"(band {f.band}).",
             )
             self._offset_stepped(np.array(delta))
+
+    def _arc_steps(self, f: Features, events) -> None:
+        """The gain and axis steps of _shape_steps where a window saw only part of the circle (a drive reversing
+        over an arc): each window against the one before it over the angles both saw (arc_shape_change), the
+        changes summed along the chain of pairs into a level that the same window-to-window test judges."""
+        s = self.settings
+        last, self.arc_last = self.arc_last, [f.t, f.temp_c, f.gap_bins, f.bins, None]
+        chained = last is not None and f.t - last[0] <= s.jump_match_s
+        got = None
+        if chained and max(f.gap_bins, last[2]) > s.jump_max_gap_bins:  # two whole circles: _shape_steps judges
+            if f.rejected["outlier"] + f.rejected["clipped"] <= s.jump_max_rejected * max(f.seen, 1):
+                before = last[4] if last[4] is not None else RadialProfile.of(last[3])
+                self.arc_last[4] = after = RadialProfile.of(f.bins)
+                got = arc_shape_change(before, after, s.arc_min_bins)
+        if got is None or max(got[2], got[3]) > s.arc_max_sd:
+            self.arc_gain_jump, self.arc_axis_jump = WindowJump(), WindowJump()  # the chain breaks
+            return
+        d_ratio, d_skew, sd_ratio, sd_skew = got
+        # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
+        sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
+        if not self.arc_axis_jump.recent:  # a new chain begins at the pair's first window (a step in this pair counts)
+            self.arc_gain_jump.update(self.arc_level[0], sd_ratio, last[1], last[0], s.gain_step_min, s)
+            self.arc_axis_jump.update(self.arc_level[1], sd_skew, last[1], last[0], s.axis_step_min, s)
+        self.arc_level = [self.arc_level[0] + d_ratio, self.arc_level[1] + d_skew]
+        gain = self.arc_gain_jump.update(self.arc_level[0], sd_ratio, f.temp_c, f.t, s.gain_step_min, s)
+        axis = self.arc_axis_jump.update(self.arc_level[1], sd_skew, f.temp_c, f.t, s.axis_step_min, s)
+        self._shape_stepped(f, events, gain, axis, "between two windows through the same arc", arc=True)
+
+    def _shape_stepped(self, f: Features, events, gain: tuple | None, axis: tuple | None, how: str, arc: bool) -> None:
+        """Raise what a gain or axis WindowJump found (`arc`: the arcs' pair, else the whole circles'); the other
+        pair of tests starts over, so that one step gives one alarm (and one move of the running set)."""
+        for name, step, param in (("axis_step", axis, "delta_skew"), ("gain_step", gain, "delta_imbalance")):
+            if step is not None:
+                parameters = {param: round(step[0], 6)}
+                self._raise(
+                    events,
+                    name,
+                    f.t,
+                    parameters,
+                    f"{cause_of(name).state(**parameters)} {how} and held there, "
+                    f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
+                )
+        if axis is not None:
+            if arc:
+                self.axis_jump = WindowJump()
+            else:
+                self.arc_axis_jump = WindowJump()
         if gain is None:
             return
+        if arc:
+            self.gain_jump = WindowJump()
+        else:
+            self.arc_gain_jump = WindowJump()
         if self.level is not None:
             level = list(self.level)
             level[_IMB] += gain[0]

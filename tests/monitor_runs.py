@@ -11,6 +11,11 @@ from encoder_fleet.fleet_accuracy import windows_of
 def offset_step_alarms(run, factory, window_s: float = 60.0) -> tuple[list[tuple[float, dict]], int]:
     """(drive time, parameters) of every offset_step raised (each cleared at once, so that every one is counted),
     and how many windows the ellipse could judge."""
+    return step_alarms(run, factory, window_s, "offset_step")
+
+
+def step_alarms(run, factory, window_s: float, cause: str) -> tuple[list[tuple[float, dict]], int]:
+    """offset_step_alarms for any cause."""
     scale = normalisation_scale(factory)
     monitor, raised = DeviceMonitor("under-test"), []
     for start, end in windows_of(run.samples.t, window_s):
@@ -20,7 +25,7 @@ def offset_step_alarms(run, factory, window_s: float = 60.0) -> tuple[list[tuple
         end_s = float(run.samples.t[end - 1])
         features = window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean))
         for event in monitor.update(features):
-            if event.kind == "raise" and event.cause == "offset_step":
+            if event.kind == "raise" and event.cause == cause:
                 raised.append((end_s, event.parameters))
-                monitor.clear("offset_step", end_s, "counted")
+                monitor.clear(cause, end_s, "counted")
     return raised, monitor.judged
