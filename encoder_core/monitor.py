@@ -670,12 +670,13 @@ class DeviceMonitor:
     step_sum: list = field(default_factory=lambda: [0.0, 0.0])  # Σ (e - level) while the step CUSUM climbs
     gain_jump: WindowJump = field(default_factory=WindowJump)  # the amplitude ratio log(d/q), window to window
     axis_jump: WindowJump = field(default_factory=WindowJump)  # the axes' skew, window to window
-    arc_gain_jump: WindowJump = field(default_factory=WindowJump)  # the same two through arcs (_arc_steps), judged
-    arc_axis_jump: WindowJump = field(default_factory=WindowJump)  # on the sum of their pairs' changes (arc_level)
-    arc_level: list = field(default_factory=lambda: [0.0, 0.0])
-    # the last window's [end, temperature, gap_bins, bins, RadialProfile or None], in memory only: after a restart
-    # the chain of pairs starts again
-    arc_last: tuple | None = field(default=None, repr=False, compare=False)
+    # the same two through arcs (_arc_steps), judged on the sum of their pairs' changes (arc_level), and the last
+    # window [end, temperature, gap_bins, bins, RadialProfile or None, spiky]: in memory only, as the chain of pairs
+    # needs the last window's bins (after a restart the chain starts again)
+    arc_gain_jump: WindowJump = field(default_factory=WindowJump, repr=False, compare=False)
+    arc_axis_jump: WindowJump = field(default_factory=WindowJump, repr=False, compare=False)
+    arc_level: list = field(default_factory=lambda: [0.0, 0.0], repr=False, compare=False)
+    arc_last: list | None = field(default=None, repr=False, compare=False)
     offset_jump: list = field(default_factory=lambda: [WindowJump(), WindowJump()])  # d's and q's offset, likewise
     rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
     rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
@@ -725,9 +726,6 @@ class DeviceMonitor:
             "step_sum": self.step_sum,
             "gain_jump": asdict(self.gain_jump),
             "axis_jump": asdict(self.axis_jump),
-            "arc_gain_jump": asdict(self.arc_gain_jump),
-            "arc_axis_jump": asdict(self.arc_axis_jump),
-            "arc_level": self.arc_level,
             "offset_jump": [asdict(j) for j in self.offset_jump],
             "rates": self.rates.to_dict(),
             "rate_cusum": {k: v.to_dict() for k, v in self.rate_cusum.items()},
@@ -764,9 +762,6 @@ class DeviceMonitor:
             step_sum=d["step_sum"],
             gain_jump=WindowJump(**d.get("gain_jump", {})),  # states stored before these steps were judged: new
             axis_jump=WindowJump(**d.get("axis_jump", {})),
-            arc_gain_jump=WindowJump(**d.get("arc_gain_jump", {})),
-            arc_axis_jump=WindowJump(**d.get("arc_axis_jump", {})),
-            arc_level=d.get("arc_level", [0.0, 0.0]),
             offset_jump=[WindowJump(**j) for j in d.get("offset_jump", [{}, {}])],
             rates=EwRegression.from_dict(d["rates"]),
             rate_cusum={k: Cusum.from_dict(v) for k, v in d["rate_cusum"].items()},
@@ -804,7 +799,8 @@ class DeviceMonitor:
         loads += [c.load for c in self.frac.values()]
         recent_absurd = self.last_absurd_t is not None and self.last_t is not None
         recent_absurd = recent_absurd and self.last_t - self.last_absurd_t < self.settings.clear_after_s
-        return "watch" if max(loads) >= 0.5 or recent_absurd or self.gain_jump.pending is not None else "ok"
+        pending = self.gain_jump.pending is not None or self.arc_gain_jump.pending is not None
+        return "watch" if max(loads) >= 0.5 or recent_absurd or pending else "ok"
 
     def rate_estimates(self) -> dict[str, float] | None:
         """This device's current |offset rate| and amplitude loss per day, for the fleet's distribution."""
@@ -1012,7 +1008,7 @@ class DeviceMonitor:
             w = 1.0 - math.exp(-max(dt, 0.0) / s.level_tau_s)
             level[_OFF] += w * jump
             level[_AMP] += w * (e[_AMP] - level[_AMP])
-            if self.gain_jump.pending is None:
+            if self.gain_jump.pending is None and self.arc_gain_jump.pending is None:
                 level[_IMB] += w * (e[_IMB] - level[_IMB])
             self.level = list(level)
         self.level_t = f.t
@@ -1072,11 +1068,12 @@ class DeviceMonitor:
         over an arc): each window against the one before it over the angles both saw (arc_shape_change), the
         changes summed along the chain of pairs into a level that the same window-to-window test judges."""
         s = self.settings
-        last, self.arc_last = self.arc_last, [f.t, f.temp_c, f.gap_bins, f.bins, None]
+        spiky = f.rejected["outlier"] + f.rejected["clipped"] > s.jump_max_rejected * max(f.seen, 1)
+        last, self.arc_last = self.arc_last, [f.t, f.temp_c, f.gap_bins, f.bins, None, spiky]
         chained = last is not None and f.t - last[0] <= s.jump_match_s
         got = None
         if chained and max(f.gap_bins, last[2]) > s.jump_max_gap_bins:  # two whole circles: _shape_steps judges
-            if f.rejected["outlier"] + f.rejected["clipped"] <= s.jump_max_rejected * max(f.seen, 1):
+            if not (spiky or last[5]):  # spikes too small to reject move the bins too
                 before = last[4] if last[4] is not None else RadialProfile.of(last[3])
                 self.arc_last[4] = after = RadialProfile.of(f.bins)
                 got = arc_shape_change(before, after, s.arc_min_bins)
@@ -1086,8 +1083,11 @@ class DeviceMonitor:
         d_ratio, d_skew, sd_ratio, sd_skew = got
         # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
         sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
-        if not self.arc_axis_jump.recent:  # a new chain begins at the pair's first window (a step in this pair counts)
+        # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
+        # the whole circle named resets one of them
+        if not self.arc_gain_jump.recent:
             self.arc_gain_jump.update(self.arc_level[0], sd_ratio, last[1], last[0], s.gain_step_min, s)
+        if not self.arc_axis_jump.recent:
             self.arc_axis_jump.update(self.arc_level[1], sd_skew, last[1], last[0], s.axis_step_min, s)
         self.arc_level = [self.arc_level[0] + d_ratio, self.arc_level[1] + d_skew]
         gain = self.arc_gain_jump.update(self.arc_level[0], sd_ratio, f.temp_c, f.t, s.gain_step_min, s)

@@ -5,9 +5,12 @@ seed, and the monitor sees only window statistics.
 No window shows the whole circle, so no ellipse of its own can be judged: the monitor compares each window with the
 one before it over the angles both saw (`arc_shape_change`). Before it, such a step went unnamed until the drive
 turned whole circles again (s4-20hz-07-reverse: a 0.54 % axis turn inside a stretch of 230-270° arcs, its drive
-worse than its factory set for an hour)."""
+worse than its factory set for an hour). Not every such step is named: on 12 other seeds, 21 of 24 (the three missed,
+0.30-0.38 %, fell inside a window and split over two pairs, each under the bar), so of six a kind four must be."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -21,7 +24,7 @@ from encoder_fleet.fieldsim import FieldRun
 from encoder_fleet.fleet_accuracy import windows_of
 from tests.monitor_runs import step_alarms
 
-SEEDS = range(3)
+SEEDS = range(6)
 WINDOW_S = 60.0
 DAYS = 0.5
 
@@ -32,12 +35,13 @@ def arc_drive(seed: int, kind: str | None):
     rng = np.random.default_rng([707, seed])
     phys = fieldsim.draw_drive(rng, days=DAYS)
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    sign = rng.choice([-1.0, 1.0])
+    # drawn whatever the kind, so that the drive without a step is the same drive, sample for sample
+    size = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.003, 0.006))
     at = float(rng.uniform(0.4, 0.7) * DAYS * fieldsim.DAY_S)
     if kind == "axis_step":
-        phys.events.append(fieldsim.Event(at, kind, q_axis=float(sign * rng.uniform(0.003, 0.006))))
+        phys.events.append(fieldsim.Event(at, kind, q_axis=size))
     elif kind == "gain_step":
-        phys.events.append(fieldsim.Event(at, kind, q_gain=float(sign * rng.uniform(0.003, 0.006))))
+        phys.events.append(fieldsim.Event(at, kind, q_gain=size))
     t = fieldsim.sample_times(DAYS, 20.0, rng)
     temp = fieldsim.reported_temperature(t, rng)
     die = fieldsim.lagged_fast(temp, t, phys.die_lag_s)
@@ -57,19 +61,23 @@ def test_arcs_never_show_the_whole_circle():
         assert features.gap_bins > Settings().jump_max_gap_bins
 
 
-def test_a_step_inside_an_arc_is_named_within_minutes_and_sized_and_clean_arcs_stay_quiet():
+def test_steps_inside_arcs_are_named_within_minutes_and_sized_and_clean_arcs_stay_quiet():
     for kind, param, truth_of in (
-        ("axis_step", "delta_skew", lambda ev: ev.q_axis),
-        ("gain_step", "delta_imbalance", lambda ev: ev.q_gain),
+        ("axis_step", "delta_skew", lambda ev: ev.q_axis),  # the skew grows with the q axis' turn
+        ("gain_step", "delta_imbalance", lambda ev: -math.log1p(ev.q_gain)),  # log(d/q): q's gain grew
     ):
+        named = 0
         for seed in SEEDS:
             phys, factory, run = arc_drive(seed, kind)
             step = phys.events[0]
             raised, _ = step_alarms(run, factory, WINDOW_S, kind)
-            assert len(raised) == 1, (kind, seed, step, raised)
-            at, params = raised[0]
-            assert step.t_s <= at <= step.t_s + 4 * WINDOW_S, (kind, seed, step.t_s, at)
-            assert abs(abs(params[param]) - abs(truth_of(step))) < 0.25 * abs(truth_of(step)), (kind, seed, params)
+            assert len(raised) <= 1, (kind, seed, step, raised)
+            if raised:
+                at, params = raised[0]
+                assert step.t_s <= at <= step.t_s + 4 * WINDOW_S, (kind, seed, step.t_s, at)
+                assert abs(params[param] - truth_of(step)) < 0.25 * abs(truth_of(step)), (kind, seed, params)
+                named += 1
+        assert named >= 4, (kind, named)  # 21 of 24 on 12 other seeds; the code before this test: none
     for seed in SEEDS:
         _, factory, clean = arc_drive(seed, None)
         for kind in ("axis_step", "gain_step"):
