@@ -1039,7 +1039,7 @@ class DeviceMonitor:
         s = self.settings
         if f.gap_bins > s.jump_max_gap_bins:
             return  # an ellipse through part of the circle biases the shape by which part (reversing drives)
-        if f.rejected["outlier"] + f.rejected["clipped"] > s.jump_max_rejected * max(f.seen, 1):
+        if self._spiky(f):
             return  # spikes too small to reject tilt the fit too (bench-monitor: a false axis_step on a spiky drive)
         if f.ratio_skew is None:
             return
@@ -1063,12 +1063,16 @@ class DeviceMonitor:
             )
             self._offset_stepped(np.array(delta))
 
+    def _spiky(self, f: Features) -> bool:
+        """More spikes rejected than the shape tests allow: smaller ones, not rejected, tilt the shape too."""
+        return f.rejected["outlier"] + f.rejected["clipped"] > self.settings.jump_max_rejected * max(f.seen, 1)
+
     def _arc_steps(self, f: Features, events) -> None:
         """The gain and axis steps of _shape_steps where a window saw only part of the circle (a drive reversing
         over an arc): each window against the one before it over the angles both saw (arc_shape_change), the
         changes summed along the chain of pairs into a level that the same window-to-window test judges."""
         s = self.settings
-        spiky = f.rejected["outlier"] + f.rejected["clipped"] > s.jump_max_rejected * max(f.seen, 1)
+        spiky = self._spiky(f)
         last, self.arc_last = self.arc_last, [f.t, f.temp_c, f.gap_bins, f.bins, None, spiky]
         chained = last is not None and f.t - last[0] <= s.jump_match_s
         got = None
