@@ -582,11 +582,17 @@ class DriftModel:
     temps: np.ndarray  # the fitted bands' temperatures
 
     @classmethod
-    def fit(cls, fits: list[tuple[float, DriftFit]], bench_c: float, radius: float) -> DriftModel | None:
+    def fit(
+        cls, fits: list[tuple[float, DriftFit]], bench_c: float, radius: float, *, bench_holds: bool = True
+    ) -> DriftModel | None:
         """fits: (band temperature, drift fit) of the bands that have one; None with fewer than two. The bench
-        point is left out when the bands say it no longer holds (a step since the bench)."""
+        point is left out when the bands say it no longer holds (a step since the bench), and when the caller
+        knows it does not (bench_holds=False: the drift monitor named a step since; bands of a drive that
+        dwells bound the drift too loosely to say so themselves)."""
         if len(fits) < 2:
             return None
+        if not bench_holds:
+            return cls._fit(fits, bench_c, radius, bench=False)
         with_bench = cls._fit(fits, bench_c, radius, bench=True)
         if with_bench is not None and with_bench._bench_consistent(fits, bench_c, radius):
             return with_bench

@@ -290,6 +290,18 @@ def arc_shape_change(
     return out if all(math.isfinite(v) for v in out) else None
 
 
+@dataclass
+class ArcWindow:
+    """What the arc test keeps of the last window, to pair it with the next (DeviceMonitor._arc_steps)."""
+
+    t: float  # its end, drive clock (s)
+    temp_c: float
+    gap_bins: int  # its longest run of empty angle bins
+    bins: np.ndarray
+    spiky: bool  # more spikes than the shape tests allow: no pair on either side of it
+    profile: RadialProfile | None = None  # made from `bins` when first paired
+
+
 def largest_gap_bins(stats: WindowStats) -> int:
     """The longest run of empty angle bins around the circle (N_BINS when the window saw nothing)."""
     seen = np.flatnonzero(stats.bins[:, 0] > 0)
@@ -671,12 +683,11 @@ class DeviceMonitor:
     gain_jump: WindowJump = field(default_factory=WindowJump)  # the amplitude ratio log(d/q), window to window
     axis_jump: WindowJump = field(default_factory=WindowJump)  # the axes' skew, window to window
     # the same two through arcs (_arc_steps), judged on the sum of their pairs' changes (arc_level), and the last
-    # window [end, temperature, gap_bins, bins, RadialProfile or None, spiky]: in memory only, as the chain of pairs
-    # needs the last window's bins (after a restart the chain starts again)
+    # window: in memory only, as the chain of pairs needs the last window's bins (after a restart it starts again)
     arc_gain_jump: WindowJump = field(default_factory=WindowJump, repr=False, compare=False)
     arc_axis_jump: WindowJump = field(default_factory=WindowJump, repr=False, compare=False)
     arc_level: list = field(default_factory=lambda: [0.0, 0.0], repr=False, compare=False)
-    arc_last: list | None = field(default=None, repr=False, compare=False)
+    arc_last: ArcWindow | None = field(default=None, repr=False, compare=False)
     offset_jump: list = field(default_factory=lambda: [WindowJump(), WindowJump()])  # d's and q's offset, likewise
     rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
     rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
@@ -1073,13 +1084,13 @@ class DeviceMonitor:
         changes summed along the chain of pairs into a level that the same window-to-window test judges."""
         s = self.settings
         spiky = self._spiky(f)
-        last, self.arc_last = self.arc_last, [f.t, f.temp_c, f.gap_bins, f.bins, None, spiky]
-        chained = last is not None and f.t - last[0] <= s.jump_match_s
+        last, self.arc_last = self.arc_last, ArcWindow(f.t, f.temp_c, f.gap_bins, f.bins, spiky)
+        chained = last is not None and f.t - last.t <= s.jump_match_s
         got = None
-        if chained and max(f.gap_bins, last[2]) > s.jump_max_gap_bins:  # two whole circles: _shape_steps judges
-            if not (spiky or last[5]):  # spikes too small to reject move the bins too
-                before = last[4] if last[4] is not None else RadialProfile.of(last[3])
-                self.arc_last[4] = after = RadialProfile.of(f.bins)
+        if chained and max(f.gap_bins, last.gap_bins) > s.jump_max_gap_bins:  # two whole circles: _shape_steps judges
+            if not (spiky or last.spiky):  # spikes too small to reject move the bins too
+                before = last.profile if last.profile is not None else RadialProfile.of(last.bins)
+                self.arc_last.profile = after = RadialProfile.of(f.bins)
                 got = arc_shape_change(before, after, s.arc_min_bins)
         if got is None or max(got[2], got[3]) > s.arc_max_sd:
             self.arc_gain_jump, self.arc_axis_jump = WindowJump(), WindowJump()  # the chain breaks
@@ -1090,9 +1101,9 @@ class DeviceMonitor:
         # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
         # the whole circle named resets one of them
         if not self.arc_gain_jump.recent:
-            self.arc_gain_jump.update(self.arc_level[0], sd_ratio, last[1], last[0], s.gain_step_min, s)
+            self.arc_gain_jump.update(self.arc_level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
         if not self.arc_axis_jump.recent:
-            self.arc_axis_jump.update(self.arc_level[1], sd_skew, last[1], last[0], s.axis_step_min, s)
+            self.arc_axis_jump.update(self.arc_level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
         self.arc_level = [self.arc_level[0] + d_ratio, self.arc_level[1] + d_skew]
         gain = self.arc_gain_jump.update(self.arc_level[0], sd_ratio, f.temp_c, f.t, s.gain_step_min, s)
         axis = self.arc_axis_jump.update(self.arc_level[1], sd_skew, f.temp_c, f.t, s.axis_step_min, s)

@@ -224,10 +224,51 @@ def _run_size(devices: int, windows: int, workdir: Path, target: str, secure: bo
         store.close()
 
 
+def store_ceilings(devices: int, windows: int, workdir: Path) -> dict:
+    """What bounds windows/s, measured in the same run: the same windows without Zenoh and the publisher, through
+    `Store.ingest_many` in the service's batches (decode, checks, band sums, SQLite), and then the rows it wrote
+    through bare `executemany` into a fresh file with the same schema (SQLite alone, no Python per window)."""
+    from service.runtime import MAX_BATCH
+    from service.store import Store
+
+    encoder = msgspec.msgpack.Encoder()
+    names = [f"bench-{i:05d}" for i in range(devices)]
+    items = [
+        (keys.key(name, keys.STATS), encoder.encode(msgspec.structs.replace(win, device=name)))
+        for win in template_messages(windows)
+        for name in names
+    ]
+    store = Store.open(str(workdir / f"ceiling-store-{devices}.sqlite"))
+    try:
+        start = time.perf_counter()
+        for k in range(0, len(items), MAX_BATCH):
+            store.ingest_many(items[k : k + MAX_BATCH])
+        store_s = time.perf_counter() - start
+        source = store._conn
+        device_rows = [tuple(r) for r in source.execute("SELECT * FROM devices")]
+        window_rows = [tuple(r) for r in source.execute("SELECT * FROM windows ORDER BY rowid")]
+    finally:
+        store.close()
+    bare = Store.open(str(workdir / f"ceiling-sqlite-{devices}.sqlite"))
+    try:
+        conn = bare._conn
+        conn.executemany(f"INSERT INTO devices VALUES ({', '.join('?' * len(device_rows[0]))})", device_rows)
+        insert = f"INSERT INTO windows VALUES ({', '.join('?' * len(window_rows[0]))})"
+        start = time.perf_counter()
+        for k in range(0, len(window_rows), MAX_BATCH):
+            conn.execute("BEGIN IMMEDIATE")
+            conn.executemany(insert, window_rows[k : k + MAX_BATCH])
+            conn.execute("COMMIT")
+        sqlite_s = time.perf_counter() - start
+    finally:
+        bare.close()
+    return {"store_alone_windows_per_s": len(items) / store_s, "sqlite_alone_rows_per_s": len(window_rows) / sqlite_s}
+
+
 def run_bench(
     sizes: list[int], windows_per_device: int, security: str = "both", json_path=None, postgres: str | None = None
 ) -> int:
-    rows = []
+    rows, ceilings = [], []
     modes = {"both": (False, True), "off": (False,), "on": (True,)}[security]
     stores = (None, postgres) if postgres else (None,)
     with tempfile.TemporaryDirectory() as tmp:
@@ -237,6 +278,10 @@ def run_bench(
                     what = ("TLS, ACL, signed sets" if secure else "plain TCP") + (", PostgreSQL" if store_url else "")
                     print(f"… {n} devices × {windows_per_device} windows, {what}", file=sys.stderr, flush=True)
                     rows.append(run_size(n, windows_per_device, Path(tmp), secure=secure, postgres=store_url))
+            print(f"… {n} devices × {windows_per_device} windows: the store alone, then SQLite alone", file=sys.stderr)
+            ceilings.append(
+                {"devices": n, "windows": n * windows_per_device, **store_ceilings(n, windows_per_device, Path(tmp))}
+            )
     print(
         f"\n{'store':>10} {'security':>16} {'devices':>8} {'windows':>9} {'ingest s':>9} {'windows/s':>10}"
         f" {'refit s':>8} {'refits/s':>9}"
@@ -255,10 +300,24 @@ def run_bench(
         "\nmTLS+ACL+signed: TLS with client certificates, the router's ACL of the whole fleet, the service's guard,"
         "\nand every rolled-out set signed (Ed25519)."
     )
+    print(f"\n{'what bounds windows/s (same run, same windows, SQLite file)':<56} {'devices':>8} {'windows/s':>10}")
+    for c in ceilings:
+        for what, value in (
+            ("end to end (publisher, router, service, store; above)", end_to_end(rows, c)),
+            ("the store alone (Store.ingest_many, no Zenoh)", c["store_alone_windows_per_s"]),
+            ("SQLite alone (the same rows, bare executemany)", c["sqlite_alone_rows_per_s"]),
+        ):
+            print(f"{what:<56} {c['devices']:>8} {value:>10.0f}")
     print(signature_cost())
     if json_path:
-        Path(json_path).write_text(json.dumps({"rows": rows}, indent=1) + "\n")
+        Path(json_path).write_text(json.dumps({"rows": rows, "ceilings": ceilings}, indent=1) + "\n")
     return 0
+
+
+def end_to_end(rows: list[dict], ceiling: dict) -> float:
+    """The first plain-SQLite row of the same fleet size: the end-to-end figure beside its ceilings."""
+    same = [r for r in rows if r["devices"] == ceiling["devices"] and r["store"] == "sqlite"]
+    return same[0]["windows_per_s"] if same else float("nan")
 
 
 def signature_cost(n: int = 2000) -> str:

@@ -345,7 +345,14 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
         bin_temps = {b: s.bin_temps() for b, s in band_sums.items()}  # what service.runtime passes
         # service.runtime: only a set whose bands predate the step has bands to move for it
         after_step = step_at is not None and end_s - step_at < STEP_OPEN_S and bands_from(running_msg) < step_at
-        result = refit_device(band_sums, running, factory, bin_temps=bin_temps, after_step=after_step)
+        result = refit_device(
+            band_sums,
+            running,
+            factory,
+            bin_temps=bin_temps,
+            after_step=after_step,
+            stepped_since_bench=step_at is not None,
+        )
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})
             try:

@@ -97,11 +97,15 @@ def refit_device(
     min_samples: int = MIN_BAND_SAMPLES,
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
+    stepped_since_bench: bool = False,
 ) -> RefitResult:
     """The device's next set (or the reasons for none) from its band statistics.
 
     after_step: the monitor saw the channel offsets step (an open offset_step alarm): bands with no data since
     keep the running set moved by the offset change the fitted bands agree on (offset_move).
+
+    stepped_since_bench: the monitor has named a step (offsets, gain or axes) since the factory's bench: the bench
+    is then no point of the drift curve (no drift at its temperature would undo the step there).
 
     bin_temps (optional, per band, additive over its windows: WindowStats.bin_temps): Σ window mean
     temperature × window count per angle bin. With them each band's fit sets aside the locus's common scale
@@ -109,7 +113,13 @@ def refit_device(
     anchors = bench_anchors(factory)
     if anchors:
         return refit_from_bench(
-            band_stats, running, anchors, min_samples=min_samples, bin_temps=bin_temps, after_step=after_step
+            band_stats,
+            running,
+            anchors,
+            min_samples=min_samples,
+            bin_temps=bin_temps,
+            after_step=after_step,
+            stepped_since_bench=stepped_since_bench,
         )
     return refit_legacy(
         band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES), after_step=after_step
@@ -131,11 +141,12 @@ def refit_from_bench(
     min_samples: int = MIN_BAND_SAMPLES,
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
+    stepped_since_bench: bool = False,
 ) -> RefitResult:
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
     count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
-    model = drift_model(fits)
+    model = drift_model(fits, bench_holds=not stepped_since_bench)
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
@@ -289,12 +300,18 @@ def band_index(corr: Correction) -> int:
     return int(np.floor((corr.temp_c if corr.temp_c is not None else REFERENCE_TEMP_C) / 10.0))
 
 
-def drift_model(fits) -> DriftModel | None:
-    """All bands' drift fits as one smooth function of temperature (None with fewer than two bands)."""
+def drift_model(fits, *, bench_holds: bool = True) -> DriftModel | None:
+    """All bands' drift fits as one smooth function of temperature (None with fewer than two bands); through the
+    bench while it holds (DriftModel.fit)."""
     if not fits:
         return None
     locus = next(iter(fits.values()))[3]
-    return DriftModel.fit([(stats.temp_mean, fit) for fit, stats, _, _ in fits.values()], locus.temp_c, locus.radius)
+    return DriftModel.fit(
+        [(stats.temp_mean, fit) for fit, stats, _, _ in fits.values()],
+        locus.temp_c,
+        locus.radius,
+        bench_holds=bench_holds,
+    )
 
 
 def model_bands(fits, model: DriftModel | None):

@@ -851,6 +851,7 @@ class FleetService:
             bin_temps=bin_temps,
             after_step=self._stepped_recently(device, step_at)
             and self._bands_made_at(device, running_version) < step_at,
+            stepped_since_bench=step_at is not None,
         )
 
     def _issue_set(
