@@ -706,7 +706,8 @@ class DeviceMonitor:
     last_absurd_t: float | None = None
     amp_ref: float | None = None  # log amplitude of the last accepted window (gate for unlearned bands)
     online: bool = True
-    held_last: list = field(default_factory=list)  # [x, y, sd, temp_c, t] of each held position at its last visit
+    # [x, y, sd, temp_c, t, the visit before as [x, y, sd, temp_c, t] or None] of each held position at its last visit
+    held_last: list = field(default_factory=list)
     held_jump: list | None = None  # [Δx, Δy, t, windows]: the held positions jumped, not yet seen still again
     lag: LagEstimate = field(default_factory=LagEstimate)  # the die's lag, from the windows' amplitude
 
@@ -1153,32 +1154,37 @@ class DeviceMonitor:
     def _held_step(self, f: Features, events) -> None:
         """An offset step seen where the drive holds positions (a servo drive that never shows the circle, whose
         windows the ellipse cannot judge): every position it comes back to at the temperature of its last visit
-        has moved, and by the same vector."""
+        has moved, and by the same vector. A step inside a window splits over two pairs of windows, each jump under
+        the bar: then the position against the visit before its last, where that is as close in time."""
         s = self.settings
-        moves = []
+        moves, spans = [], []
         for x, y, sd in f.held:
             # the same position: the last one visited within a degree along the circle (a step is far smaller)
             angle = math.atan2(y, x)
             near = [p for p in self.held_last if abs(math.remainder(math.atan2(p[1], p[0]) - angle, math.tau)) < _SAME]
             last = max(near, key=lambda p: p[4]) if near else None
-            if last is not None and abs(f.temp_c - last[3]) <= s.held_match_c and f.t - last[4] <= s.held_match_s:
+            matched = last is not None and self._held_match(f, last)
+            if matched:
                 move = np.array([x - last[0], y - last[1]])
                 if float(np.hypot(*move)) <= s.held_step_max:
                     moves.append((move, math.hypot(sd, last[2])))
+                before = last[5] if len(last) > 5 else None  # the visit before the last (older state: none kept)
+                if before is not None and self._held_match(f, before):
+                    span = np.array([x - before[0], y - before[1]])
+                    if float(np.hypot(*span)) <= s.held_step_max:
+                        spans.append((span, math.hypot(sd, before[2])))
             for p in near:
                 self.held_last.remove(p)
-            self.held_last.append([x, y, sd, f.temp_c, f.t])
+            self.held_last.append([x, y, sd, f.temp_c, f.t, last[:5] if matched else None])
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
         if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
             self.held_jump = None  # never seen held again: no evidence either way
         if not moves:
             return
-        jumps = np.array([m for m, _ in moves])
-        delta = jumps.mean(axis=0)
-        size = float(np.hypot(*delta))
-        clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd in moves)
-        alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
-        if size >= s.held_step_min and clear and alike:
+        delta, size, jumped = self._held_jump_of(moves)
+        if not jumped and self.held_jump is None and len(spans) == len(moves):
+            delta, size, jumped = self._held_jump_of(spans)  # the step fell inside the last window
+        if jumped:
             # a jump; a step is one (or two, when it fell inside a window), a shaft creeping along keeps jumping
             dx, dy, since, count = self.held_jump or [0.0, 0.0, f.t, 0]
             self.held_jump = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1] if count < 2 else None
@@ -1199,6 +1205,23 @@ class DeviceMonitor:
         for last in self.held_last:  # positions not seen since the jump: where they sit after the step
             if last[4] < since:
                 last[0], last[1] = last[0] + dx, last[1] + dy
+            last[5:] = [None]  # and no span reaches back across the step
+
+    def _held_match(self, f: Features, visit: list) -> bool:
+        """A visit close enough in temperature and time to compare a held position with (held_match_c, _s)."""
+        s = self.settings
+        return abs(f.temp_c - visit[3]) <= s.held_match_c and f.t - visit[4] <= s.held_match_s
+
+    def _held_jump_of(self, moves: list) -> tuple[np.ndarray, float, bool]:
+        """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, and
+        all moved alike (an offset step moves every position by the same vector)."""
+        s = self.settings
+        jumps = np.array([m for m, _ in moves])
+        delta = jumps.mean(axis=0)
+        size = float(np.hypot(*delta))
+        clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd in moves)
+        alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
+        return delta, size, size >= s.held_step_min and clear and alike
 
     def _rates(self, f: Features, e: np.ndarray, fleet: FleetRates | None, events) -> None:
         s = self.settings

@@ -104,3 +104,48 @@ def test_a_shaft_creeping_along_is_not_a_step():
         jumped += monitor.held_jump is not None
     assert jumped > 30  # its moves between windows are jumps a step would make
     assert "offset_step" not in raised
+
+
+def test_a_step_inside_a_window_is_named_from_the_visit_before():
+    """A step that falls inside a window while the drive holds one position splits into two jumps, each under the bar
+    (held_step_min): the window that straddles it and the one after. The position is then compared with its visit
+    two windows back, as close in time as the test allows any pair (held_match_s). The step's size (0.32-0.45 % of
+    amplitude, over the bar), axis and the second within the window are drawn from the seed; the monitor sees window
+    statistics."""
+    named = 0
+    for seed in SEEDS:
+        rng = np.random.default_rng([405, seed])
+        phys = fieldsim.draw_drive(rng, days=0.25)
+        factory = calibrate(fieldsim.bench_sweep(phys, rng))
+        run = fieldsim.field_run(phys, days=0.25, rate_hz=20.0, regime="dwell", rng=rng)
+        windows = windows_of(run.samples.t, 60.0)
+        # a window in the middle of five the shaft spends at one position (the truth, which only the test sees)
+        still = [
+            k
+            for k in range(2, len(windows) - 2)
+            if np.ptp(np.unwrap(run.theta[windows[k - 2][0] : windows[k + 2][1]])) < np.radians(0.2)
+        ]
+        a, b = windows[still[len(still) // 2]]
+        third = (run.samples.t[b - 1] - run.samples.t[a]) / 3  # the middle third: both parts under the bar
+        t_step = float(rng.uniform(run.samples.t[a] + third, run.samples.t[b - 1] - third))
+        circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+        amplitude = np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[0]) / 2
+        size = rng.uniform(0.0032, 0.0045) * amplitude * rng.choice([-1.0, 1.0])
+        axis = rng.integers(2)
+        phys.events.append(
+            fieldsim.Event(t_step, "offset_step", d_offset=size * (axis == 0), q_offset=size * (axis == 1))
+        )
+        d, q = phys.measure(run.theta, run.die_c, run.samples.t, rng)
+        stepped = fieldsim.FieldRun(Samples(t=run.samples.t, d=d, q=q, temp_c=run.samples.temp_c), run.theta,
+                                    run.die_c, phys, run.regime, run.rate_hz)  # fmt: skip
+        raised = offset_step_alarms(stepped, factory)[0]
+        assert not [t for t, _ in raised if t < t_step], (seed, t_step, raised)
+        hits = [p for t, p in raised if t_step <= t <= t_step + 300.0]
+        if hits:
+            named += 1
+            measured = np.array([hits[0]["delta_d"], hits[0]["delta_q"]]) * normalisation_scale(factory)
+            truth = np.array([size * (axis == 0), size * (axis == 1)])
+            assert np.hypot(*(measured - truth)) < 0.25 * abs(size), (seed, measured, truth)
+        phys.events.clear()
+        assert offset_step_alarms(run, factory)[0] == [], seed  # the same drive without the step: nothing
+    assert named >= 3, named
