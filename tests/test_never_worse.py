@@ -71,16 +71,23 @@ def test_worse_hours_the_reference_free_floor_shares_are_counted_apart():
     assert summary["floor_worse_hours"] == 6
 
 
-@pytest.mark.parametrize("seed", [3, 4])
-def test_after_an_offset_step_the_bands_without_data_move_with_the_ones_that_have(seed):
-    """A hidden offset step (size and axis drawn from the seed): one warm band seen after it moves the
-    rest of the running set by the step, but only when the monitor saw a step (after_step)."""
+def drive_stepped_at_start(seed: int):
+    """(rng, physics, factory set, step) of a drive whose hidden offset step (size and axis from the seed) comes at
+    drive time 0, right after its bench calibration."""
     rng = np.random.default_rng(seed)
     phys = fieldsim.draw_drive(rng)
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
     step = fieldsim.draw_event(rng, "offset_step", days=1.0)
     step.t_s = 0.0
     phys.events.append(step)
+    return rng, phys, factory, step
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_after_an_offset_step_the_bands_without_data_move_with_the_ones_that_have(seed):
+    """A hidden offset step (size and axis drawn from the seed): one warm band seen after it moves the
+    rest of the running set by the step, but only when the monitor saw a step (after_step)."""
+    rng, phys, factory, step = drive_stepped_at_start(seed)
     run = fieldsim.field_run(phys, days=1 / 24, rate_hz=5.0, regime="random", rng=rng, low_c=44.0, high_c=46.0)
     stats = window_stats(run.samples, normalisation_scale(factory))
     bands = {band_of(stats.temp_mean): stats}
@@ -128,12 +135,7 @@ def test_after_a_named_step_the_drift_curve_does_not_pass_through_the_bench():
     step named the bench is no point of the curve, and the bench band stays as good as it runs."""
     worse_through_bench = 0
     for seed in range(8, 20):
-        rng = np.random.default_rng(seed)
-        phys = fieldsim.draw_drive(rng)
-        factory = calibrate(fieldsim.bench_sweep(phys, rng))
-        step = fieldsim.draw_event(rng, "offset_step", days=1.0)
-        step.t_s = 0.0
-        phys.events.append(step)
+        rng, phys, factory, step = drive_stepped_at_start(seed)
         run = fieldsim.field_run(phys, days=0.25, rate_hz=20.0, regime="dwell", rng=rng, low_c=-20.0, high_c=25.0)
         bands = band_sums(run, normalisation_scale(factory))
         running = factory.offsets_moved(step.d_offset, step.q_offset)  # the service's move for the named step
