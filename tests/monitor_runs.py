@@ -2,28 +2,36 @@
 
 from __future__ import annotations
 
-from encoder_core.monitor import DeviceMonitor, window_features
+from edge_agent.agent import temp_rate
+from encoder_core.monitor import DeviceMonitor, Settings, window_features
 from encoder_core.physics import band_of
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_fleet.fleet_accuracy import windows_of
 
 
-def offset_step_alarms(run, factory, window_s: float = 60.0) -> tuple[list[tuple[float, dict]], int]:
+def offset_step_alarms(
+    run, factory, window_s: float = 60.0, settings: Settings | None = None
+) -> tuple[list[tuple[float, dict]], int]:
     """(drive time, parameters) of every offset_step raised (each cleared at once, so that every one is counted),
     and how many windows the ellipse could judge."""
-    return step_alarms(run, factory, window_s, "offset_step")
+    return step_alarms(run, factory, window_s, "offset_step", settings)
 
 
-def step_alarms(run, factory, window_s: float, cause: str) -> tuple[list[tuple[float, dict]], int]:
+def step_alarms(
+    run, factory, window_s: float, cause: str, settings: Settings | None = None
+) -> tuple[list[tuple[float, dict]], int]:
     """offset_step_alarms for any cause."""
     scale = normalisation_scale(factory)
-    monitor, raised = DeviceMonitor("under-test"), []
+    monitor, raised = DeviceMonitor("under-test", settings=settings or Settings()), []
     for start, end in windows_of(run.samples.t, window_s):
-        stats = window_stats(run.samples.subset(slice(start, end)), scale)
+        block = run.samples.subset(slice(start, end))
+        stats = window_stats(block, scale)
         if not stats.temp_n:
             continue
         end_s = float(run.samples.t[end - 1])
-        features = window_features(stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean))
+        features = window_features(  # as the agent reports it: with how fast the temperature moved
+            stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean), temp_rate=temp_rate(block)
+        )
         for event in monitor.update(features):
             if event.kind == "raise" and event.cause == cause:
                 raised.append((end_s, event.parameters))

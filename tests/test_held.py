@@ -27,6 +27,19 @@ def dwelling_drive(seed: int, event: str | None):
     return phys, factory, fieldsim.field_run(phys, days=1.0, rate_hz=20.0, regime="dwell", rng=rng)
 
 
+def with_offset_step(phys, run, rng, t_step: float, low: float, high: float):
+    """The same drive and shaft with an offset step at t_step of low-high of amplitude (sign and axis drawn from
+    rng): (the stepped run, the step in counts, its axis: 0 d, 1 q)."""
+    circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    amplitude = np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[0]) / 2
+    size = rng.uniform(low, high) * amplitude * rng.choice([-1.0, 1.0])
+    axis = rng.integers(2)
+    phys.events.append(fieldsim.Event(t_step, "offset_step", d_offset=size * (axis == 0), q_offset=size * (axis == 1)))
+    d, q = phys.measure(run.theta, run.die_c, run.samples.t, rng)
+    samples = Samples(t=run.samples.t, d=d, q=q, temp_c=run.samples.temp_c)
+    return fieldsim.FieldRun(samples, run.theta, run.die_c, phys, run.regime, run.rate_hz), size, axis
+
+
 def test_offset_steps_are_named_where_the_drive_holds_positions_and_clean_drives_stay_quiet():
     named = 0
     for seed in SEEDS:
@@ -128,16 +141,7 @@ def test_a_step_inside_a_window_is_named_from_the_visit_before():
         a, b = windows[still[len(still) // 2]]
         third = (run.samples.t[b - 1] - run.samples.t[a]) / 3  # the middle third: both parts under the bar
         t_step = float(rng.uniform(run.samples.t[a] + third, run.samples.t[b - 1] - third))
-        circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
-        amplitude = np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[0]) / 2
-        size = rng.uniform(0.0032, 0.0045) * amplitude * rng.choice([-1.0, 1.0])
-        axis = rng.integers(2)
-        phys.events.append(
-            fieldsim.Event(t_step, "offset_step", d_offset=size * (axis == 0), q_offset=size * (axis == 1))
-        )
-        d, q = phys.measure(run.theta, run.die_c, run.samples.t, rng)
-        stepped = fieldsim.FieldRun(Samples(t=run.samples.t, d=d, q=q, temp_c=run.samples.temp_c), run.theta,
-                                    run.die_c, phys, run.regime, run.rate_hz)  # fmt: skip
+        stepped, size, axis = with_offset_step(phys, run, rng, t_step, 0.0032, 0.0045)
         raised = offset_step_alarms(stepped, factory)[0]
         assert not [t for t, _ in raised if t < t_step], (seed, t_step, raised)
         hits = [p for t, p in raised if t_step <= t <= t_step + 300.0]
@@ -149,3 +153,55 @@ def test_a_step_inside_a_window_is_named_from_the_visit_before():
         phys.events.clear()
         assert offset_step_alarms(run, factory)[0] == [], seed  # the same drive without the step: nothing
     assert named >= 3, named
+
+
+def test_a_step_while_the_servo_moves_is_named_at_the_next_position_it_comes_back_to():
+    """A step that comes while the servo moves between positions is never seen at one held position: the next one
+    the drive holds was last visited minutes to an hour before, kelvins away. The monitor learns how its held
+    positions move with temperature from visits close together (HeldMap) and judges that return against it
+    (s9-20hz-02: a 0.6 % step, unnamed, five hours worse than the factory set). The step (0.5-0.9 % of amplitude,
+    axis and sign drawn from the seed) comes in the move onto a position last held 10-50 min before, after a
+    quarter day of the drive; the monitor sees window statistics. Without the map (held_far_s = 0) the same
+    steps go unnamed; the same drives without them raise nothing."""
+    from encoder_core.monitor import Settings
+
+    named, named_without_map, tried = 0, 0, 0
+    for seed in range(6):
+        rng = np.random.default_rng([406, seed])
+        phys = fieldsim.draw_drive(rng, days=0.5)
+        factory = calibrate(fieldsim.bench_sweep(phys, rng))
+        run = fieldsim.field_run(phys, days=0.5, rate_hz=20.0, regime="dwell", rng=rng)
+        t, theta = run.samples.t, np.unwrap(run.theta)
+        # the truth, which only the test sees: the moves between holds, and where each one lands
+        moving = np.flatnonzero(np.abs(np.diff(theta)) > np.radians(0.5))
+        starts = moving[np.diff(moving, prepend=-10) > 1]  # the first sample of each move
+        landing = [(i, float(np.mod(theta[min(i + 400, t.size - 1)], 2 * np.pi))) for i in starts]
+        chosen = None
+        for k, (i, angle) in enumerate(landing):
+            if t[i] < 0.25 * fieldsim.DAY_S or t[i] > 0.45 * fieldsim.DAY_S:
+                continue
+            before = [t[j] for j, a in landing[:k] if abs(np.angle(np.exp(1j * (a - angle)))) < np.radians(1)]
+            if before and 600.0 < t[i] - before[-1] < 3000.0:
+                chosen = i
+                break
+        if chosen is None:
+            continue
+        tried += 1
+        t_step = float(t[chosen])
+        stepped, size, axis = with_offset_step(phys, run, rng, t_step, 0.005, 0.009)
+        raised = offset_step_alarms(stepped, factory)[0]
+        assert not [at for at, _ in raised if at < t_step], (seed, t_step, raised)
+        hits = [p for at, p in raised if t_step <= at <= t_step + 3600.0]
+        assert len(hits) <= 1, (seed, hits)  # one step, one alarm (the set is moved once)
+        if hits:
+            named += 1
+            measured = np.array([hits[0]["delta_d"], hits[0]["delta_q"]]) * normalisation_scale(factory)
+            truth = np.array([size * (axis == 0), size * (axis == 1)])
+            assert np.hypot(*(measured - truth)) < 0.25 * abs(size), (seed, measured, truth)
+        without = offset_step_alarms(stepped, factory, settings=Settings(held_far_s=0.0))[0]
+        named_without_map += any(t_step <= at <= t_step + 3600.0 for at, _ in without)
+        phys.events.clear()
+        assert offset_step_alarms(run, factory)[0] == [], seed  # the same drive without the step: nothing
+    assert tried >= 4, tried
+    assert named >= tried - 1, (named, tried)
+    assert named_without_map <= 1, named_without_map
