@@ -71,7 +71,7 @@ class Settings:
     jump_z: float = 4.0  # a gain or axis step: this many standard deviations of the change between two windows
     # (at 5, s1-0.5hz-05's 0.45 % gain step went unnamed for ten hours, two of them worse than the factory; at 4 no
     # false step on the independent simulator's 96 drive-runs nor on bench-monitor's seeds 1-3)
-    jump_settle_windows: int = 3  # a jump may keep moving this many windows before it holds still (at 2,
+    jump_settle_windows: int = 3  # the windows that may move, the jump's first counted, before one holds still (at 2,
     # s7-0.5hz-04's 0.61 % gain step went unnamed: 150 random angles a window scatter the ratio by ~0.05 %, and the
     # window after the step's last read high by 0.2 %; the drive ran its old set for three hours, all worse)
     jump_model_sd: float = 0.0002  # added to that: what the slope in temperature leaves between windows
@@ -635,8 +635,9 @@ class WindowJump:
     """A step of one shape quantity (the channels' amplitude ratio, the axes' skew), judged window against
     window: the quantity moves with temperature, and the bands' lines in temperature miss it by up to 0.4 % over a
     day's cycle (s2-20hz-04 raised 15 false gain steps against them), while from one window to the next it moves
-    by its slope times a fraction of a kelvin. A jump must then hold still in the next window (a step that falls
-    inside a window shows there in part: its size is the change from the window before the jump)."""
+    by its slope times a fraction of a kelvin. A jump must then hold still by its jump_settle_windows-th window
+    (a step that falls inside a window shows there in part: its size is the change from the window before the
+    jump)."""
 
     recent: list = field(default_factory=list)  # [value, temp_c, t, sd] of the last two windows judged
     slope: list = field(default_factory=lambda: [0.0, 0.0])  # Σ ΔT², Σ ΔT·Δvalue of pairs of windows (decaying)
@@ -683,7 +684,7 @@ class WindowJump:
             return None
         before_y, before_c, windows, before_sums = self.pending
         self.slope_before, self.slope = self.slope, learnt
-        if moving:  # still moving: a step spread over two windows, or a creep that is no step
+        if moving:  # still moving: a step spread over windows, or a creep that is no step
             self.pending = [before_y, before_c, windows + 1, before_sums] if windows < s.jump_settle_windows else None
             return None
         self.pending = None
@@ -758,8 +759,8 @@ class DeviceMonitor:
     # [x, y, sd, temp_c, t, the visit before as [x, y, sd, temp_c, t] or None, temp_rate] of each held position at
     # its last visit
     held_last: list = field(default_factory=list)
-    # [Δx, Δy, t, windows, after]: the held positions jumped, not yet seen still again; the step came after `after`
-    # (t for a jump against the window before; for one against a visit long ago, that visit's time)
+    # [Δx, Δy, t, windows, after, far]: the held positions jumped at t, not yet seen still again; the step came
+    # after `after` (the latest visit they were compared with); far: compared against the temperature map
     held_jump: list | None = None
     held_map: HeldMap = field(default_factory=HeldMap)
     temp_rate_last: float | None = None  # the last window's temperature rate (°C/s)
@@ -900,7 +901,7 @@ class DeviceMonitor:
             self.last_absurd_t = f.t
             return events
         self._fractions(f, dt, events)
-        self._calm(f)
+        self._calm(f, dt)
         if f.held:
             self._held_step(f, events)
         if f.bins is not None:
@@ -1231,14 +1232,14 @@ class DeviceMonitor:
             if matched:
                 move = np.array([x - last[0], y - last[1]])
                 if float(np.hypot(*move)) <= s.held_step_max:
-                    moves.append((move, math.hypot(sd, last[2])))
+                    moves.append((move, math.hypot(sd, last[2]), last[4]))
                 if float(np.hypot(*move)) < s.held_step_min / 2:  # still: how the position moves with temperature
                     self.held_map.learn(f.t, f.temp_c - last[3], (last[0], last[1]), move, _HELD_MEMORY_S)
                 before = last[5] if len(last) > 5 else None  # the visit before the last (older state: none kept)
                 if before is not None and self._held_match(f, before):
                     span = np.array([x - before[0], y - before[1]])
                     if float(np.hypot(*span)) <= s.held_step_max:
-                        spans.append((span, math.hypot(sd, before[2])))
+                        spans.append((span, math.hypot(sd, before[2]), before[4]))
             elif last is not None:
                 got = self._held_far(f, x, y, sd, last)
                 if got is not None:
@@ -1249,33 +1250,36 @@ class DeviceMonitor:
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
         if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
             self.held_jump = None  # never seen held again: no evidence either way
-        jumped = False
+        jumped, compared = False, moves
         if moves:
             delta, size, jumped = self._held_jump_of(moves)
             if not jumped and self.held_jump is None and len(spans) == len(moves):
                 delta, size, jumped = self._held_jump_of(spans)  # the step fell inside the last window
+                compared = spans
         if not jumped and self.held_jump is None and far:
-            far_delta, _, far_jumped = self._held_jump_of([(m, sd) for m, sd, _ in far])
+            far_delta, _, far_jumped = self._held_jump_of(far)
             if far_jumped:  # the step came after the last visits these positions are compared with
-                self.held_jump = [float(far_delta[0]), float(far_delta[1]), f.t, 1, max(t for _, _, t in far)]
+                after = max(t for _, _, t in far)
+                self.held_jump = [float(far_delta[0]), float(far_delta[1]), f.t, 1, after, True]
                 return
         if not moves:
             return
         if jumped:
             # a jump; a step is one (or two, when it fell inside a window), a shaft creeping along keeps jumping
-            dx, dy, since, count, *after = self.held_jump or [0.0, 0.0, f.t, 0, f.t]
-            grown = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1, *after]
+            after = max(t for _, _, t in compared)
+            dx, dy, since, count, *rest = self.held_jump or [0.0, 0.0, f.t, 0, after, False]
+            grown = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1, *rest]
             self.held_jump = grown if count < 2 else None
             return
         if self.held_jump is None or size >= s.held_step_min / 2:
             return
-        dx, dy, since, _, *after = self.held_jump  # the positions are still again: it was a step
-        after = after[0] if after else since  # (state kept before `after` was: a jump against the window before)
+        dx, dy, since, _, *rest = self.held_jump  # the positions are still again: it was a step
+        after, far_jump = rest if rest else (since, False)  # (state kept before these were: a jump as the window's)
         self.held_jump = None
         how = (
-            "their last visit at the same temperature"
-            if after >= since
-            else f"where the drive's temperature map puts their visit {(since - after) / 60:.0f} min before"
+            f"where the drive's temperature map puts their visit {(since - after) / 60:.0f} min before"
+            if far_jump
+            else "their last visit at the same temperature"
         )
         self._raise(
             events,
@@ -1288,9 +1292,9 @@ class DeviceMonitor:
         )
         kept = []
         for last in self.held_last:  # positions not seen since the jump: where they sit after the step
-            if after < last[4] < since or (after < since and last[4] == since):
-                continue  # seen between the visit a far jump was judged against and the jump (its window too, which
-                # may hold the position the drive left at the step): before or after the step?
+            if after < last[4] < since or (far_jump and last[4] == since):
+                continue  # seen between the visit a jump was judged against and the jump (for a far one its window
+                # too, which may hold the position the drive left at the step): before or after the step?
             if last[4] < since:
                 last[0], last[1] = last[0] + dx, last[1] + dy
             last[5:6] = [None]  # and no span reaches back across the step
@@ -1317,12 +1321,14 @@ class DeviceMonitor:
             return None
         return rest, math.hypot(sd, last[2]) + map_sd + s.held_far_sd_per_c * abs(d_temp), last[4]
 
-    def _calm(self, f: Features) -> None:
+    def _calm(self, f: Features, dt: float) -> None:
         """Since when the temperature has moved steadily (calm_since): after a load bump the die's lag differs
-        from the reported temperature's for a while, and held positions compared across it are off the map."""
+        from the reported temperature's for a while, and held positions compared across it are off the map. A gap
+        between windows longer than the near pairs' reach could hide a bump: it starts the calm over too."""
         s = self.settings
         last, self.temp_rate_last = self.temp_rate_last, f.temp_rate
-        if last is None or abs(f.temp_rate - last) > s.held_far_rate_change or abs(f.temp_rate) > s.held_far_rate:
+        steady = last is not None and abs(f.temp_rate - last) <= s.held_far_rate_change and dt <= s.held_match_s
+        if not steady or abs(f.temp_rate) > s.held_far_rate:
             self.calm_since = f.t
 
     def _held_match(self, f: Features, visit: list) -> bool:
@@ -1334,10 +1340,10 @@ class DeviceMonitor:
         """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, and
         all moved alike (an offset step moves every position by the same vector)."""
         s = self.settings
-        jumps = np.array([m for m, _ in moves])
+        jumps = np.array([m for m, _, _ in moves])
         delta = jumps.mean(axis=0)
         size = float(np.hypot(*delta))
-        clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd in moves)
+        clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd, _ in moves)
         alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
         return delta, size, size >= s.held_step_min and clear and alike
 

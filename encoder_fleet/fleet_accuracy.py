@@ -200,11 +200,16 @@ class StoreSums:
         self.store.restart_band_memory(self.DEVICE, after=after_s - self.origin_s)
 
 
-def run_drive(spec: DriveSpec) -> DriveResult:
+def drive_of(spec: DriveSpec) -> tuple[fieldsim.DrivePhysics, BandedCorrection, fieldsim.FieldRun]:
+    """The drive a spec names, drawn from its seed: its physics (the truth), its factory set, its run."""
     rng = np.random.default_rng([spec.seed, spec.index, int(spec.rate_hz * 1000)])
     phys = fieldsim.draw_drive(rng, event=spec.event, days=spec.days)
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    run = fieldsim.field_run(phys, days=spec.days, rate_hz=spec.rate_hz, regime=spec.motion, rng=rng)
+    return phys, factory, fieldsim.field_run(phys, days=spec.days, rate_hz=spec.rate_hz, regime=spec.motion, rng=rng)
+
+
+def run_drive(spec: DriveSpec) -> DriveResult:
+    phys, factory, run = drive_of(spec)
     timeline = fleet_loop(run.samples, factory, window_s=spec.window_s)
     factory_hours, fleet_hours = score(run, factory, timeline)
     floor_hours = score_floor(run, factory)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from encoder_core.held import held_points
-from encoder_core.monitor import DeviceMonitor, window_features
+from encoder_core.monitor import DeviceMonitor, Settings, window_features
 from encoder_core.physics import band_of
 from encoder_core.samples import Samples
 from encoder_core.stats import normalisation_scale, window_stats
@@ -159,12 +159,11 @@ def test_a_step_while_the_servo_moves_is_named_at_the_next_position_it_comes_bac
     """A step that comes while the servo moves between positions is never seen at one held position: the next one
     the drive holds was last visited minutes to an hour before, kelvins away. The monitor learns how its held
     positions move with temperature from visits close together (HeldMap) and judges that return against it
-    (s9-20hz-02: a 0.6 % step, unnamed, five hours worse than the factory set). The step (0.5-0.9 % of amplitude,
-    axis and sign drawn from the seed) comes in the move onto a position last held 10-50 min before, after a
-    quarter day of the drive; the monitor sees window statistics. Without the map (held_far_s = 0) the same
-    steps go unnamed; the same drives without them raise nothing."""
-    from encoder_core.monitor import Settings
-
+    (s9-20hz-02: a 1.04 % step, unnamed, five hours worse than the factory set). The step (0.5-0.9 % of amplitude,
+    axis and sign drawn from the seed) comes in the move onto a position the drive last moved onto 10-50 min
+    before, after a quarter day of the drive; the monitor sees window statistics. Without the map (held_far_s = 0)
+    the same steps go unnamed (one may be named where the drive left that position only minutes before the step);
+    the same drives without them raise nothing."""
     named, named_without_map, tried = 0, 0, 0
     for seed in range(6):
         rng = np.random.default_rng([406, seed])
@@ -191,8 +190,8 @@ def test_a_step_while_the_servo_moves_is_named_at_the_next_position_it_comes_bac
         stepped, size, axis = with_offset_step(phys, run, rng, t_step, 0.005, 0.009)
         raised = offset_step_alarms(stepped, factory)[0]
         assert not [at for at, _ in raised if at < t_step], (seed, t_step, raised)
+        assert len(raised) <= 1, (seed, raised)  # one step, one alarm (the set is moved once), to the run's end
         hits = [p for at, p in raised if t_step <= at <= t_step + 3600.0]
-        assert len(hits) <= 1, (seed, hits)  # one step, one alarm (the set is moved once)
         if hits:
             named += 1
             measured = np.array([hits[0]["delta_d"], hits[0]["delta_q"]]) * normalisation_scale(factory)

@@ -356,16 +356,11 @@ def test_a_gain_step_whose_ratio_takes_three_windows_to_settle_is_named():
     the step's first whole one read 0.2 % high, so the ratio still moved after two windows and the jump test let the
     step go (jump_settle_windows was 2); the drive ran its old set for three hours, all worse than its factory
     set. With three windows to settle it is named within the hour and sized within a tenth; with two, not."""
-    from encoder_fleet import fieldsim
-    from encoder_fleet.calibrate import calibrate
-    from encoder_fleet.fleet_accuracy import fleet_specs
+    from encoder_fleet.fleet_accuracy import drive_of, fleet_specs
     from tests.monitor_runs import step_alarms
 
     spec = fleet_specs(7, 12, 3, 0.5, 300.0)[4]
-    rng = np.random.default_rng([spec.seed, spec.index, int(spec.rate_hz * 1000)])  # as run_drive draws it
-    phys = fieldsim.draw_drive(rng, event=spec.event, days=spec.days)
-    factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    run = fieldsim.field_run(phys, days=spec.days, rate_hz=spec.rate_hz, regime=spec.motion, rng=rng)
+    phys, factory, run = drive_of(spec)  # as run_drive draws it
     (step,) = phys.events
     truth = -math.log1p(step.q_gain)
     raised = step_alarms(run, factory, spec.window_s, "gain_step")[0]

@@ -16,7 +16,16 @@ from encoder_core.physics import band_of
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from encoder_fleet.fleet_accuracy import DriveResult, fleet_specs, run_bench, score, summarise, windows_of, worse_than
+from encoder_fleet.fleet_accuracy import (
+    DriveResult,
+    drive_of,
+    fleet_specs,
+    run_bench,
+    score,
+    summarise,
+    windows_of,
+    worse_than,
+)
 from encoder_fleet.recording import write_recording
 from service.refit import refit_device
 
@@ -50,12 +59,9 @@ def test_calibrate_writes_the_factory_set_an_agent_reads(tmp_path):
 def step_follower_worse_hours(drive: dict, specs: list) -> set[int]:
     """The hours in which the factory set moved by the drive's planted offset step, from the step's time (what naming
     the step exactly gives), is itself worse than the factory set: the step had cancelled part of the drift there.
-    The drive drawn again as run_drive draws it; only the test sees the truth."""
+    The drive drawn again as run_drive draws it (drive_of); only the test sees the truth."""
     (spec,) = [s for s in specs if s.name == drive["name"]]
-    rng = np.random.default_rng([spec.seed, spec.index, int(spec.rate_hz * 1000)])
-    phys = fieldsim.draw_drive(rng, event=spec.event, days=spec.days)
-    factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    run = fieldsim.field_run(phys, days=spec.days, rate_hz=spec.rate_hz, regime=spec.motion, rng=rng)
+    phys, factory, run = drive_of(spec)
     timeline = [(float(run.samples.t[0]), factory)]
     timeline += [(e.t_s, factory.offsets_moved(e.d_offset, e.q_offset)) for e in phys.events if e.kind == "offset_step"]
     factory_hours, follower_hours = score(run, factory, timeline)
@@ -77,6 +83,7 @@ def test_a_small_fleet_of_independent_drives_is_never_worse_and_gains():
         if d["worse_hour_indices"]
     )
     assert worse <= 0.025 * fleet["drive_hours"], (worse, report["drives"])  # the issue asks for 1 %: README
+    assert fleet["worse_hours_pct"] <= 6.0, fleet  # and those it shares stay a few (5 of 96 today)
     assert fleet["worst_gain"] >= 0.95 and fleet["median_gain"] >= 1.5, fleet
 
 
