@@ -40,6 +40,16 @@ def with_offset_step(phys, run, rng, t_step: float, low: float, high: float):
     return fieldsim.FieldRun(samples, run.theta, run.die_c, phys, run.regime, run.rate_hz), size, axis
 
 
+def sized_hit(hits: list[dict], factory, size: float, axis: int) -> bool:
+    """Whether an alarm named the step with_offset_step planted; the first one's size must be within a quarter."""
+    if not hits:
+        return False
+    measured = np.array([hits[0]["delta_d"], hits[0]["delta_q"]]) * normalisation_scale(factory)
+    truth = np.array([size * (axis == 0), size * (axis == 1)])
+    assert np.hypot(*(measured - truth)) < 0.25 * abs(size), (measured, truth)
+    return True
+
+
 def test_offset_steps_are_named_where_the_drive_holds_positions_and_clean_drives_stay_quiet():
     named = 0
     for seed in SEEDS:
@@ -144,12 +154,7 @@ def test_a_step_inside_a_window_is_named_from_the_visit_before():
         stepped, size, axis = with_offset_step(phys, run, rng, t_step, 0.0032, 0.0045)
         raised = offset_step_alarms(stepped, factory)[0]
         assert not [t for t, _ in raised if t < t_step], (seed, t_step, raised)
-        hits = [p for t, p in raised if t_step <= t <= t_step + 300.0]
-        if hits:
-            named += 1
-            measured = np.array([hits[0]["delta_d"], hits[0]["delta_q"]]) * normalisation_scale(factory)
-            truth = np.array([size * (axis == 0), size * (axis == 1)])
-            assert np.hypot(*(measured - truth)) < 0.25 * abs(size), (seed, measured, truth)
+        named += sized_hit([p for t, p in raised if t_step <= t <= t_step + 300.0], factory, size, axis)
         phys.events.clear()
         assert offset_step_alarms(run, factory)[0] == [], seed  # the same drive without the step: nothing
     assert named >= 3, named
@@ -191,12 +196,7 @@ def test_a_step_while_the_servo_moves_is_named_at_the_next_position_it_comes_bac
         raised = offset_step_alarms(stepped, factory)[0]
         assert not [at for at, _ in raised if at < t_step], (seed, t_step, raised)
         assert len(raised) <= 1, (seed, raised)  # one step, one alarm (the set is moved once), to the run's end
-        hits = [p for at, p in raised if t_step <= at <= t_step + 3600.0]
-        if hits:
-            named += 1
-            measured = np.array([hits[0]["delta_d"], hits[0]["delta_q"]]) * normalisation_scale(factory)
-            truth = np.array([size * (axis == 0), size * (axis == 1)])
-            assert np.hypot(*(measured - truth)) < 0.25 * abs(size), (seed, measured, truth)
+        named += sized_hit([p for at, p in raised if t_step <= at <= t_step + 3600.0], factory, size, axis)
         without = offset_step_alarms(stepped, factory, settings=Settings(held_far_s=0.0))[0]
         named_without_map += any(t_step <= at <= t_step + 3600.0 for at, _ in without)
         phys.events.clear()
