@@ -73,7 +73,7 @@ class Settings:
     # false step on the independent simulator's 96 drive-runs nor on bench-monitor's seeds 1-3)
     jump_settle_windows: int = 3  # the windows that may move, the jump's first counted, before one holds still (at 2,
     # s7-0.5hz-04's 0.61 % gain step went unnamed: 150 random angles a window scatter the ratio by ~0.05 %, and the
-    # window after the step's last read high by 0.2 %; the drive ran its old set for three hours, all worse)
+    # window after the step's first whole one read high by 0.15 %; the drive ran its old set three hours, all worse)
     jump_model_sd: float = 0.0002  # added to that: what the slope in temperature leaves between windows
     jump_slope_prior: float = 0.002  # per kelvin: the slope before any pair of windows has shown it
     jump_match_s: float = 3600.0  # two windows this close in drive time ...
@@ -101,7 +101,7 @@ class Settings:
     held_match_s: float = 180.0  # ... and this recent: over minutes the die's lag moves it by up to 0.002
     held_far_s: float = HOUR_S  # a position the drive comes back to later than that is compared with its last
     held_far_c: float = 10.0  # visit this recent and close in temperature, against where the drive's own map of
-    # how held positions move with temperature (HeldMap) puts it (s9-20hz-02: a 0.6 % step while the servo moved
+    # how held positions move with temperature (HeldMap) puts it (s9-20hz-02: a 1.04 % step while the servo moved
     # between positions, each next seen 30-60 min and 5-8 °C later; unnamed, the drive ran its old set 5 hours worse
     # than its factory set; the map predicted that day's clean returns within an hour and 10 °C to 0.0025) ...
     held_far_rate_change: float = 8.0 / HOUR_S  # ... where the temperature moved at both visits alike, within this
@@ -1231,9 +1231,10 @@ class DeviceMonitor:
             matched = last is not None and self._held_match(f, last)
             if matched:
                 move = np.array([x - last[0], y - last[1]])
-                if float(np.hypot(*move)) <= s.held_step_max:
+                moved = float(np.hypot(*move))
+                if moved <= s.held_step_max:
                     moves.append((move, math.hypot(sd, last[2]), last[4]))
-                if float(np.hypot(*move)) < s.held_step_min / 2:  # still: how the position moves with temperature
+                if moved < s.held_step_min / 2:  # still: how the position moves with temperature
                     self.held_map.learn(f.t, f.temp_c - last[3], (last[0], last[1]), move, _HELD_MEMORY_S)
                 before = last[5] if len(last) > 5 else None  # the visit before the last (older state: none kept)
                 if before is not None and self._held_match(f, before):
