@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 ADC_BITS = 12
@@ -13,6 +15,8 @@ BAND_WIDTH_C = 10.0  # coefficients are fitted per temperature band of this widt
 
 def band_of(temp_c):
     """Temperature band index: band k holds [10k, 10k + 10) °C. An int for a number, an int array for an array."""
+    if isinstance(temp_c, (float, int)) and math.isfinite(temp_c):  # one number, as the wire checks it: 10x faster
+        return math.floor(temp_c / BAND_WIDTH_C)
     bands = np.floor(np.asarray(temp_c, dtype=float) / BAND_WIDTH_C).astype(int)
     return int(bands) if bands.ndim == 0 else bands
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+from functools import lru_cache
 
 PREFIX = "encoders"
 STATS, ACK, FACTORY, COEFFICIENTS, RECEIVED, ALIVE = "stats", "ack", "factory", "coefficients", "received", "alive"
@@ -42,6 +43,7 @@ def key(device: str, suffix: str) -> str:
     return f"{plain}/{partition_chunk(partition(device))}" if suffix in TO_SERVICE else plain
 
 
+@lru_cache(maxsize=1 << 16)  # every window's key is checked against it: a fleet's ids, hashed once each
 def partition(device: str) -> int:
     """The device's partition: a hash that is the same in every process, on every machine, forever."""
     return int.from_bytes(hashlib.blake2b(device.encode(), digest_size=8).digest(), "big") % PARTITIONS

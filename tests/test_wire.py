@@ -177,6 +177,19 @@ def test_bad_window_input_is_named(data, reason, where):
     assert isinstance(exc.value, ValueError)
 
 
+def test_finite_numbers_whose_sum_overflows_are_accepted_and_a_lone_nan_is_still_named():
+    # the non-finite check sums a window's numbers first: a sum that overflows must not refuse finite numbers
+    msg = window()
+    msg["stats"]["temp_sum"] = msg["stats"]["temp_sq_sum"] = 1.5e308
+    msg["stats"]["moments"][3] = msg["stats"]["moments"][4] = 1.5e308
+    packed = wire.encode_window(wire.window_from_dict(msg))  # MessagePack, as agents send it
+    assert wire.decode_window(packed, key_device="drive-001").stats.temp_sum == 1.5e308
+    msg["stats"]["bins"][5][2] = float("nan")
+    with pytest.raises(wire.WireError, match=r"\$\.stats\.bins\[5\]\[2\]") as exc:
+        wire.decode_window(wire.encode_window(wire.window_from_dict(msg)), key_device="drive-001")
+    assert exc.value.reason == "non_finite"
+
+
 def test_fast_path_cuts_exactly_the_plain_numeric_arrays():
     _, arrays = wire._fast_validator("window")
     assert sorted(path for path, _ in arrays) == [("stats", "bins"), ("stats", "moments")]
