@@ -88,6 +88,10 @@ class Settings:
     # bins both saw (arc_shape_change), at least this many (135°; s4-20hz-07's 0.54 % axis turn fell inside a
     # stretch of 230-270° arcs and went unnamed for a day, its drive worse than its factory set for an hour) ...
     arc_max_sd: float = 0.001  # ... when the pair measures the change this well
+    arc_block_windows: int = 5  # ... and the same for blocks of this many consecutive arc windows summed (s7-20hz-07:
+    # a 0.43 % axis turn in 120-140° arcs, whose pairs of one-minute windows measure the skew to 0.001-0.003 and broke
+    # the chain at every other window; unnamed, two hours worse than factory. Blocks of five: 0.0004-0.0006, named in
+    # 11 minutes)
     held_step_min: float = 0.003  # a jump of the held positions worth an alarm, fraction of amplitude (they move
     # ~0.0004 per °C, and up to 0.002 in minutes with the die's lag: a jump is judged against a visit within
     # held_match_c and held_match_s; at 0.0015, clean 0.5 Hz drives raised an alarm every few hours)
@@ -317,6 +321,64 @@ class ArcWindow:
     bins: np.ndarray
     spiky: bool  # more spikes than the shape tests allow: no pair on either side of it
     profile: RadialProfile | None = None  # made from `bins` when first paired
+
+
+@dataclass
+class ArcChain:
+    """The arc test's chain (DeviceMonitor._arc_steps): pairs of consecutive windows (or blocks of windows) through
+    the same arc, their changes of gain ratio and skew summed into a level that a WindowJump judges. In memory only:
+    it needs the last window's bins (after a restart it starts again)."""
+
+    gain: WindowJump = field(default_factory=lambda: WindowJump())  # (a lambda: WindowJump is defined below)
+    axis: WindowJump = field(default_factory=lambda: WindowJump())
+    level: list = field(default_factory=lambda: [0.0, 0.0])
+    last: ArcWindow | None = None
+
+    def restart(self) -> None:
+        self.gain, self.axis = WindowJump(), WindowJump()
+
+    def pair(self, w: ArcWindow, s: Settings) -> tuple[tuple | None, tuple | None]:
+        """Chain window (or block) `w` to the last: (gain step, axis step) as WindowJump.update returns them."""
+        last, self.last = self.last, w
+        got = None
+        if last is not None and w.t - last.t <= s.jump_match_s and max(w.gap_bins, last.gap_bins) > s.jump_max_gap_bins:
+            # (two whole circles: _shape_steps judges them)
+            if not (w.spiky or last.spiky):  # spikes too small to reject move the bins too
+                before = last.profile if last.profile is not None else RadialProfile.of(last.bins)
+                w.profile = RadialProfile.of(w.bins)
+                got = arc_shape_change(before, w.profile, s.arc_min_bins)
+        if got is None or max(got[2], got[3]) > s.arc_max_sd:
+            self.restart()  # the chain breaks
+            return None, None
+        d_ratio, d_skew, sd_ratio, sd_skew = got
+        # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
+        sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
+        # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
+        # the whole circle named restarts one of them
+        if not self.gain.recent:
+            self.gain.update(self.level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
+        if not self.axis.recent:
+            self.axis.update(self.level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
+        self.level = [self.level[0] + d_ratio, self.level[1] + d_skew]
+        return (
+            self.gain.update(self.level[0], sd_ratio, w.temp_c, w.t, s.gain_step_min, s),
+            self.axis.update(self.level[1], sd_skew, w.temp_c, w.t, s.axis_step_min, s),
+        )
+
+
+@dataclass
+class ArcBlock:
+    """Consecutive arc windows summed, for the chain of blocks: their bins, mean temperature, the last one's end and
+    the widest gap of any of them (each an arc)."""
+
+    bins: np.ndarray
+    temp_sum: float
+    windows: int
+    t: float
+    gap_bins: int
+
+    def window(self) -> ArcWindow:
+        return ArcWindow(self.t, self.temp_sum / self.windows, self.gap_bins, self.bins, False)
 
 
 def largest_gap_bins(stats: WindowStats) -> int:
@@ -732,12 +794,10 @@ class DeviceMonitor:
     step_sum: list = field(default_factory=lambda: [0.0, 0.0])  # Σ (e - level) while the step CUSUM climbs
     gain_jump: WindowJump = field(default_factory=WindowJump)  # the amplitude ratio log(d/q), window to window
     axis_jump: WindowJump = field(default_factory=WindowJump)  # the axes' skew, window to window
-    # the same two through arcs (_arc_steps), judged on the sum of their pairs' changes (arc_level), and the last
-    # window: in memory only, as the chain of pairs needs the last window's bins (after a restart it starts again)
-    arc_gain_jump: WindowJump = field(default_factory=WindowJump, repr=False, compare=False)
-    arc_axis_jump: WindowJump = field(default_factory=WindowJump, repr=False, compare=False)
-    arc_level: list = field(default_factory=lambda: [0.0, 0.0], repr=False, compare=False)
-    arc_last: ArcWindow | None = field(default=None, repr=False, compare=False)
+    # the same two through arcs (_arc_steps): window by window, and block by block of arc_block_windows windows
+    arc: ArcChain = field(default_factory=ArcChain, repr=False, compare=False)
+    arc_blocks: ArcChain = field(default_factory=ArcChain, repr=False, compare=False)
+    arc_block: ArcBlock | None = field(default=None, repr=False, compare=False)  # the block being summed
     offset_jump: list = field(default_factory=lambda: [WindowJump(), WindowJump()])  # d's and q's offset, likewise
     rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
     rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
@@ -873,7 +933,7 @@ class DeviceMonitor:
         loads += [c.load for c in self.frac.values()]
         recent_absurd = self.last_absurd_t is not None and self.last_t is not None
         recent_absurd = recent_absurd and self.last_t - self.last_absurd_t < self.settings.clear_after_s
-        pending = self.gain_jump.pending is not None or self.arc_gain_jump.pending is not None
+        pending = any(j.pending is not None for j in (self.gain_jump, self.arc.gain, self.arc_blocks.gain))
         return "watch" if max(loads) >= 0.5 or recent_absurd or pending else "ok"
 
     def rate_estimates(self) -> dict[str, float] | None:
@@ -1083,7 +1143,7 @@ class DeviceMonitor:
             w = 1.0 - math.exp(-max(dt, 0.0) / s.level_tau_s)
             level[_OFF] += w * jump
             level[_AMP] += w * (e[_AMP] - level[_AMP])
-            if self.gain_jump.pending is None and self.arc_gain_jump.pending is None:
+            if all(j.pending is None for j in (self.gain_jump, self.arc.gain, self.arc_blocks.gain)):
                 level[_IMB] += w * (e[_IMB] - level[_IMB])
             self.level = list(level)
         self.level_t = f.t
@@ -1121,7 +1181,7 @@ class DeviceMonitor:
         ratio, skew, sd = f.ratio_skew
         gain = self.gain_jump.update(ratio, sd, f.temp_c, f.t, s.gain_step_min, s)
         axis = self.axis_jump.update(skew, sd, f.temp_c, f.t, s.axis_step_min, s)
-        self._shape_stepped(f, events, gain, axis, "between two windows", arc=False)
+        self._shape_stepped(f, events, gain, axis, "between two windows", source="circle")
         offsets = [j.update(float(f.y[i]), float(f.sigma[i]), f.temp_c, f.t, s.offset_jump_min, s)
                    for i, j in enumerate(self.offset_jump)]  # fmt: skip
         if any(o is not None for o in offsets) and self.level is not None:
@@ -1145,37 +1205,42 @@ class DeviceMonitor:
     def _arc_steps(self, f: Features, events) -> None:
         """The gain and axis steps of _shape_steps where a window saw only part of the circle (a drive reversing
         over an arc): each window against the one before it over the angles both saw (arc_shape_change), the
-        changes summed along the chain of pairs into a level that the same window-to-window test judges."""
+        changes summed along the chain of pairs into a level that the same window-to-window test judges; and the
+        same for blocks of arc_block_windows windows, whose sums measure a shape arcs of a window each cannot."""
         s = self.settings
-        spiky = self._spiky(f)
-        last, self.arc_last = self.arc_last, ArcWindow(f.t, f.temp_c, f.gap_bins, f.bins, spiky)
-        chained = last is not None and f.t - last.t <= s.jump_match_s
-        got = None
-        if chained and max(f.gap_bins, last.gap_bins) > s.jump_max_gap_bins:  # two whole circles: _shape_steps judges
-            if not (spiky or last.spiky):  # spikes too small to reject move the bins too
-                before = last.profile if last.profile is not None else RadialProfile.of(last.bins)
-                self.arc_last.profile = after = RadialProfile.of(f.bins)
-                got = arc_shape_change(before, after, s.arc_min_bins)
-        if got is None or max(got[2], got[3]) > s.arc_max_sd:
-            self.arc_gain_jump, self.arc_axis_jump = WindowJump(), WindowJump()  # the chain breaks
+        w = ArcWindow(f.t, f.temp_c, f.gap_bins, f.bins, self._spiky(f))
+        gain, axis = self.arc.pair(w, s)
+        self._shape_stepped(f, events, gain, axis, "between two windows through the same arc", source="arc")
+        if w.spiky or w.gap_bins <= s.jump_max_gap_bins:
+            self.arc_block = None  # a block is consecutive arcs: a whole circle or spikes end it unfinished
             return
-        d_ratio, d_skew, sd_ratio, sd_skew = got
-        # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
-        sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
-        # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
-        # the whole circle named resets one of them
-        if not self.arc_gain_jump.recent:
-            self.arc_gain_jump.update(self.arc_level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
-        if not self.arc_axis_jump.recent:
-            self.arc_axis_jump.update(self.arc_level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
-        self.arc_level = [self.arc_level[0] + d_ratio, self.arc_level[1] + d_skew]
-        gain = self.arc_gain_jump.update(self.arc_level[0], sd_ratio, f.temp_c, f.t, s.gain_step_min, s)
-        axis = self.arc_axis_jump.update(self.arc_level[1], sd_skew, f.temp_c, f.t, s.axis_step_min, s)
-        self._shape_stepped(f, events, gain, axis, "between two windows through the same arc", arc=True)
+        block = self.arc_block
+        if block is None or f.t - block.t > s.jump_learn_s:  # ... and so does a pause
+            block = self.arc_block = ArcBlock(f.bins.copy(), f.temp_c, 1, f.t, f.gap_bins)
+        else:
+            block.bins += f.bins
+            block.temp_sum += f.temp_c
+            block.windows += 1
+            block.t, block.gap_bins = f.t, max(block.gap_bins, f.gap_bins)
+        if block.windows < s.arc_block_windows:
+            return
+        self.arc_block = None
+        gain, axis = self.arc_blocks.pair(block.window(), s)
+        self._shape_stepped(
+            f,
+            events,
+            gain,
+            axis,
+            f"between two blocks of {s.arc_block_windows} windows through the same arc",
+            source="blocks",
+        )
 
-    def _shape_stepped(self, f: Features, events, gain: tuple | None, axis: tuple | None, how: str, arc: bool) -> None:
-        """Raise what a gain or axis WindowJump found (`arc`: the arcs' pair, else the whole circles'); the other
-        pair of tests starts over, so that one step gives one alarm (and one move of the running set)."""
+    def _shape_stepped(
+        self, f: Features, events, gain: tuple | None, axis: tuple | None, how: str, source: str
+    ) -> None:
+        """Raise what a gain or axis WindowJump found (source: "circle", the whole circles' pairs, "arc" the arcs'
+        pairs, "blocks" the arc blocks' pairs); the other sources' tests of it start over, so that one step gives
+        one alarm (and one move of the running set)."""
         for name, step, param in (("axis_step", axis, "delta_skew"), ("gain_step", gain, "delta_imbalance")):
             if step is not None:
                 parameters = {param: round(step[0], 6)}
@@ -1187,17 +1252,22 @@ class DeviceMonitor:
                     f"{cause_of(name).state(**parameters)} {how} and held there, "
                     f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
                 )
+        others = [chain for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)) if name != source]
+        if axis is not None or gain is not None:
+            for chain in others:  # the next pair starts after the step: one with the step in it would name it again
+                chain.last = None
+            self.arc_block = None
         if axis is not None:
-            if arc:
+            if source != "circle":
                 self.axis_jump = WindowJump()
-            else:
-                self.arc_axis_jump = WindowJump()
+            for chain in others:
+                chain.axis = WindowJump()
         if gain is None:
             return
-        if arc:
+        if source != "circle":
             self.gain_jump = WindowJump()
-        else:
-            self.arc_gain_jump = WindowJump()
+        for chain in others:
+            chain.gain = WindowJump()
         if self.level is not None:
             level = list(self.level)
             level[_IMB] += gain[0]
