@@ -354,7 +354,7 @@ class ArcChain:
         # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
         sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
         # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
-        # the whole circle named restarts one of them
+        # named by the whole circle or the other chain restarts one of them (and the next pair, as `last` is dropped)
         if not self.gain.recent:
             self.gain.update(self.level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
         if not self.axis.recent:
