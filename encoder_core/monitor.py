@@ -442,7 +442,9 @@ def window_features(
     l00 = math.sqrt(q00)
     u = (l00 * mx + q01 / l00 * my) + 1j * (math.sqrt(det / q00) * my)
     z = u / np.maximum(np.abs(u), 1e-12)
-    w = cnt / cnt.sum()
+    # each bin seen weighs the same: weighted by its samples, the ripple took in how the drive lingered along the
+    # circle (a reversing drive's turnarounds), and a change of where it turned read as a harmonic's growth
+    w = np.full(cnt.size, 1.0 / cnt.size)
     dev = w * (r - np.dot(w, r))
     coef = 2 * (z[None, :] ** _CYCLES[:, None]) @ dev  # Σ w·dev·e^{ikφ}: cos part real, sin part imaginary
     harm = np.column_stack([coef.real, coef.imag]).ravel()
@@ -464,7 +466,7 @@ def window_features(
     f.y = y
     f.ratio_skew = _shape_per_bin(per_bin, b, residual)
     f.sigma = np.full(N_FEATURES, s_center)
-    f.sigma[2:4] = s_amp
+    f.sigma[2:4] = s_amp  # the harmonics keep s_center: bins weighted alike, as the centre per bin
     return f
 
 
@@ -1109,7 +1111,8 @@ class DeviceMonitor:
         noise = np.sqrt(sig**2 + np.array(base.spread) ** 2)
         self._step(f, e, noise, events)
         self._rates(f, e, fleet, events)
-        self._harmonics(f, e, noise, events)
+        if f.gap_bins <= s.jump_max_gap_bins:  # over part of the circle the unseen bins leak into the ripple
+            self._harmonics(f, e, noise, events)
 
     def _step(self, f: Features, e: np.ndarray, noise: np.ndarray, events) -> None:
         s = self.settings
