@@ -323,64 +323,6 @@ class ArcWindow:
     profile: RadialProfile | None = None  # made from `bins` when first paired
 
 
-@dataclass
-class ArcChain:
-    """The arc test's chain (DeviceMonitor._arc_steps): pairs of consecutive windows (or blocks of windows) through
-    the same arc, their changes of gain ratio and skew summed into a level that a WindowJump judges. In memory only:
-    it needs the last window's bins (after a restart it starts again)."""
-
-    gain: WindowJump = field(default_factory=lambda: WindowJump())  # (a lambda: WindowJump is defined below)
-    axis: WindowJump = field(default_factory=lambda: WindowJump())
-    level: list = field(default_factory=lambda: [0.0, 0.0])
-    last: ArcWindow | None = None
-
-    def restart(self) -> None:
-        self.gain, self.axis = WindowJump(), WindowJump()
-
-    def pair(self, w: ArcWindow, s: Settings) -> tuple[tuple | None, tuple | None]:
-        """Chain window (or block) `w` to the last: (gain step, axis step) as WindowJump.update returns them."""
-        last, self.last = self.last, w
-        got = None
-        if last is not None and w.t - last.t <= s.jump_match_s and max(w.gap_bins, last.gap_bins) > s.jump_max_gap_bins:
-            # (two whole circles: _shape_steps judges them)
-            if not (w.spiky or last.spiky):  # spikes too small to reject move the bins too
-                before = last.profile if last.profile is not None else RadialProfile.of(last.bins)
-                w.profile = RadialProfile.of(w.bins)
-                got = arc_shape_change(before, w.profile, s.arc_min_bins)
-        if got is None or max(got[2], got[3]) > s.arc_max_sd:
-            self.restart()  # the chain breaks
-            return None, None
-        d_ratio, d_skew, sd_ratio, sd_skew = got
-        # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
-        sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
-        # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
-        # named by the whole circle or the other chain restarts one of them (and the next pair, as `last` is dropped)
-        if not self.gain.recent:
-            self.gain.update(self.level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
-        if not self.axis.recent:
-            self.axis.update(self.level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
-        self.level = [self.level[0] + d_ratio, self.level[1] + d_skew]
-        return (
-            self.gain.update(self.level[0], sd_ratio, w.temp_c, w.t, s.gain_step_min, s),
-            self.axis.update(self.level[1], sd_skew, w.temp_c, w.t, s.axis_step_min, s),
-        )
-
-
-@dataclass
-class ArcBlock:
-    """Consecutive arc windows summed, for the chain of blocks: their bins, mean temperature, the last one's end and
-    the widest gap of any of them (each an arc)."""
-
-    bins: np.ndarray
-    temp_sum: float
-    windows: int
-    t: float
-    gap_bins: int
-
-    def window(self) -> ArcWindow:
-        return ArcWindow(self.t, self.temp_sum / self.windows, self.gap_bins, self.bins, False)
-
-
 def largest_gap_bins(stats: WindowStats) -> int:
     """The longest run of empty angle bins around the circle (N_BINS when the window saw nothing)."""
     seen = np.flatnonzero(stats.bins[:, 0] > 0)
@@ -759,6 +701,70 @@ class WindowJump:
         return delta, noise
 
 
+@dataclass
+class ArcChain:
+    """The arc test's chain (DeviceMonitor._arc_steps): pairs of consecutive windows (or blocks of windows) through
+    the same arc, their changes of gain ratio and skew summed into a level that a WindowJump judges. In memory only:
+    it needs the last window's bins (after a restart it starts again)."""
+
+    gain: WindowJump = field(default_factory=WindowJump)
+    axis: WindowJump = field(default_factory=WindowJump)
+    level: list = field(default_factory=lambda: [0.0, 0.0])
+    last: ArcWindow | None = None
+
+    def restart(self) -> None:
+        self.gain, self.axis = WindowJump(), WindowJump()
+
+    def pair(self, w: ArcWindow, s: Settings) -> tuple[tuple | None, tuple | None]:
+        """Chain window (or block) `w` to the last: (gain step, axis step) as WindowJump.update returns them."""
+        last, self.last = self.last, w
+        got = None
+        if last is not None and w.t - last.t <= s.jump_match_s and max(w.gap_bins, last.gap_bins) > s.jump_max_gap_bins:
+            # (two whole circles: _shape_steps judges them)
+            if not (w.spiky or last.spiky):  # spikes too small to reject move the bins too
+                before = last.profile if last.profile is not None else RadialProfile.of(last.bins)
+                w.profile = RadialProfile.of(w.bins)
+                got = arc_shape_change(before, w.profile, s.arc_min_bins)
+        if got is None or max(got[2], got[3]) > s.arc_max_sd:
+            self.restart()  # the chain breaks
+            return None, None
+        d_ratio, d_skew, sd_ratio, sd_skew = got
+        # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
+        sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
+        # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
+        # named by the whole circle or the other chain restarts one of them (and the next pair, as `last` is dropped)
+        if not self.gain.recent:
+            self.gain.update(self.level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
+        if not self.axis.recent:
+            self.axis.update(self.level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
+        self.level = [self.level[0] + d_ratio, self.level[1] + d_skew]
+        return (
+            self.gain.update(self.level[0], sd_ratio, w.temp_c, w.t, s.gain_step_min, s),
+            self.axis.update(self.level[1], sd_skew, w.temp_c, w.t, s.axis_step_min, s),
+        )
+
+
+@dataclass
+class ArcBlock:
+    """Consecutive arc windows summed, for the chain of blocks: their bins, mean temperature, the last one's end and
+    the widest gap of any of them (each an arc)."""
+
+    bins: np.ndarray
+    temp_sum: float
+    windows: int
+    t: float
+    gap_bins: int
+
+    def add(self, f: Features) -> None:
+        self.bins += f.bins
+        self.temp_sum += f.temp_c
+        self.windows += 1
+        self.t, self.gap_bins = f.t, max(self.gap_bins, f.gap_bins)
+
+    def window(self) -> ArcWindow:
+        return ArcWindow(self.t, self.temp_sum / self.windows, self.gap_bins, self.bins, False)
+
+
 # --- alarms ---------------------------------------------------------------------------------------
 
 
@@ -935,8 +941,12 @@ class DeviceMonitor:
         loads += [c.load for c in self.frac.values()]
         recent_absurd = self.last_absurd_t is not None and self.last_t is not None
         recent_absurd = recent_absurd and self.last_t - self.last_absurd_t < self.settings.clear_after_s
-        pending = any(j.pending is not None for j in (self.gain_jump, self.arc.gain, self.arc_blocks.gain))
+        pending = self._gain_jump_pending()
         return "watch" if max(loads) >= 0.5 or recent_absurd or pending else "ok"
+
+    def _gain_jump_pending(self) -> bool:
+        """A gain step seen by one of its tests (whole circles, arcs' pairs, arcs' blocks), not yet still again."""
+        return any(j.pending is not None for j in (self.gain_jump, self.arc.gain, self.arc_blocks.gain))
 
     def rate_estimates(self) -> dict[str, float] | None:
         """This device's current |offset rate| and amplitude loss per day, for the fleet's distribution."""
@@ -1146,7 +1156,7 @@ class DeviceMonitor:
             w = 1.0 - math.exp(-max(dt, 0.0) / s.level_tau_s)
             level[_OFF] += w * jump
             level[_AMP] += w * (e[_AMP] - level[_AMP])
-            if all(j.pending is None for j in (self.gain_jump, self.arc.gain, self.arc_blocks.gain)):
+            if not self._gain_jump_pending():
                 level[_IMB] += w * (e[_IMB] - level[_IMB])
             self.level = list(level)
         self.level_t = f.t
@@ -1221,10 +1231,7 @@ class DeviceMonitor:
         if block is None or f.t - block.t > s.jump_learn_s:  # ... and so does a pause
             block = self.arc_block = ArcBlock(f.bins.copy(), f.temp_c, 1, f.t, f.gap_bins)
         else:
-            block.bins += f.bins
-            block.temp_sum += f.temp_c
-            block.windows += 1
-            block.t, block.gap_bins = f.t, max(block.gap_bins, f.gap_bins)
+            block.add(f)
         if block.windows < s.arc_block_windows:
             return
         self.arc_block = None
@@ -1255,22 +1262,19 @@ class DeviceMonitor:
                     f"{cause_of(name).state(**parameters)} {how} and held there, "
                     f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
                 )
-        others = [chain for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)) if name != source]
         if axis is not None or gain is not None:
-            for chain in others:  # the next pair starts after the step: one with the step in it would name it again
-                chain.last = None
             self.arc_block = None
-        if axis is not None:
-            if source != "circle":
-                self.axis_jump = WindowJump()
-            for chain in others:
-                chain.axis = WindowJump()
+            for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
+                if name != source:  # the next pair starts after the step: one with the step in it would name it again
+                    chain.last = None
+                    chain.axis = WindowJump() if axis is not None else chain.axis
+                    chain.gain = WindowJump() if gain is not None else chain.gain
+        if axis is not None and source != "circle":
+            self.axis_jump = WindowJump()
         if gain is None:
             return
         if source != "circle":
             self.gain_jump = WindowJump()
-        for chain in others:
-            chain.gain = WindowJump()
         if self.level is not None:
             level = list(self.level)
             level[_IMB] += gain[0]

@@ -461,11 +461,11 @@ _stats_floats = operator.attrgetter(*_STATS_FLOATS)
 def _check_window(win: Window) -> Window:
     """Non-finite numbers (MessagePack carries NaN and infinities) and the relations a schema cannot state."""
     stats = win.stats
-    moments = stats.moments_array()
+    arrays = np.frombuffer(stats.moments + stats.bins, _F8)  # the moments, then the bins
     # a sum of numbers is finite unless one is not (or the sum overflows): one sum and one array test are the
     # usual window's whole check, ~15x faster than naming each number; the walk runs only to say where
     scalars = sum(v for v in (*_window_floats(win), *_stats_floats(stats)) if v is not None)
-    if not (math.isfinite(scalars) and np.isfinite(np.frombuffer(stats.moments + stats.bins, _F8)).all()):
+    if not (math.isfinite(scalars) and np.isfinite(arrays).all()):
         _name_non_finite(win)
 
     def bad(path: str, text: str):
@@ -478,7 +478,7 @@ def _check_window(win: Window) -> Window:
     rbr = win.rejected_by_reason
     if rbr is not msgspec.UNSET and rbr.non_finite + rbr.clipped + rbr.outlier != win.rejected:
         bad("$.rejected_by_reason", f"{msgspec.structs.asdict(rbr)} does not sum to rejected = {win.rejected}")
-    n = float(moments[0])
+    n = float(arrays[0])
     if win.samples != round(n):
         bad("$.samples", f"{win.samples} differs from stats.moments[0] = {n}")
     slack = 1e-9 * max(1.0, abs(win.temp_min_c), abs(win.temp_max_c))  # Σt/n rounds past min/max
