@@ -260,6 +260,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     next_refit = next_watch = float(samples.t[0]) + refit_every_s
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
+    axis_turn = 0.0  # the axis steps named so far, summed (service.runtime.fit)
     deferred = None  # a step's move waiting for a trial's verdict: (cause, parameters, at)
     die = DieTemperature()  # the agent's
     for start, end in windows_of(samples.t, window_s):
@@ -303,6 +304,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 if event.cause in STEP_CAUSES and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
+                    axis_turn += event.parameters["delta_skew"] if event.cause == "axis_step" else 0.0
                     if trial is not None and trial[0]["created_at"] >= event.at:
                         deferred = None  # the set on trial was fitted after the step (service.runtime.refit)
                     elif pending is not None or trial is not None:  # the move waits for them
@@ -357,6 +359,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             bin_temps=bin_temps,
             after_step=after_step,
             stepped_since_bench=step_at is not None,
+            axis_turn=axis_turn,
         )
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})

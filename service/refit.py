@@ -98,6 +98,7 @@ def refit_device(
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
     stepped_since_bench: bool = False,
+    axis_turn: float = 0.0,
 ) -> RefitResult:
     """The device's next set (or the reasons for none) from its band statistics.
 
@@ -106,6 +107,12 @@ def refit_device(
 
     stepped_since_bench: the monitor has named a step (offsets, gain or axes) since the factory's bench: the bench
     is then no point of the drift curve (no drift at its temperature would undo the step there).
+
+    axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
+    is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a
+    rotation of both axes, which none does; the step's move corrected both, and a candidate anchored to the factory's
+    own zero undid the rotation (s7-20hz-07: a set moved for a 0.43 % turn ran 0.02°, the refits adopted after it
+    0.12°).
 
     bin_temps (optional, per band, additive over its windows: WindowStats.bin_temps): Σ window mean
     temperature × window count per angle bin. With them each band's fit sets aside the locus's common scale
@@ -120,6 +127,7 @@ def refit_device(
             bin_temps=bin_temps,
             after_step=after_step,
             stepped_since_bench=stepped_since_bench,
+            axis_turn=axis_turn,
         )
     return refit_legacy(
         band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES), after_step=after_step
@@ -142,6 +150,7 @@ def refit_from_bench(
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
     stepped_since_bench: bool = False,
+    axis_turn: float = 0.0,
 ) -> RefitResult:
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
     count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
@@ -164,7 +173,8 @@ def refit_from_bench(
         else:
             fit = fits[band][0]
             terms, errors, chi2 = fit.drift.terms(locus.radius), fit.errors, fit.chi2_dof
-        corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus)
+        ruler = factory.axes_moved(axis_turn) if axis_turn else factory
+        corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus, ruler)
         quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
         now = running.at(corr.temp_c)
         if stats is not None:
@@ -328,13 +338,19 @@ def model_bands(fits, model: DriftModel | None):
 
 
 def drift_candidate(
-    terms: dict[str, float], errors: dict[str, float], temp_c: float, factory: Correction, locus: BenchLocus
+    terms: dict[str, float],
+    errors: dict[str, float],
+    temp_c: float,
+    factory: Correction,
+    locus: BenchLocus,
+    ruler: Correction | None = None,
 ) -> tuple[Correction, dict, float]:
-    """The factory's correction after the supported drift terms, with its quality and uncertainty (deg)."""
+    """The factory's correction after the supported drift terms, with its quality and uncertainty (deg); its zero
+    the ruler's (the factory's unless named axis turns moved it: refit_device's axis_turn)."""
     radius = locus.radius
     kept = gate(terms, errors)
     drift = Drift.from_terms(kept, np.array([locus.d[0], locus.q[0]]), radius)
-    corr = anchor_zero(compose(factory, drift), factory, locus, drift)
+    corr = anchor_zero(compose(factory, drift), factory if ruler is None else ruler, locus, drift)
     corr.temp_c = float(temp_c)
     # the uncertainty of the whole drift the band's data measured, not only of the terms that passed the gate: a
     # term held at the factory's value is as uncertain as its estimate, and a fit that cannot pin one term (an arc,

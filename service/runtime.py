@@ -852,6 +852,7 @@ class FleetService:
             after_step=self._stepped_recently(device, step_at)
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
+            axis_turn=sum(a["parameters"]["delta_skew"] for a in self.store.alarms(device, cause="axis_step")),
         )
 
     def _issue_set(
