@@ -130,7 +130,12 @@ def refit_device(
             axis_turn=axis_turn,
         )
     return refit_legacy(
-        band_stats, running, factory, min_samples=max(min_samples, LEGACY_MIN_SAMPLES), after_step=after_step
+        band_stats,
+        running,
+        factory,
+        min_samples=max(min_samples, LEGACY_MIN_SAMPLES),
+        after_step=after_step,
+        axis_turn=axis_turn,
     )
 
 
@@ -372,6 +377,7 @@ def refit_legacy(
     *,
     min_samples: int = LEGACY_MIN_SAMPLES,
     after_step: bool = False,
+    axis_turn: float = 0.0,
 ) -> RefitResult:
     candidates: dict[int, tuple[Correction, dict, WindowStats]] = {}
     estimates = []
@@ -401,8 +407,10 @@ def refit_legacy(
         anchor_band = min(candidates, key=lambda b: abs(candidates[b][0].temp_c - REFERENCE_TEMP_C))
         anchor_corr = candidates[anchor_band][0]
         near = abs(anchor_corr.temp_c - REFERENCE_TEMP_C) <= ZERO_ANCHOR_REACH_C
-        ruler = factory if near else running
-        shift = zero_shift(ruler.at(anchor_corr.temp_c), anchor_corr)
+        ruler = factory.at(anchor_corr.temp_c) if near else running.at(anchor_corr.temp_c)
+        if near and axis_turn:  # the factory moved by the named axis turns, as refit_from_bench's ruler
+            ruler = ruler.axes_moved(axis_turn)
+        shift = zero_shift(ruler, anchor_corr)
         for corr, _, _ in candidates.values():
             corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad + shift))
     result = RefitResult(bands=[])
