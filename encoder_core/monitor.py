@@ -662,12 +662,8 @@ class WindowJump:
         # while a jump waits to be seen still, the slope is the one from before it (the jump's own pairs would
         # tilt it: 2 Hz, 600 s windows, a step as the drive warmed from a flat stretch read 0.0049 for 0.0062)
         sums = self.pending[3] if self.pending is not None else self.slope
-        slope = sums[1] / (sums[0] + 1.0)  # per kelvin; a kelvin² of ridge
-        # what the slope may be off by, all of it: at a cycle's turn the die's lag makes the ratio run on while the
-        # reported temperature turns back (the project's simulator, ~0.14 %/K, raised a step at +70 °C), and
-        # before many kelvin of pairs it is barely known (false steps in the first half hour)
         noise = math.hypot(sd, prev[3]) + s.jump_model_sd
-        slope_sd = abs(slope) + 1.0 / math.sqrt(s.jump_slope_prior**-2 + sums[0] / noise**2)  # prior, then pairs
+        slope, slope_sd = _jump_slope(sums, noise, s)
         change = y - prev[0] - slope * (temp - prev[1])
         moving = abs(change) > max(step_min / 2, s.jump_z * noise) + slope_sd * abs(temp - prev[1])
         # the slope from every pair of windows but a step's (learning it only from pairs that did not move never
@@ -718,17 +714,24 @@ class WindowJump:
         older, two_back, prev = within[-3:]
         if abs(temp - two_back[1]) > s.jump_match_c:
             return None
-        sums = self.slope_before
-        slope = sums[1] / (sums[0] + 1.0)
         apart = math.hypot(two_back[3], older[3])
+        # the errors of the window, the one between and the level together (a chain's levels share their pairs')
+        noise = math.hypot(sd, prev[3], apart / 2) + s.jump_model_sd
+        slope, slope_sd = _jump_slope(self.slope_before, noise, s)
         if abs(two_back[0] - older[0] - slope * (two_back[1] - older[1])) > 2 * (apart + s.jump_model_sd):
             return None  # the two before do not agree: no level to judge from
         level = ((two_back[0] + older[0]) / 2, (two_back[1] + older[1]) / 2)
-        # the errors of the window, the one between and the level together (a chain's levels share their pairs')
-        noise = math.hypot(sd, prev[3], apart / 2) + s.jump_model_sd
-        slope_sd = abs(slope) + 1.0 / math.sqrt(s.jump_slope_prior**-2 + sums[0] / noise**2)
         change = abs(y - level[0] - slope * (temp - level[1]))
         return level if change > max(step_min / 2, s.jump_z * noise) + slope_sd * abs(temp - level[1]) else None
+
+
+def _jump_slope(sums: list, noise: float, s: Settings) -> tuple[float, float]:
+    """A WindowJump's slope in temperature from its pairs' sums (per kelvin; a kelvin² of ridge), and what it may be
+    off by, all of it: at a cycle's turn the die's lag makes the ratio run on while the reported temperature turns
+    back (the project's simulator, ~0.14 %/K, raised a step at +70 °C), and before many kelvin of pairs it is barely
+    known (false steps in the first half hour): its size, plus the prior's error shrunk by the pairs."""
+    slope = sums[1] / (sums[0] + 1.0)
+    return slope, abs(slope) + 1.0 / math.sqrt(s.jump_slope_prior**-2 + sums[0] / noise**2)
 
 
 @dataclass

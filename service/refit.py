@@ -348,14 +348,14 @@ def drift_candidate(
     temp_c: float,
     factory: Correction,
     locus: BenchLocus,
-    ruler: Correction | None = None,
+    ruler: Correction,
 ) -> tuple[Correction, dict, float]:
     """The factory's correction after the supported drift terms, with its quality and uncertainty (deg); its zero
-    the ruler's (the factory's unless named axis turns moved it: refit_device's axis_turn)."""
+    the ruler's (the factory, moved by the axis turns named since the bench: refit_device's axis_turn)."""
     radius = locus.radius
     kept = gate(terms, errors)
     drift = Drift.from_terms(kept, np.array([locus.d[0], locus.q[0]]), radius)
-    corr = anchor_zero(compose(factory, drift), factory if ruler is None else ruler, locus, drift)
+    corr = anchor_zero(compose(factory, drift), ruler, locus, drift)
     corr.temp_c = float(temp_c)
     # the uncertainty of the whole drift the band's data measured, not only of the terms that passed the gate: a
     # term held at the factory's value is as uncertain as its estimate, and a fit that cannot pin one term (an arc,
