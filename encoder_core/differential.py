@@ -182,7 +182,8 @@ def bin_points(stats: WindowStats, center, min_count: int = 2) -> BinPoints:
     var_t = (ny * ny * cxx - 2 * nx * ny * cxy + nx * nx * cyy) * stats.scale**2
     var_r = (nx * nx * cxx + 2 * nx * ny * cxy + ny * ny * cyy) * stats.scale**2
     points = raw + (np.maximum(var_t, 0.0) / (2 * radius))[:, None] * np.column_stack([nx, ny])
-    sigma = float(np.sqrt(max(np.average(np.maximum(var_r, 0.0), weights=n), 1e-12)))
+    # no bin with min_count samples (a soak of a few samples): no points, which the fits refuse as too few bins
+    sigma = float(np.sqrt(max(np.average(np.maximum(var_r, 0.0), weights=n), 1e-12))) if n.size else 1e-6
     return BinPoints(points=points, counts=n, sigma=sigma, index=np.flatnonzero(ok))
 
 

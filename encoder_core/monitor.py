@@ -32,7 +32,7 @@ import numpy as np
 from .held import held_points
 from .monitor_causes import cause as cause_of
 from .monitor_causes import check_parameters
-from .physics import BAND_WIDTH_C
+from .physics import BAND_WIDTH_C, band_of
 from .stats import MONOMIALS, N_BINS, WindowStats
 from .thermal import LagEstimate
 
@@ -88,6 +88,8 @@ class Settings:
     # bins both saw (arc_shape_change), at least this many (135°; s4-20hz-07's 0.54 % axis turn fell inside a
     # stretch of 230-270° arcs and went unnamed for a day, its drive worse than its factory set for an hour) ...
     arc_max_sd: float = 0.001  # ... when the pair measures the change this well
+    short_block_samples: int = 150  # windows too short to fit are summed until they hold this many samples (what a
+    # 0.5 Hz drive's 300 s window holds, on which the whole circle's tests were measured), then judged as one
     arc_block_windows: int = 5  # ... and the same for blocks of this many consecutive arc windows summed (s7-20hz-07:
     # a 0.43 % axis turn in 120-140° arcs, whose pairs of one-minute windows measure the skew to 0.001-0.003 and broke
     # the chain at every other window; unnamed, two hours worse than factory. Blocks of five: 0.0004-0.0006, named in
@@ -163,6 +165,7 @@ class Features:
     temp_rate: float = 0.0
     lag_used_s: float = 0.0
     bins: np.ndarray | None = None  # the window's angle bins (WindowStats.bins), for arc_shape_change
+    stats: WindowStats | None = None  # a window too short to fit (under MIN_FIT_SAMPLES): summed into a ShortBlock
 
 
 _DESIGN = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))  # conic a·x² + b·xy + c·y² + d·x + e·y + f
@@ -264,18 +267,16 @@ class RadialProfile:
         return cls(seen, index[order], n[order], angle[order], ((b[:, 3] + b[:, 5]) / n - 1.0)[order])
 
 
-def arc_shape_change(
-    before: RadialProfile, after: RadialProfile, min_bins: int
-) -> tuple[float, float, float, float] | None:
-    """(Δ gain ratio, Δ skew, their standard errors) from one window to the next, over the part of the circle both
-    saw. A drive reversing over an arc gives no ellipse of its own (which part it saw biases the fit), but two
-    windows through the same arc share that bias. A small affine change of the channels, p → (I + M)p + c with
-    M = [[k + g, s], [s, k − g]], changes r² of the normalised locus at angle φ by
-    2·(k + g·cos 2φ + s·sin 2φ + c·(cos φ, sin φ)); the ellipse's gain ratio then moves by 2g and its skew by −2s
-    (to first order). Each shared bin's mean r² is compared with the first window's at the same angle (interpolated
-    along its bins: a shaft lingering elsewhere inside a bin moves nothing), all five terms fitted together by
-    weighted least squares, the errors from the fit's own residuals. None: fewer than min_bins bins shared, or a fit
-    without three spare degrees."""
+def arc_shape_change(before: RadialProfile, after: RadialProfile, min_bins: int) -> tuple | None:
+    """(Δ gain ratio, Δ skew, their standard errors, (Δ offset d, Δ offset q), their standard errors) from one window
+    to the next, over the part of the circle both saw. A drive reversing over an arc gives no ellipse of its own
+    (which part it saw biases the fit), but two windows through the same arc share that bias. A small affine change
+    of the channels, p → (I + M)p + c with M = [[k + g, s], [s, k − g]], changes r² of the normalised locus at angle
+    φ by 2·(k + g·cos 2φ + s·sin 2φ + c·(cos φ, sin φ)); the ellipse's gain ratio then moves by 2g, its skew by −2s
+    and the offsets by c, fractions of the amplitude (to first order). Each shared bin's mean r² is compared with
+    the first window's at the same angle (interpolated along its bins: a shaft lingering elsewhere inside a bin
+    moves nothing), all five terms fitted together by weighted least squares, the errors from the fit's own
+    residuals. None: fewer than min_bins bins shared, or a fit without three spare degrees."""
     m = before.angle.size
     if m < 2 or after.angle.size < min_bins:
         return None
@@ -307,8 +308,14 @@ def arc_shape_change(
     beta = inverse @ (xw.T @ uw)
     residual = uw - xw @ beta
     variance = float(residual @ residual) / dof
-    out = (float(beta[1]), float(-beta[2]), math.sqrt(variance * inverse[1, 1]), math.sqrt(variance * inverse[2, 2]))
-    return out if all(math.isfinite(v) for v in out) else None
+    sd = np.sqrt(variance * np.diag(inverse))
+    out = (float(beta[1]), float(-beta[2]), float(sd[1]), float(sd[2]))
+    # r² of a locus of radius r (near 1: the normalisation is the factory's amplitude) moves by 2·r·c
+    radius = 2 * math.sqrt(max(1.0 + float(np.mean(after.r2[shared])), 0.25))
+    offsets = (float(beta[3]) / radius, float(beta[4]) / radius)
+    offsets_sd = (float(sd[3]) / radius, float(sd[4]) / radius)
+    values = (*out, *offsets, *offsets_sd)
+    return (*out, offsets, offsets_sd) if all(math.isfinite(v) for v in values) else None
 
 
 @dataclass
@@ -358,6 +365,8 @@ def window_features(
         f.held = [[*((p - centre) / stats.scale).tolist(), math.sqrt(v) / stats.scale] for p, v in held]
     f.gap_bins = largest_gap_bins(stats)
     f.bins = stats.bins
+    if 0 < n < MIN_FIT_SAMPLES:
+        f.stats = stats
     if n < MIN_FIT_SAMPLES or f.gap_bins > MAX_GAP_BINS:
         return f
     fit = _ellipse(stats)
@@ -737,22 +746,24 @@ def _jump_slope(sums: list, noise: float, s: Settings) -> tuple[float, float]:
 @dataclass
 class ArcChain:
     """The arc test's chain (DeviceMonitor._arc_steps): pairs of consecutive windows (or blocks of windows) through
-    the same arc, their changes of gain ratio and skew summed into a level that a WindowJump judges. In memory only:
-    it needs the last window's bins (after a restart it starts again)."""
+    the same arc, their changes of gain ratio, skew and the two offsets summed into levels that WindowJumps judge. In
+    memory only: it needs the last window's bins (after a restart it starts again)."""
 
     gain: WindowJump = field(default_factory=WindowJump)
     axis: WindowJump = field(default_factory=WindowJump)
-    level: list = field(default_factory=lambda: [0.0, 0.0])
+    offsets: list = field(default_factory=lambda: [WindowJump(), WindowJump()])  # d's and q's
+    level: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])  # gain ratio, skew, offset d, offset q
     last: ArcWindow | None = None
 
     def restart(self) -> None:
-        self.gain, self.axis = WindowJump(), WindowJump()
+        self.gain, self.axis, self.offsets = WindowJump(), WindowJump(), [WindowJump(), WindowJump()]
 
-    def pair(self, w: ArcWindow, s: Settings) -> tuple[tuple | None, tuple | None]:
-        """Chain window (or block) `w` to the last: (gain step, axis step) as WindowJump.update returns them."""
+    def pair(self, w: ArcWindow, s: Settings) -> tuple[tuple | None, tuple | None, list]:
+        """Chain window (or block) `w` to the last: (gain step, axis step, [offset d step, offset q step]) as
+        WindowJump.update returns them."""
         last, self.last = self.last, w
         got = None
-        waiting = self.gain.pending is not None or self.axis.pending is not None
+        waiting = any(j.pending is not None for j in (self.gain, self.axis, *self.offsets))
         if (
             last is not None
             and w.t - last.t <= s.jump_match_s
@@ -765,21 +776,49 @@ class ArcChain:
                 got = arc_shape_change(before, w.profile, s.arc_min_bins)
         if got is None or max(got[2], got[3]) > s.arc_max_sd:
             self.restart()  # the chain breaks
-            return None, None
-        d_ratio, d_skew, sd_ratio, sd_skew = got
+            return None, None, [None, None]
+        d_ratio, d_skew, sd_ratio, sd_skew, d_offsets, sd_offsets = got
         # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
         sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
+        sd_offsets = [sd / math.sqrt(2) for sd in sd_offsets]
         # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
         # named by the whole circle or the other chain restarts one of them (and the next pair, as `last` is dropped)
         if not self.gain.recent:
             self.gain.update(self.level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
         if not self.axis.recent:
             self.axis.update(self.level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
-        self.level = [self.level[0] + d_ratio, self.level[1] + d_skew]
+        for i, jump in enumerate(self.offsets):
+            if not jump.recent:
+                jump.update(self.level[2 + i], sd_offsets[i], last.temp_c, last.t, s.offset_jump_min, s)
+        self.level = [
+            self.level[0] + d_ratio,
+            self.level[1] + d_skew,
+            *(self.level[2 + i] + d_offsets[i] for i in (0, 1)),
+        ]
         return (
             self.gain.update(self.level[0], sd_ratio, w.temp_c, w.t, s.gain_step_min, s),
             self.axis.update(self.level[1], sd_skew, w.temp_c, w.t, s.axis_step_min, s),
-        )
+            [j.update(self.level[2 + i], sd_offsets[i], w.temp_c, w.t, s.offset_jump_min, s)
+             for i, j in enumerate(self.offsets)],
+        )  # fmt: skip
+
+
+@dataclass
+class ShortBlock:
+    """Consecutive windows too short to fit, summed (DeviceMonitor._short_block): their statistics, Σ temperature ×
+    samples, the last one's end and their rejected samples by reason."""
+
+    stats: WindowStats
+    temp_sum: float
+    t: float
+    rejected: dict
+
+    def add(self, f: Features) -> None:
+        self.stats = self.stats.merge(f.stats)
+        self.temp_sum += f.temp_c * f.samples
+        self.t = f.t
+        for reason, count in f.rejected.items():
+            self.rejected[reason] = self.rejected.get(reason, 0) + count
 
 
 @dataclass
@@ -844,6 +883,7 @@ class DeviceMonitor:
     arc: ArcChain = field(default_factory=ArcChain, repr=False, compare=False)
     arc_blocks: ArcChain = field(default_factory=ArcChain, repr=False, compare=False)
     arc_block: ArcBlock | None = field(default=None, repr=False, compare=False)  # the block being summed
+    short: ShortBlock | None = field(default=None, repr=False, compare=False)  # short windows being summed
     offset_jump: list = field(default_factory=lambda: [WindowJump(), WindowJump()])  # d's and q's offset, likewise
     rates: EwRegression = None  # offsets d, q; log amplitude; imbalance
     rate_cusum: dict = field(default_factory=dict)  # "offset" | "amplitude" -> Cusum
@@ -1019,7 +1059,37 @@ class DeviceMonitor:
         if f.y is not None:
             self._shape_steps(f, events)
             self._shape(f, fleet, events)
+        elif f.stats is not None and (block := self._short_block(f)) is not None:
+            if self._is_absurd(block):
+                self.absurd += 1  # as a window of its own: it moves no baseline and no detector
+                self.last_absurd_t = block.t
+            else:
+                self._shape_steps(block, events)
+                self._shape(block, fleet, events)
+        if f.y is not None:
+            self.short = None  # a block is consecutive short windows: a window fitted on its own ends it
         return events
+
+    def _short_block(self, f: Features) -> Features | None:
+        """Windows too short to fit (10 s at 5 Hz: 50 samples) summed, consecutive, until they hold
+        short_block_samples; then the block's features, which the whole circle's tests judge as one window's
+        (before, a drive sending such windows had no offset, gain or axis test but the arcs' and the held
+        positions': s1-5hz-11-reverse's 0.29 % offset step went unnamed for the 15 hours left, five of them worse
+        than its factory set)."""
+        s = self.settings
+        block = self.short
+        if block is None or f.t - block.t > s.jump_learn_s or not block.stats.same_frame(f.stats):
+            # a pause starts a new block, and so does a new normalisation (the agent's factory set changed)
+            block = self.short = ShortBlock(f.stats, f.temp_c * f.samples, f.t, dict(f.rejected))
+        else:
+            block.add(f)
+        if block.stats.n < s.short_block_samples:
+            return None
+        self.short = None
+        temp_c = block.temp_sum / block.stats.n
+        out = window_features(block.stats, t=f.t, temp_c=temp_c, band=band_of(temp_c))
+        out.rejected = block.rejected  # by reason, for the shape tests' spike check
+        return out if out.y is not None else None
 
     def _lag(self, f: Features, absurd: bool) -> None:
         """Every window draws the die's path; a fitted, plausible one also measures the lag."""
@@ -1199,16 +1269,27 @@ class DeviceMonitor:
             self.level = list(level)
         self.level_t = f.t
 
-    def _offset_stepped(self, delta) -> None:
-        """The new offsets are the drive's level from now on; its rates restart with it, and neither offset test
-        goes on building on the old level."""
-        level = np.array(self.level)
-        level[_OFF] += delta
-        self.level = list(level)
+    def _offset_stepped(self, delta, source: str = "level") -> None:
+        """The new offsets are the drive's level from now on; its rates restart with it, and no offset test goes on
+        building on the old level (source: the test that named the step, "level" the CUSUM, or _shape_stepped's)."""
+        if self.level is not None:
+            level = np.array(self.level)
+            level[_OFF] += delta
+            self.level = list(level)
         self.step.reset()
         self.step_sum = [0.0, 0.0]
         self.offset_jump = [WindowJump(), WindowJump()]
+        self._forget_offset_pairs(source)
         self._restart_after_step()
+
+    def _forget_offset_pairs(self, source: str) -> None:
+        """After an offset step: the arcs' offset tests start over, and every pair and block that would straddle the
+        step is dropped (a pair or block with the step in it would name it again)."""
+        self.arc_block, self.short = None, None
+        for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
+            chain.offsets = [WindowJump(), WindowJump()]
+            if name != source:
+                chain.last = None
 
     def _aging_ramp(self, t: float) -> np.ndarray:
         """How far the offsets have moved since the level was last set, on a drive whose ageing is named: the
@@ -1235,19 +1316,23 @@ class DeviceMonitor:
         self._shape_stepped(f, events, gain, axis, "between two windows", source="circle")
         offsets = [j.update(float(f.y[i]), float(f.sigma[i]), f.temp_c, f.t, s.offset_jump_min, s)
                    for i, j in enumerate(self.offset_jump)]  # fmt: skip
-        if any(o is not None for o in offsets) and self.level is not None:
-            delta = [0.0 if o is None else o[0] for o in offsets]
-            z = max(abs(o[0]) / o[1] for o in offsets if o is not None)
-            self._raise(
-                events,
-                "offset_step",
-                f.t,
-                {"delta_d": round(delta[0], 6), "delta_q": round(delta[1], 6)},
-                f"the channel offsets jumped by {_pct(delta[0])} (d) and {_pct(delta[1])} (q) of the amplitude "
-                f"between two windows and held there, {z:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C "
-                f"(band {f.band}).",
-            )
-            self._offset_stepped(np.array(delta))
+        self._offsets_jumped(f, events, offsets, "between two windows", source="circle")
+
+    def _offsets_jumped(self, f: Features, events, offsets: list, how: str, source: str) -> None:
+        """Raise the offset step the WindowJumps of d's and q's offset found (source as _shape_stepped's)."""
+        if all(o is None for o in offsets) or (source == "circle" and self.level is None):
+            return  # (arcs never give the ellipse a band baseline, and so never a level)
+        delta = [0.0 if o is None else o[0] for o in offsets]
+        z = max(abs(o[0]) / o[1] for o in offsets if o is not None)
+        self._raise(
+            events,
+            "offset_step",
+            f.t,
+            {"delta_d": round(delta[0], 6), "delta_q": round(delta[1], 6)},
+            f"the channel offsets jumped by {_pct(delta[0])} (d) and {_pct(delta[1])} (q) of the amplitude "
+            f"{how} and held there, {z:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
+        )
+        self._offset_stepped(np.array(delta), source=source)
 
     def _spiky(self, f: Features) -> bool:
         """More spikes rejected than the shape tests allow: smaller ones, not rejected, tilt the shape too."""
@@ -1260,8 +1345,9 @@ class DeviceMonitor:
         same for blocks of arc_block_windows windows, whose sums measure a shape arcs of a window each cannot."""
         s = self.settings
         w = ArcWindow(f.t, f.temp_c, f.gap_bins, f.bins, self._spiky(f))
-        gain, axis = self.arc.pair(w, s)
+        gain, axis, offsets = self.arc.pair(w, s)
         self._shape_stepped(f, events, gain, axis, "between two windows through the same arc", source="arc")
+        self._offsets_jumped(f, events, offsets, "between two windows through the same arc", source="arc")
         if w.spiky or w.gap_bins <= s.jump_max_gap_bins:
             self.arc_block = None  # a block is consecutive arcs: a whole circle or spikes end it unfinished
             return
@@ -1273,15 +1359,10 @@ class DeviceMonitor:
         if block.windows < s.arc_block_windows:
             return
         self.arc_block = None
-        gain, axis = self.arc_blocks.pair(block.window(), s)
-        self._shape_stepped(
-            f,
-            events,
-            gain,
-            axis,
-            f"between two blocks of {s.arc_block_windows} windows through the same arc",
-            source="blocks",
-        )
+        gain, axis, offsets = self.arc_blocks.pair(block.window(), s)
+        how = f"between two blocks of {s.arc_block_windows} windows through the same arc"
+        self._shape_stepped(f, events, gain, axis, how, source="blocks")
+        self._offsets_jumped(f, events, offsets, how, source="blocks")
 
     def _shape_stepped(
         self, f: Features, events, gain: tuple | None, axis: tuple | None, how: str, source: str
@@ -1301,7 +1382,7 @@ class DeviceMonitor:
                     f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
                 )
         if axis is not None or gain is not None:
-            self.arc_block = None
+            self.arc_block, self.short = None, None
             for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
                 if name != source:  # the next pair starts after the step: one with the step in it would name it again
                     chain.last = None
@@ -1406,6 +1487,7 @@ class DeviceMonitor:
             f"{how}, each over {s.held_step_z:g}× its uncertainty, and stayed there; at {f.temp_c:.1f} °C "
             f"(band {f.band}).",
         )
+        self._forget_offset_pairs("held")
         kept = []
         for last in self.held_last:  # positions not seen since the jump: where they sit after the step
             if after < last[4] < since or (far_jump and last[4] == since):

@@ -82,9 +82,13 @@ class WindowStats:
                 self.temp_max = max(self.temp_max, float(temp.max()))
         return self
 
+    def same_frame(self, other: WindowStats) -> bool:
+        """Both normalised alike (same scale and centre): what merge and subtract require."""
+        return (self.scale, self.center_d, self.center_q) == (other.scale, other.center_d, other.center_q)
+
     def merge(self, other: WindowStats) -> WindowStats:
         """A new statistics object holding both: addition, so order does not matter."""
-        if (self.scale, self.center_d, self.center_q) != (other.scale, other.center_d, other.center_q):
+        if not self.same_frame(other):
             raise InputError(
                 "cannot merge window statistics with different normalisation "
                 f"({self.scale}, {self.center_d}, {self.center_q}) vs "
@@ -107,7 +111,7 @@ class WindowStats:
 
     def subtract(self, other: WindowStats) -> WindowStats:
         """Take a window back out of a sum (merge's inverse for every sum; min and max stay those seen)."""
-        if (self.scale, self.center_d, self.center_q) != (other.scale, other.center_d, other.center_q):
+        if not self.same_frame(other):
             raise InputError("cannot subtract window statistics with different normalisation")
         return WindowStats(
             scale=self.scale,

@@ -50,6 +50,10 @@ from service.trial import WATCH_S, TrialEvidence, changed_bands, judge, watch_ag
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
 BAND_HORIZON_S = BAND_HORIZON_H * 3600.0  # drive time a band's sum remembers, as the service's store
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
+# service.runtime judges a set on trial at every refit pass (every 2 s of wall time); the loop every 5 drive-minutes
+# (or every window, when windows are longer). Until 2026-11-27 it judged only on its hourly refit grid and then
+# skipped that hour's refit: up to two hours later than the service after every new set (s1-5hz-04)
+JUDGE_EVERY_S = 300.0
 # an hour is worse than the factory's when its RMS error is higher by over 1 % and over a millidegree
 WORSE_MARGIN = 0.01
 WORSE_MIN_DEG = 0.001
@@ -258,6 +262,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     running, running_msg = factory, factory_msg
     timeline = [(float(samples.t[0]), factory)]
     next_refit = next_watch = float(samples.t[0]) + refit_every_s
+    next_judge = -math.inf
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
     axis_turn = 0.0  # the axis steps named so far, summed (service.runtime.fit)
@@ -277,11 +282,13 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 confirmed = pending
             elif guard and pending["basis"] != "rollback":
                 trial = [pending, {}, changed_bands(pending, confirmed), float(block.t[0])]
+                next_judge = float(block.t[0])  # service.runtime judges a new trial from its next pass on
             pending = None
         if deferred is not None and pending is None and trial is None:  # service.runtime.refit: after the verdict
             bands = step_moved_bands(running_msg["bands"], deferred[0], deferred[1], scale)
             pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": float(block.t[0])}
             deferred = None
+            next_refit = float(block.t[0]) + refit_every_s
         block = replace(block, temp_c=die(block.t, block.temp_c, running.thermal_lag_s))  # EdgeAgent.step
         stats = window_stats(block, scale)  # the agent's own code path
         if stats.temp_n == 0:
@@ -312,6 +319,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     else:  # service.runtime.publish_step_move
                         bands = step_moved_bands(running_msg["bands"], event.cause, event.parameters, scale)
                         pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
+                        next_refit = end_s + refit_every_s
         if watch_factory and pending is None and end_s >= next_watch:
             next_watch = end_s + watch_every_s
             since = max(end_s - WATCH_S, step_at or 0.0)  # service.runtime.watch: the drive as it is since a step
@@ -329,19 +337,21 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 sums.restart(after_s=end_s - WATCH_S)
                 next_refit = end_s + refit_every_s
                 continue
+        if trial is not None:  # no new set while one is on trial: service.runtime judges it at every pass
+            if end_s >= next_judge:
+                next_judge = end_s + JUDGE_EVERY_S
+                verdict = judge(TrialEvidence(trial[0], confirmed, trial[1], factory=factory_msg))
+                if verdict.action == "wait" and end_s - trial[3] >= TRIAL_MAX_S:
+                    verdict.action = "confirm"  # a trial not measured in time stays on the refit's word
+                if verdict.action == "confirm":
+                    confirmed, trial = trial[0], None
+                elif verdict.action == "rollback":
+                    pending, trial = {**confirmed, "basis": "rollback", "created_at": end_s}, None
+                    pending["bands_from"] = bands_from(confirmed)
+            continue  # a verdict is the pass's work; the refit is due an hour after the last fit or move
         if end_s < next_refit:
             continue
-        next_refit += refit_every_s
-        if trial is not None:  # no new set while one is on trial: judge it
-            verdict = judge(TrialEvidence(trial[0], confirmed, trial[1], factory=factory_msg))
-            if verdict.action == "wait" and end_s - trial[3] >= TRIAL_MAX_S:
-                verdict.action = "confirm"  # service.runtime: a trial not measured in time stays on the refit's word
-            if verdict.action == "confirm":
-                confirmed, trial = trial[0], None
-            elif verdict.action == "rollback":
-                pending, trial = {**confirmed, "basis": "rollback", "created_at": end_s}, None
-                pending["bands_from"] = bands_from(confirmed)
-            continue
+        next_refit = end_s + refit_every_s  # service.runtime._refitted: the cadence restarts at every fit
         if watch is not None and pending is None and deferred is None:
             lag = lag_to_send(watch.thermal_lag(), running.thermal_lag_s)
             if lag is not None:  # service.runtime.publish_lag: the bands as they run, read at the new die estimate

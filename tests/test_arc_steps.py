@@ -45,6 +45,9 @@ def arc_drive(seed: int, kind: str | None, turns_after_s: float | None = None):
         phys.events.append(fieldsim.Event(at, kind, q_axis=size))
     elif kind == "gain_step":
         phys.events.append(fieldsim.Event(at, kind, q_gain=size))
+    elif kind == "offset_step":  # of the amplitude, on d for even seeds and q for odd ones
+        raw = size * normalisation_scale(factory)
+        phys.events.append(fieldsim.Event(at, kind, d_offset=raw * (seed % 2 == 0), q_offset=raw * (seed % 2 == 1)))
     t = fieldsim.sample_times(DAYS, 20.0, rng)
     temp = fieldsim.reported_temperature(t, rng)
     die = fieldsim.lagged_fast(temp, t, phys.die_lag_s)
@@ -121,3 +124,23 @@ def test_a_step_the_arcs_saw_is_named_when_the_drive_turns_whole_circles_right_a
         assert abs(params[param] - truth_of(step)) < 0.25 * abs(truth_of(step)), (kind, seed, params)
         _, factory, clean = arc_drive(seed, None, turns_after_s)
         assert step_alarms(clean, factory, WINDOW_S, kind)[0] == [], (kind, seed)
+
+
+def test_an_offset_step_inside_arcs_is_named_and_sized_and_clean_arcs_stay_quiet():
+    """The offsets through arcs (the same pairs' c terms, `arc_shape_change`): a drive reversing over arcs shows the
+    ellipse's offsets only where it turns a whole circle now and then (and its level test then judges arcs against
+    them), and before the arcs' chains judged offsets, seed 1's step was not named at all. Of six drives, each step
+    of 0.3-0.6 % of the amplitude on one channel is named once, within four pairs of blocks, on its channel, within
+    35 % of its size (seed 3's, split over two pairs of arcs, 26 % short); the same drives without it raise nothing."""
+    for seed in SEEDS:
+        phys, factory, run = arc_drive(seed, "offset_step")
+        step = phys.events[0]
+        truth = np.array([step.d_offset, step.q_offset]) / normalisation_scale(factory)
+        raised, _ = step_alarms(run, factory, WINDOW_S, "offset_step")
+        assert len(raised) == 1, (seed, step, raised)
+        at, params = raised[0]
+        assert step.t_s <= at <= step.t_s + 4 * BLOCK_S, (seed, step.t_s, at)
+        got = np.array([params["delta_d"], params["delta_q"]])
+        assert np.linalg.norm(got - truth) < 0.35 * np.linalg.norm(truth), (seed, got, truth)
+        _, factory, clean = arc_drive(seed, None)
+        assert step_alarms(clean, factory, WINDOW_S, "offset_step")[0] == [], seed

@@ -517,6 +517,45 @@ def test_the_guard_measures_against_the_bench_locus_on_an_independent_drive(flee
         assert "worse than the set before" in history[1]["state_reason"]
 
 
+def test_a_trial_whose_soak_holds_a_few_samples_waits(fleet):
+    """A trial is judged at every pass, so its soak may be a single short window: 30 samples at 5 Hz, none sharing
+    an angle bin with another. The drift fit has no bin to stand on and says so (it divided by a count of zero: the
+    judgement raised, and the device was judged never again while the window stayed the soak); the trial waits."""
+    import numpy as np
+
+    from encoder_fleet import fieldsim
+    from encoder_fleet.calibrate import calibrate, factory_set
+
+    store, service = fleet
+    rng = np.random.default_rng(22)
+    phys = fieldsim.draw_drive(rng)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    msg = factory_set(DEVICE, factory)
+    store.insert_coefficient_set(msg)
+    store.mark_published(DEVICE, 0)
+    bands = [dict(b) for b in msg["bands"]]
+    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + 0.5, *bands[0]["w"][2:]]}
+    publish_trial(store, service, bands)
+    run = fieldsim.field_run(phys, days=0.001, rate_hz=5.0, regime="random", rng=rng, low_c=21.0, high_c=29.0)
+    scale, seen, keep = normalisation_scale(factory), set(), []
+    for i in range(run.samples.t.size):  # samples whose angle bins differ (a random shaft at 5 Hz, 30 of them)
+        one = int(np.argmax(window_stats(run.samples.subset([i]), scale).bins[:, 0]))
+        if one not in seen and len(keep) < 30:
+            seen.add(one)
+            keep.append(i)
+    block = run.samples.subset(np.array(keep))
+    stats = window_stats(block, scale)
+    assert stats.n == 30 and stats.bins[:, 0].max() == 1  # no bin holds two samples
+    store.insert_window(
+        wire.window_message(
+            DEVICE, 1, stats, window_start=1.0, window_end=11.0,
+            temp_rate_c_per_s=0.0, coefficients_version=1, angle_quality_deg=0.1,
+        )
+    )  # fmt: skip
+    assert service.refit(DEVICE) is None
+    assert store.set_on_trial(DEVICE)["version"] == 1
+
+
 def test_a_device_is_refit_once_per_drive_hour_not_once_per_window(fleet):
     """REFIT_EVERY_S: the refit loop keeps up with a fleet by refitting a device once per drive-hour (the
     cadence bench-fleet-accuracy measures); windows in between wait, and a detected step refits at once."""
