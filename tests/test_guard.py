@@ -58,6 +58,35 @@ def publish_trial(store, service, bands: list[dict]) -> int:
     return 1
 
 
+def independent_drive(store, seed: int):
+    """(rng, physics, factory set, its message) of a drive from encoder_fleet/fieldsim.py, calibrated on its bench (the
+    factory set carries the bench locus), stored and published as v0."""
+    import numpy as np
+
+    from encoder_fleet import fieldsim
+    from encoder_fleet.calibrate import calibrate
+    from encoder_fleet.calibrate import factory_set as factory_message_of
+
+    rng = np.random.default_rng(seed)
+    phys = fieldsim.draw_drive(rng)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    msg = factory_message_of(DEVICE, factory)
+    store.insert_coefficient_set(msg)
+    store.mark_published(DEVICE, 0)
+    return rng, phys, factory, msg
+
+
+def independent_drive_on_trial(store, service, seed: int, offset_error: float):
+    """independent_drive's (rng, physics, factory set), on trial: the factory set with d's offset off by offset_error
+    (raw units)."""
+    rng, phys, factory, msg = independent_drive(store, seed)
+    bands = [dict(b) for b in msg["bands"]]
+    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + offset_error, *bands[0]["w"][2:]]}
+    bands[0]["zero_offset_rad"] = bands[0]["zero_offset_rad"] + 1e-6
+    publish_trial(store, service, bands)
+    return rng, phys, factory
+
+
 def factory_set(store) -> dict:
     msg = factory_message(DEVICE, factory_calibration(drive_model(SEED), SEED))
     store.insert_coefficient_set(msg)
@@ -480,19 +509,9 @@ def test_the_guard_measures_against_the_bench_locus_on_an_independent_drive(flee
     import numpy as np
 
     from encoder_fleet import fieldsim
-    from encoder_fleet.calibrate import calibrate, factory_set
 
     store, service = fleet
-    rng = np.random.default_rng(21)
-    phys = fieldsim.draw_drive(rng)
-    factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    msg = factory_set(DEVICE, factory)
-    store.insert_coefficient_set(msg)
-    store.mark_published(DEVICE, 0)
-    bands = [dict(b) for b in msg["bands"]]
-    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + offset_error, *bands[0]["w"][2:]]}
-    bands[0]["zero_offset_rad"] = bands[0]["zero_offset_rad"] + 1e-6
-    publish_trial(store, service, bands)
+    rng, phys, factory = independent_drive_on_trial(store, service, 21, offset_error)
     run = fieldsim.field_run(phys, days=0.1, rate_hz=20.0, regime="random", rng=rng, low_c=21.0, high_c=29.0)
     scale = normalisation_scale(factory)
     t = run.samples.t
@@ -524,18 +543,9 @@ def test_a_trial_whose_soak_holds_a_few_samples_waits(fleet):
     import numpy as np
 
     from encoder_fleet import fieldsim
-    from encoder_fleet.calibrate import calibrate, factory_set
 
     store, service = fleet
-    rng = np.random.default_rng(22)
-    phys = fieldsim.draw_drive(rng)
-    factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    msg = factory_set(DEVICE, factory)
-    store.insert_coefficient_set(msg)
-    store.mark_published(DEVICE, 0)
-    bands = [dict(b) for b in msg["bands"]]
-    bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + 0.5, *bands[0]["w"][2:]]}
-    publish_trial(store, service, bands)
+    rng, phys, factory = independent_drive_on_trial(store, service, 22, 0.5)
     run = fieldsim.field_run(phys, days=0.001, rate_hz=5.0, regime="random", rng=rng, low_c=21.0, high_c=29.0)
     scale, seen, keep = normalisation_scale(factory), set(), []
     for i in range(run.samples.t.size):  # samples whose angle bins differ (a random shaft at 5 Hz, 30 of them)
@@ -597,15 +607,9 @@ def test_the_watch_restores_the_factory_set_where_the_running_one_is_worse(fleet
 
     from encoder_core.correction import BandedCorrection
     from encoder_fleet import fieldsim
-    from encoder_fleet.calibrate import calibrate, factory_set
 
     store, service = fleet
-    rng = np.random.default_rng(seed)
-    phys = fieldsim.draw_drive(rng)
-    factory = calibrate(fieldsim.bench_sweep(phys, rng))
-    msg = factory_set(DEVICE, factory)
-    store.insert_coefficient_set(msg)
-    store.mark_published(DEVICE, 0)
+    rng, phys, factory, msg = independent_drive(store, seed)
     hidden = float(rng.choice([-1, 1]) * rng.uniform(0.02, 0.04)) if seed == 31 else 0.0  # normalised offset
     bands = [dict(b) for b in msg["bands"]]
     bands[0] = {**bands[0], "w": [bands[0]["w"][0], bands[0]["w"][1] + hidden, *bands[0]["w"][2:]]}
