@@ -261,7 +261,8 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     confirmed, trial = factory_msg, None  # trial: [set message, soak band -> stats, bands it changed]
     running, running_msg = factory, factory_msg
     timeline = [(float(samples.t[0]), factory)]
-    next_refit = next_watch = float(samples.t[0]) + refit_every_s
+    next_watch = float(samples.t[0]) + refit_every_s
+    next_refit = float(samples.t[0])  # service.runtime refits a device at its first pass, then an hour after each fit
     next_judge = -math.inf
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
