@@ -778,29 +778,25 @@ class ArcChain:
             self.restart()  # the chain breaks
             return None, None, [None, None]
         d_ratio, d_skew, sd_ratio, sd_skew, d_offsets, sd_offsets = got
+        # per level (gain ratio, skew, offset d, offset q): its test, its error and the least step worth an alarm;
         # each level's error is its pair's over √2, so that two levels' errors add up to the pair's
-        sd_ratio, sd_skew = sd_ratio / math.sqrt(2), sd_skew / math.sqrt(2)
-        sd_offsets = [sd / math.sqrt(2) for sd in sd_offsets]
+        tests = list(
+            zip(
+                (self.gain, self.axis, *self.offsets),
+                (sd / math.sqrt(2) for sd in (sd_ratio, sd_skew, *sd_offsets)),
+                (s.gain_step_min, s.axis_step_min, s.offset_jump_min, s.offset_jump_min),
+            )
+        )
         # a new chain begins at the pair's first window (a step in this pair counts); each test on its own, as a step
         # named by the whole circle or the other chain restarts one of them (and the next pair, as `last` is dropped)
-        if not self.gain.recent:
-            self.gain.update(self.level[0], sd_ratio, last.temp_c, last.t, s.gain_step_min, s)
-        if not self.axis.recent:
-            self.axis.update(self.level[1], sd_skew, last.temp_c, last.t, s.axis_step_min, s)
-        for i, jump in enumerate(self.offsets):
+        for level, (jump, sd, step_min) in zip(self.level, tests):
             if not jump.recent:
-                jump.update(self.level[2 + i], sd_offsets[i], last.temp_c, last.t, s.offset_jump_min, s)
-        self.level = [
-            self.level[0] + d_ratio,
-            self.level[1] + d_skew,
-            *(self.level[2 + i] + d_offsets[i] for i in (0, 1)),
-        ]
-        return (
-            self.gain.update(self.level[0], sd_ratio, w.temp_c, w.t, s.gain_step_min, s),
-            self.axis.update(self.level[1], sd_skew, w.temp_c, w.t, s.axis_step_min, s),
-            [j.update(self.level[2 + i], sd_offsets[i], w.temp_c, w.t, s.offset_jump_min, s)
-             for i, j in enumerate(self.offsets)],
-        )  # fmt: skip
+                jump.update(level, sd, last.temp_c, last.t, step_min, s)
+        self.level = [level + d for level, d in zip(self.level, (d_ratio, d_skew, *d_offsets))]
+        gain, axis, *offsets = (
+            jump.update(level, sd, w.temp_c, w.t, step_min, s) for level, (jump, sd, step_min) in zip(self.level, tests)
+        )
+        return gain, axis, offsets
 
 
 @dataclass
@@ -1057,6 +1053,7 @@ class DeviceMonitor:
         if f.bins is not None:
             self._arc_steps(f, events)
         if f.y is not None:
+            self.short = None  # a block is consecutive short windows: a window fitted on its own ends it
             self._shape_steps(f, events)
             self._shape(f, fleet, events)
         elif f.stats is not None and (block := self._short_block(f)) is not None:
@@ -1066,8 +1063,6 @@ class DeviceMonitor:
             else:
                 self._shape_steps(block, events)
                 self._shape(block, fleet, events)
-        if f.y is not None:
-            self.short = None  # a block is consecutive short windows: a window fitted on its own ends it
         return events
 
     def _short_block(self, f: Features) -> Features | None:
