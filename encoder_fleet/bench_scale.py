@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from encoder_fleet.bench_fleet import announce_factory_sets, bench_database, template_messages
+from encoder_fleet.bench_fleet import announce_factory_sets, as_device, bench_database, template_messages
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import free_port, loopback_endpoint, session_config
@@ -63,7 +63,7 @@ def publish(endpoint: str, devices: int, windows: int) -> None:
     encoder = msgspec.msgpack.Encoder()
 
     def put(name: str, win) -> None:
-        payload = encoder.encode(msgspec.structs.replace(win, device=name))
+        payload = encoder.encode(as_device(win, name))
         session.put(keys.key(name, keys.STATS), payload, congestion_control=block)
 
     try:

@@ -15,6 +15,9 @@ candidate is the better estimate. Bands the refit has nothing new for keep what 
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -291,24 +294,66 @@ def bin_dtemps(bin_temp_sum: np.ndarray, stats: WindowStats) -> np.ndarray:
 def fit_bands(chosen: dict, *, dtemps: dict | None = None) -> dict:
     """band -> (statistics, factory band, bench locus) fitted in one batch per bench locus (`fit_drifts`);
     bands too little of the circle pins are left out. dtemps: per band, its bins' temperatures less its own
-    (the fit then has the in-band gain slope, see fit_drifts)."""
+    (the fit then has the in-band gain slope, see fit_drifts). A band whose sums and bench locus are the ones
+    fitted before is not fitted again (FIT_MEMO): between two hourly refits a drive visits a band or two."""
     dtemps = dtemps or {}
+    found: dict[int, DriftFit | InputError] = {}
     by_locus: dict[int, list[int]] = {}
+    keys = {band: _fit_key(stats, locus, dtemps.get(band)) for band, (stats, _, locus) in chosen.items()}
     for band, (_, _, locus) in chosen.items():
-        by_locus.setdefault(id(locus), []).append(band)
-    fits = {}
+        if (hit := FIT_MEMO.get(keys[band])) is not None:
+            found[band] = hit
+        else:
+            by_locus.setdefault(id(locus), []).append(band)
     for bands in by_locus.values():
         locus = chosen[bands[0]][2]
-        found = fit_drifts(
-            [chosen[b][0] for b in bands],
-            locus,
-            bin_dtemps=[dtemps.get(b) for b in bands],
-        )
-        for band, fit in zip(bands, found):
-            if not isinstance(fit, InputError):
-                stats, factory, locus = chosen[band]
-                fits[band] = (fit, stats, factory, locus)
-    return dict(sorted(fits.items()))
+        fits = fit_drifts([chosen[b][0] for b in bands], locus, bin_dtemps=[dtemps.get(b) for b in bands])
+        for band, fit in zip(bands, fits):
+            found[band] = FIT_MEMO.put(keys[band], fit)
+    return {band: (fit, *chosen[band]) for band, fit in sorted(found.items()) if not isinstance(fit, InputError)}
+
+
+class FitMemo:
+    """The last FIT_MEMO_SIZE band fits, by content (a digest of what the fit reads), least recently used out.
+    A fit is a pure function of its inputs, so a hit is the fit itself; one process's refits share it."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self._fits: OrderedDict[bytes, DriftFit | InputError] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: bytes) -> DriftFit | InputError | None:
+        with self._lock:
+            fit = self._fits.get(key)
+            if fit is not None:
+                self._fits.move_to_end(key)
+            return fit
+
+    def clear(self) -> None:
+        with self._lock:
+            self._fits.clear()
+
+    def put(self, key: bytes, fit: DriftFit | InputError) -> DriftFit | InputError:
+        with self._lock:
+            self._fits[key] = fit
+            while len(self._fits) > self.size:
+                self._fits.popitem(last=False)
+        return fit
+
+
+FIT_MEMO_SIZE = 50_000  # band fits, ~1.2 KB each (60 MB): a dozen bands each of ~4,000 drives
+FIT_MEMO = FitMemo(FIT_MEMO_SIZE)
+
+
+def _fit_key(stats: WindowStats, locus: BenchLocus, dtemps: np.ndarray | None) -> bytes:
+    """A digest of everything fit_drifts reads of one band: its bins and frame, its bins' temperatures, the bench
+    locus and the precision of its curve."""
+    digest = hashlib.blake2b(digest_size=20)
+    digest.update(np.array([stats.scale, stats.center_d, stats.center_q, locus.precision], float).tobytes())
+    for part in (stats.bins, locus.d, locus.q):
+        digest.update(np.ascontiguousarray(part, float).tobytes())
+    digest.update(b"-" if dtemps is None else np.ascontiguousarray(dtemps, float).tobytes())
+    return digest.digest()
 
 
 def band_index(corr: Correction) -> int:

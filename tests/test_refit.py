@@ -294,3 +294,51 @@ def test_the_lone_band_reach_is_kept_for_a_drive_that_dwelt():
     assert not dwelt(stats_of(rng.uniform(0, 2 * np.pi, n)))  # turning evenly
     centre = rng.uniform(0, 2 * np.pi)
     assert not dwelt(stats_of(centre + np.radians(60) * np.sin(np.arange(n) * 0.05 * 2 * np.pi / 7.0)))  # a 120° arc
+
+
+def test_a_band_whose_sums_did_not_change_is_not_fitted_again(monkeypatch):
+    """Between two hourly refits a drive visits a band or two: only those are fitted again (service.refit
+    FIT_MEMO), and the refit is the one without the memo."""
+    from service import refit as refit_module
+
+    rng = np.random.default_rng(5)
+    phys = fieldsim.draw_drive(rng, event=None, days=1)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    scale = normalisation_scale(factory)
+    run = fieldsim.field_run(phys, days=0.5, rate_hz=5.0, regime="even", rng=rng)
+    s = run.samples
+    windows = [
+        window_stats(Samples(t=s.t[k : k + 300], d=s.d[k : k + 300], q=s.q[k : k + 300], temp_c=s.temp_c[k : k + 300]),
+                     scale)
+        for k in range(0, s.t.size - 300, 300)
+    ]  # fmt: skip
+    bands = {}
+    for stats in windows[:-1]:
+        band = band_of(stats.temp_mean)
+        bands[band] = bands[band].merge(stats) if band in bands else stats
+    fitted = []
+    real_fit_drifts = refit_module.fit_drifts
+    monkeypatch.setattr(
+        refit_module, "fit_drifts", lambda fields, *a, **k: fitted.extend(fields) or real_fit_drifts(fields, *a, **k)
+    )
+    refit_module.FIT_MEMO.clear()
+
+    def refit(band_stats):
+        result = refit_device(
+            band_stats, factory, factory, bin_temps={b: st.bin_temps() for b, st in band_stats.items()}
+        )
+        return [(d.band, d.adopted, d.candidate_error_deg, d.running_error_deg) for d in result.decisions]
+
+    first = refit(bands)
+    assert len(fitted) == len(bands) >= 3
+    fitted.clear()
+    assert refit(bands) == first and fitted == []  # nothing new: no band fitted again, the same refit
+    last = windows[-1]
+    band = band_of(last.temp_mean)
+    bands[band] = bands[band].merge(last)
+    with_memo = refit(bands)
+    assert len(fitted) == 1 and fitted[0] is bands[band]
+    refit_module.FIT_MEMO.clear()
+    without = refit(bands)
+    assert [d[:2] for d in with_memo] == [d[:2] for d in without]
+    assert np.allclose([d[2:] for d in with_memo], [d[2:] for d in without], rtol=1e-7, atol=1e-12)
