@@ -25,6 +25,12 @@ from .store import Store
 log = logging.getLogger("service.monitor")
 STATES = ("ok", "watch", "alarm", "offline", "unknown")
 PAGE = 500  # windows read and committed at a time (a device that sends 10,000 at once is taken in pages)
+# a device's state is written with its alarms at once, and otherwise after this many windows or this much drive time
+# since it was last written: a restart goes on from the state written and feeds the windows since then again (all
+# stored, read in the same order: the same state; no alarm is fed twice, since every alarm is written at once). At
+# every window, writing a state of ~27 KB of JSON was 58 % of the monitor's time (a fleet replayed at 3,600x)
+SAVE_EVERY_WINDOWS = 12
+SAVE_EVERY_S = 3600.0
 
 
 class Monitor:
@@ -41,6 +47,7 @@ class Monitor:
         self.fleet = FleetRates(self.settings)
         self.devices: dict[str, DeviceMonitor] = {}
         self.last_seq: dict[str, int] = {}
+        self._unsaved: dict[str, tuple[int, float]] = {}  # device -> (windows fed, first one's end) since written
         self._lags: dict[tuple[str, int], float] = {}
         self._lock = threading.RLock()
         self.reload(lambda device: True)
@@ -52,6 +59,7 @@ class Monitor:
             for device in [d for d in self.devices if which(d)]:
                 del self.devices[device]
                 del self.last_seq[device]
+                self._unsaved.pop(device, None)
             for device, (state, last_seq) in self.store.monitor_states().items():
                 if not which(device):
                     continue
@@ -101,9 +109,21 @@ class Monitor:
                     )
                     events += mon.update(f, self.fleet)
                 events += self._refit_clears(device, mon)
-                written += self._save(device, mon, rows[-1]["seq"], events)
+                fed, since = self._unsaved.get(device, (0, rows[0]["window_end"]))
+                fed += len(rows)
+                if events or fed >= SAVE_EVERY_WINDOWS or rows[-1]["window_end"] - since >= SAVE_EVERY_S:
+                    written += self._save(device, mon, rows[-1]["seq"], events)
+                else:
+                    self.last_seq[device] = rows[-1]["seq"]
+                    self._unsaved[device] = (fed, since)
         self._publish(written)
         return written
+
+    def flush(self) -> None:
+        """Write every state fed since it was last written (the service stops)."""
+        with self._lock:
+            for device in list(self._unsaved):
+                self._save(device, self.devices[device], self.last_seq[device], [])
 
     def _lag_of(self, device: str, version: int) -> float:
         """The die lag the agent wrote a window's temperatures with: the τ of the set it ran (sets never change)."""
@@ -154,6 +174,7 @@ class Monitor:
         ]
         written = self.store.save_monitor(device, mon.to_dict(), last_seq, plain)
         self.last_seq[device] = last_seq
+        self._unsaved.pop(device, None)
         for a in written:
             log.warning(
                 "alarm " + ("raised" if a["cleared_at"] is None else "cleared"),

@@ -78,6 +78,35 @@ def test_restart_mid_drift_neither_forgets_nor_repeats(tmp_path, aging):
     assert msg["event"] == "raised" and msg["cause"] == "accelerated_aging" and msg["cleared_at"] is None
 
 
+def test_a_state_fed_but_not_yet_written_is_fed_again_after_a_crash(tmp_path, aging):
+    """The state is written with every alarm and otherwise every SAVE_EVERY_WINDOWS windows: a service killed
+    between two writes goes on from the last one and feeds the windows since again, to the same state and the same
+    alarms as a run that never stopped (windows fed one, two or three at a time, as a service's passes do)."""
+    spec, msgs = aging
+    with Store.open(tmp_path / "whole.sqlite") as store:
+        insert(store, msgs)
+        whole = Monitor(store)
+        alarms = whole.process(spec.name)
+    with Store.open(tmp_path / "steps.sqlite") as store:
+        monitor, got, k, crashes = Monitor(store), [], 0, 0
+        while k < len(msgs):
+            step = 1 + k % 3
+            insert(store, msgs[k : k + step])
+            k += step
+            got += monitor.process(spec.name)
+            written = store.monitor_states().get(spec.name, (None, 0))[1]
+            if written < monitor.last_seq[spec.name] and k % 50 < 3:  # killed with windows fed and not written
+                crashes += 1
+                monitor = Monitor(store)
+                assert monitor.last_seq.get(spec.name, 0) == written
+        monitor.flush()
+        assert crashes >= 5
+        assert [(a["cause"], a["raised_at"]) for a in got] == [(a["cause"], a["raised_at"]) for a in alarms]
+        assert len(store.alarms(spec.name)) == len(alarms) == 1
+        assert monitor.devices[spec.name].to_dict() == whole.devices[spec.name].to_dict()
+        assert store.monitor_states()[spec.name][1] == len(msgs)
+
+
 def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
     spec, msgs = aging
     with Store.open(tmp_path / "fleet.sqlite") as store:
