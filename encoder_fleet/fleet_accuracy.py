@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -484,18 +485,30 @@ def run_bench(
     windows: dict[float, float],
     events: bool = True,
     processes: int = 2,
+    through_service: float | None = None,
 ) -> dict:
-    specs = [
-        spec
+    """through_service: the real time factor to replay each fleet at through `encoder-fleet service` and agent
+    processes (encoder_fleet/fleet_replay.py) instead of the in-process loop."""
+    fleets = [
+        fleet_specs(seed, drives, days, rate, windows.get(rate, default_window(rate)), events)
         for rate in rates
         for seed in seeds
-        for spec in fleet_specs(seed, drives, days, rate, windows.get(rate, default_window(rate)), events)
     ]
     started = time.monotonic()
-    # spawned, not forked: the caller may hold a Zenoh session (a test run, the service), and a forked child of a
-    # process with Zenoh's threads can hang on a lock one of them held
-    with multiprocessing.get_context("spawn").Pool(processes) as pool:
-        results = pool.map(run_drive, specs, chunksize=1)
+    if through_service:
+        from encoder_fleet.fleet_replay import replay_fleet
+
+        def progress(text: str) -> None:
+            print(f"… {text}", file=sys.stderr, flush=True)
+
+        results = [
+            r for fleet in fleets for r in replay_fleet(fleet, real_time_factor=through_service, progress=progress)
+        ]
+    else:
+        # spawned, not forked: the caller may hold a Zenoh session (a test run, the service), and a forked child of a
+        # process with Zenoh's threads can hang on a lock one of them held
+        with multiprocessing.get_context("spawn").Pool(processes) as pool:
+            results = pool.map(run_drive, [spec for fleet in fleets for spec in fleet], chunksize=1)
     report = {"elapsed_s": time.monotonic() - started, "regimes": {}, "drives": []}
     for rate in rates:
         mine = [r for r in results if r.rate_hz == rate]

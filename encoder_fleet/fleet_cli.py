@@ -396,6 +396,7 @@ def cmd_bench_fleet_accuracy(args) -> int:
         windows=windows,
         events=not args.no_events,
         processes=args.processes,
+        through_service=args.through_service,
     )
     print(format_report(report))
     if args.json:
@@ -418,4 +419,14 @@ def register_fleet_accuracy(sub) -> None:
     p.add_argument("--window-s", type=positive_float, help="window length (default: 300 s below 2 Hz, else 60 s)")
     p.add_argument("--no-events", action="store_true", help="clean drives only (aging and noise, no planted step)")
     p.add_argument("--processes", type=positive_int, default=2, help="worker processes (one fleet regime each)")
+    p.add_argument(
+        "--through-service",
+        nargs="?",
+        type=positive_float,
+        const=3600.0,
+        metavar="FACTOR",
+        help="replay each fleet through `encoder-fleet service` and one `agent --source replay:` process per drive at "
+        "FACTOR times real time (default 3600), instead of the in-process loop; recordings take ~50 MB per drive-day "
+        "at 20 Hz",
+    )
     p.set_defaults(func=cmd_bench_fleet_accuracy)

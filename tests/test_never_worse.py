@@ -88,6 +88,21 @@ def test_a_small_fleet_of_independent_drives_is_never_worse_and_gains():
     assert fleet["worst_gain"] >= 0.95 and fleet["median_gain"] >= 1.5, fleet
 
 
+def test_the_issues_own_measurement_through_the_service_and_agent_processes():
+    """`bench-fleet-accuracy --through-service`: a fleet replayed through `encoder-fleet service` and one
+    `encoder-fleet agent --source replay:` process per drive at 3600x real time, as the issue measured it; what each
+    drive ran is read from the service's database (its applied acks). Every drive that turns gets sets and beats its
+    factory set, and none is worse in any hour (12 drive-hours each; a dwelling drive keeps its factory set)."""
+    from encoder_fleet.fleet_replay import replay_fleet
+
+    results = replay_fleet(fleet_specs(1, 4, 0.5, 0.5, 300.0), real_time_factor=3600.0)
+    assert [r.name for r in results] == [s.name for s in fleet_specs(1, 4, 0.5, 0.5, 300.0)]
+    turning = [r for r in results if r.motion != "dwell"]
+    assert len(turning) == 3 and all(r.versions_applied >= 1 for r in turning), results
+    assert all(len(r.fleet_hour_deg) == 12 and r.worse_hours == 0 for r in results), results
+    assert min(r.gain for r in turning) >= 1.5, [(r.name, r.gain) for r in results]
+
+
 def test_the_loop_judges_a_trial_at_the_services_pace_and_refits_an_hour_after_the_last_fit():
     """s1-5hz-04 (10 s windows, a gain step drawn from the seed at 12.8 h): the step is named while a set is on
     trial, the watch rolls that set back, and the drive runs the factory set moved by the step, on trial in a band it
