@@ -50,7 +50,11 @@ def replay_fleet(specs: list[DriveSpec], *, real_time_factor: float, progress=No
         database = folder / "fleet.sqlite"
         _run_fleet(folder, database, [spec.name for spec in specs], specs[0].window_s, real_time_factor)
         with sqlite3.connect(database) as conn:
-            return [_result(conn, spec, factory, run) for spec, factory, run in drives]
+            results = [_result(conn, spec, factory, run) for spec, factory, run in drives]
+            for spec, result in zip(specs, results):
+                if result.versions_applied == 0 and spec.motion != "dwell":
+                    say(f"{spec.name} applied no set: {_what_the_service_holds(conn, spec.name)}")
+            return results
 
 
 def _run_fleet(folder: Path, database: Path, names: list[str], window_s: float, real_time_factor: float) -> None:
@@ -102,6 +106,23 @@ def _wait_listening(endpoint: str, service: subprocess.Popen) -> None:
         except OSError:
             time.sleep(0.1)
     raise RuntimeError(f"encoder-fleet service did not listen on {endpoint} within {STARTUP_S:g} s")
+
+
+def _what_the_service_holds(conn: sqlite3.Connection, device: str) -> str:
+    """Why a drive that turns ran its factory set all along, as far as the database tells."""
+    counts = [
+        conn.execute(sql, (device,)).fetchone()[0]
+        for sql in (
+            "SELECT count(*) FROM windows WHERE device = ?",
+            "SELECT count(*) FROM coefficient_sets WHERE device = ? AND version = 0",
+            "SELECT count(*) FROM coefficient_sets WHERE device = ? AND version > 0",
+            "SELECT count(*) FROM acks WHERE device = ? AND status = 'rejected'",
+            "SELECT count(*) FROM dead_letters WHERE key_expr LIKE '%' || ? || '%'",
+        )
+    ]
+    return "{} windows, factory set {}, {} sets made, {} refused by the agent, {} dead letters".format(
+        counts[0], "known" if counts[1] else "never announced", *counts[2:]
+    )
 
 
 def _result(conn: sqlite3.Connection, spec: DriveSpec, factory: BandedCorrection, run) -> DriveResult:
