@@ -51,7 +51,7 @@ from service.trial import WATCH_S, TrialEvidence, changed_bands, judge, watch_ag
 EVENTS = (None, "offset_step", "gain_step", "axis_step")
 BAND_HORIZON_S = BAND_HORIZON_H * 3600.0  # drive time a band's sum remembers, as the service's store
 SCORE_PER_HOUR = 300  # samples scored per drive-hour
-# service.runtime judges a set on trial at every refit pass (every 2 s of wall time); the loop every 5 drive-minutes
+# service.runtime judges a set on trial at every refit pass (as soon as windows are stored); the loop every 5 drive-min
 # (or every window, when windows are longer). Until 2026-11-27 it judged only on its hourly refit grid and then
 # skipped that hour's refit: up to two hours later than the service after every new set (s1-5hz-04)
 JUDGE_EVERY_S = 300.0

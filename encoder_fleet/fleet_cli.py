@@ -275,7 +275,12 @@ def register(sub) -> None:
     )
     p.add_argument("--http-host", default="127.0.0.1", help="REST address (0.0.0.0 in a container)")
     p.add_argument("--http-port", type=port, default=8000, help="REST port (0: no REST)")
-    p.add_argument("--refit-interval", type=positive_float, default=2.0, help="seconds between refit passes")
+    p.add_argument(
+        "--refit-interval",
+        type=positive_float,
+        default=2.0,
+        help="the longest wait between refit passes, in seconds (a pass also runs as soon as windows are stored)",
+    )
     p.add_argument(
         "--band-horizon-h",
         type=non_negative_float,
