@@ -214,10 +214,13 @@ def drive_of(spec: DriveSpec) -> tuple[fieldsim.DrivePhysics, BandedCorrection, 
 
 
 def run_drive(spec: DriveSpec) -> DriveResult:
-    phys, factory, run = drive_of(spec)
-    timeline = fleet_loop(run.samples, factory, window_s=spec.window_s)
+    _, factory, run = drive_of(spec)
+    return scored(spec, factory, run, fleet_loop(run.samples, factory, window_s=spec.window_s))
+
+
+def scored(spec: DriveSpec, factory: BandedCorrection, run: fieldsim.FieldRun, timeline) -> DriveResult:
+    """A drive's result from the timeline of what it ran (from drive time, set), on true angle."""
     factory_hours, fleet_hours = score(run, factory, timeline)
-    floor_hours = score_floor(run, factory)
     return DriveResult(
         name=spec.name,
         motion=spec.motion,
@@ -226,7 +229,7 @@ def run_drive(spec: DriveSpec) -> DriveResult:
         versions_applied=len(timeline) - 1,
         factory_hour_deg=factory_hours,
         fleet_hour_deg=fleet_hours,
-        floor_hour_deg=floor_hours,
+        floor_hour_deg=score_floor(run, factory),
     )
 
 

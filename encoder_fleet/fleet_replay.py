@@ -26,7 +26,7 @@ from pathlib import Path
 
 from edge_agent.agent import factory_message
 from encoder_core.correction import BandedCorrection
-from encoder_fleet.fleet_accuracy import DriveResult, DriveSpec, drive_of, score, score_floor
+from encoder_fleet.fleet_accuracy import DriveResult, DriveSpec, drive_of, scored
 from encoder_fleet.recording import write_recording
 from fleet_wire.session import loopback_endpoint
 
@@ -134,14 +134,4 @@ def _result(conn: sqlite3.Connection, spec: DriveSpec, factory: BandedCorrection
         (spec.name,),
     ).fetchall()
     timeline += [(float(at), BandedCorrection.from_dict(json.loads(body))) for body, at in applied]
-    factory_hours, fleet_hours = score(run, factory, timeline)
-    return DriveResult(
-        name=spec.name,
-        motion=spec.motion,
-        event=spec.event,
-        rate_hz=spec.rate_hz,
-        versions_applied=len(timeline) - 1,
-        factory_hour_deg=factory_hours,
-        fleet_hour_deg=fleet_hours,
-        floor_hour_deg=score_floor(run, factory),
-    )
+    return scored(spec, factory, run, timeline)
