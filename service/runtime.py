@@ -67,6 +67,9 @@ WATCH_EVERY_S = 900.0
 # wall seconds after which a set the drive's windows do not show yet is put again: a set is otherwise put once, and
 # an agent cut off from the router at that moment would run its old set for good (the agent ignores a version it has)
 RESEND_AFTER_S = 60.0
+# … or after this much drive time, whichever comes first: a fleet replayed at 3,600x real time would otherwise wait
+# 60 drive-hours for it (an agent applies a set at its next window: a few windows of the longest, 600 s)
+RESEND_AFTER_DRIVE_S = 1800.0
 
 
 @dataclass
@@ -188,7 +191,7 @@ class FleetService:
         self._watched_at: dict[str, float] = {}  # device -> drive time of its last watch against the factory
         self.resend_after_s = resend_after_s
         self._clock = clock
-        self._resent: dict[str, tuple[int, float]] = {}  # device -> (version, wall time) of its last resend
+        self._resent: dict[str, tuple[int, float, float]] = {}  # device -> (version, wall, drive time) of last resend
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
         self._step_moves: dict[str, tuple] = {}  # device -> the step the monitor measured (cause, size, raised_at)
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
@@ -724,13 +727,15 @@ class FleetService:
         if runs is None or runs >= newest["version"]:
             self._resent.pop(device, None)
             return None
-        resent_version, resent_at = self._resent.get(device, (None, 0.0))
-        last = max(newest["published_at"], resent_at if resent_version == newest["version"] else 0.0)
-        now = self._clock()
-        if now - last < self.resend_after_s:
+        resent_version, resent_at, resent_drive = self._resent.get(device, (None, 0.0, -math.inf))
+        again = resent_version == newest["version"]
+        last = max(newest["published_at"], resent_at if again else 0.0)
+        last_drive = max(newest["created_at"], resent_drive if again else -math.inf)
+        now, drive_now = self._clock(), self._drive_now(device)
+        if now - last < self.resend_after_s and drive_now - last_drive < RESEND_AFTER_DRIVE_S:
             return None
         self._put(self.store.coefficient_set(device, newest["version"]))
-        self._resent[device] = (newest["version"], now)
+        self._resent[device] = (newest["version"], now, drive_now)
         with self._lock:
             self.counters.resends += 1
         log.info(

@@ -807,14 +807,14 @@ class Store:
         return [r["version"] for r in rows]
 
     def newest_set(self, device: str) -> dict | None:
-        """The newest set not rolled back, published or not: {version, published_at (None: never put)}. What the
-        service means the drive to run."""
+        """The newest set not rolled back, published or not: {version, created_at (drive clock), published_at (None:
+        never put)}. What the service means the drive to run."""
         rows = self._rows(
-            "SELECT version, published_at FROM coefficient_sets WHERE device = ? AND state != 'rolled_back' "
-            "ORDER BY version DESC LIMIT 1",
+            "SELECT version, created_at, published_at FROM coefficient_sets WHERE device = ? "
+            "AND state != 'rolled_back' ORDER BY version DESC LIMIT 1",
             (device,),
         )
-        return {"version": rows[0]["version"], "published_at": rows[0]["published_at"]} if rows else None
+        return dict(rows[0]) if rows else None
 
     def state_of(self, device: str, version: int) -> str | None:
         """A set's guard state (trial, confirmed, rolled_back), or None when there is no such set."""

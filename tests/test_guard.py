@@ -237,6 +237,33 @@ def test_a_set_the_drive_never_got_is_sent_again_and_not_kept_unmeasured(fleet):
         sub.undeclare()
 
 
+def test_a_set_the_drive_never_got_is_sent_again_after_drive_time_too(fleet):
+    """Replayed at 3,600x real time, the wall clock's minute before a resend is 60 drive-hours: a set whose put the
+    agent missed is put again RESEND_AFTER_DRIVE_S of drive time on, once per that much drive time."""
+    from service.runtime import RESEND_AFTER_DRIVE_S
+
+    store, service = fleet
+    service.min_band_samples = 10**9  # no refit of the windows here: the test is about the set's delivery
+    assert service.resend_after_s >= 60.0  # not a wall-clock minute later: the service's own default
+    got, sub = versions_put(service)
+    try:
+        factory = factory_set(store)
+        bands = [{**b, "zero_offset_rad": b["zero_offset_rad"] + 1e-6} for b in factory["bands"]]
+        publish_trial(store, service, bands)  # v1, made at drive time 5,000 s
+        got.clear()
+        run_on(store, 0, hours=0.25, after_s=5000.0)  # a quarter hour on, the drive still runs v0: not yet
+        service._watched_at[DEVICE] = service._drive_now(DEVICE)  # the watch is not what this is about
+        service._changed.add(DEVICE)
+        assert service.refit_all() == [] and service.counters.resends == 0
+        run_on(store, 0, hours=RESEND_AFTER_DRIVE_S / 3600, after_s=5900.0)  # past it: put again, once
+        service._changed.add(DEVICE)
+        assert service.refit_all() == [] and service.counters.resends == 1 and received(got, 1)
+        service._changed.add(DEVICE)
+        assert service.refit_all() == [] and service.counters.resends == 1  # no drive time since the resend
+    finally:
+        sub.undeclare()
+
+
 def test_a_set_stored_but_never_put_is_published_by_the_next_pass(fleet):
     """The put (or its record) failed after the set's commit: the next pass publishes it; a set rolled back
     meanwhile is not sent."""
