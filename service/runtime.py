@@ -619,7 +619,7 @@ class FleetService:
                 version = None
             try:
                 if version is None:
-                    version = self.deliver(device)
+                    version = self.deliver(device, drive_now)
             except Exception:
                 log.exception("%s: delivering its set failed", device)
                 version = None
@@ -709,7 +709,7 @@ class FleetService:
         self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
         return version
 
-    def deliver(self, device: str) -> int | None:
+    def deliver(self, device: str, drive_now: float) -> int | None:
         """What the service means the drive to run reaches it. A set stored but never put (the put, or the record
         of it, failed after the set's commit: a rollback marked in the database while the drive ran on) is
         published now; returns its version. The newest published set, when the drive's windows still show an
@@ -731,7 +731,7 @@ class FleetService:
         again = resent_version == newest["version"]
         last = max(newest["published_at"], resent_at if again else 0.0)
         last_drive = max(newest["created_at"], resent_drive if again else -math.inf)
-        now, drive_now = self._clock(), self._drive_now(device)
+        now = self._clock()
         if now - last < self.resend_after_s and drive_now - last_drive < RESEND_AFTER_DRIVE_S:
             return None
         self._put(self.store.coefficient_set(device, newest["version"]))
