@@ -323,3 +323,38 @@ def test_the_ingest_queue_is_bounded_when_the_writer_falls_behind(tmp_path):
     finally:
         client.close()
         fleet.stop()
+
+
+def test_analysis_waits_while_a_backlog_is_stored_but_is_never_starved(tmp_path):
+    from service.runtime import STORE_FIRST_BACKLOG, STORE_FIRST_MAX_WAIT_S
+
+    store = Store.open(tmp_path / "fleet.sqlite")
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0)  # not started: no writer empties the inbox
+    try:
+
+        def stored(first, last):
+            items = [
+                (keys.key("drive-a", keys.STATS), wire.encode("window", ws.window("drive-a", s)))
+                for s in range(first, last + 1)
+            ]
+            assert store.ingest_many(items) == ["stored"] * len(items)
+            service._monitor_changed.add("drive-a")
+
+        stored(1, 3)
+        for _ in range(STORE_FIRST_BACKLOG + 1):  # a flood waiting for the writer
+            service._inbox.put_nowait(("k", b"", 0.0))
+        service.monitor_pass()
+        waited = service.counters.analysis_waited_s
+        assert STORE_FIRST_MAX_WAIT_S <= waited < 2 * STORE_FIRST_MAX_WAIT_S  # it waited, up to its bound
+        assert service.monitor.last_seq["drive-a"] == 3  # and then analysed anyway
+
+        while not service._inbox.empty():  # the writer caught up
+            service._inbox.get_nowait()
+        stored(4, 5)
+        service.monitor_pass()
+        assert service.counters.analysis_waited_s == waited  # no backlog, no wait
+        assert service.monitor.last_seq["drive-a"] == 5
+    finally:
+        session.close()
+        store.close()
