@@ -209,7 +209,7 @@ def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_pa
     assert counters.windows == 2 and counters.unsent_windows == 0
     assert wait_for(lambda: len(store.windows(DEVICE)) == 2)
     first = store.monitor_windows(DEVICE, 0, 1)[0]
-    assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"]["rejected"] == 1
+    assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"].rejected == 1
     assert np.isfinite(first["temp_mean_c"]) and abs(first["temp_mean_c"] - 25.0) < 1.0
     # the angle handed to the drive: with two bands the set interpolates in temperature, and a NaN one made it NaN
     from encoder_core.correction import BandedCorrection, Correction
