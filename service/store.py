@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import re
 import sqlite3
@@ -38,6 +39,7 @@ from fleet_wire import messages as wire
 from . import db
 
 # numbered SQL files: migrations/ in the repository, shipped as package data (service.migrations)
+log = logging.getLogger("service.store")
 MIGRATIONS_DIR = resources.files("service.migrations")
 MIGRATION_NAME = re.compile(r"^(\d+)_[\w.-]*\.sql$")
 
@@ -45,6 +47,11 @@ _READ = re.compile(r"^\s*(SELECT|WITH)\b", re.I)  # what the read pool may run (
 PARTITION_LOCKS = 0x454E43  # the advisory lock class of partitions ('ENC'); the partition is the object id
 DEAD_LETTER_KEEP = 64 * 1024  # bytes of a refused payload kept for audit (a whole window message fits)
 DEAD_LETTER_DETAIL = 1000  # characters of its reason text
+# changed band sums are written with the batch that is storing windows once this much time has passed since they
+# were last written (a new band's sum at once): upserting every changed sum with every batch rewrote ~4 KB per
+# window beside its own row. A sum the database holds behind its windows (a crash between writes) is rebuilt from
+# them when it is read (Store._device_bands), so a crash still loses nothing.
+BANDS_WRITE_EVERY_S = 2.0
 
 # wire fields of a window stored as columns of the same name, in wire order
 WINDOW_FIELDS = (
@@ -105,7 +112,7 @@ class _Batch:
     staged: dict = field(default_factory=dict)  # (device, seq) -> (window_start, window_end, stats blob)
     by_band: dict = field(default_factory=dict)  # (device, band) -> [(seq, samples, WindowStats, window_end)]
     newest: dict = field(default_factory=dict)  # device -> (seq, coefficients_version) of its newest staged window
-    dirty: set = field(default_factory=set)  # (device, band) whose sum changed
+    new_bands: set = field(default_factory=set)  # (device, band) whose sum starts in this batch: written with it
 
 
 def migration_files(migrations_dir=MIGRATIONS_DIR) -> list[tuple[int, Traversable]]:
@@ -147,8 +154,10 @@ class Store:
         # so refits follow a drive as it ages; None keeps all history in the sum (every window is stored)
         self.band_horizon_s = band_horizon_s
         # device -> band -> [WindowStats, windows, samples, first_seq]: band_stats, kept in memory once read and
-        # written behind in the transaction that changes them; dropped whenever a transaction rolls back
+        # written behind (BANDS_WRITE_EVERY_S) with a batch of windows; dropped whenever a transaction rolls back
         self._bands: dict[str, dict[int, list]] = {}
+        self._dirty: set[tuple[str, int]] = set()  # (device, band) whose kept sum the database does not hold yet
+        self._bands_written_at = time.monotonic()
         self._max_seq: dict[str, int] = {}  # device -> highest seq stored or staged (read with its bands)
         self._max_end: dict[str, float] = {}  # device -> that window's end on the drive clock
         # device -> it had no stored window when its bands were read: a band of it that has no sum has no window
@@ -218,6 +227,12 @@ class Store:
         if self._read_pool is not None:
             self._read_pool.close()
         with self._lock:
+            try:
+                if self._dirty:
+                    with self._tx() as c:
+                        self._write_bands(c, set(self._dirty))
+            except Exception:  # a disk that refuses: the sums are rebuilt from the windows at the next start
+                log.exception("writing the band sums at close failed; they are rebuilt from the windows when read")
             self._conn.close()
 
     def __enter__(self) -> Store:
@@ -270,6 +285,7 @@ class Store:
         self._max_end.clear()
         self._unwritten.clear()
         self._bands.clear()
+        self._dirty.clear()  # what the database holds is repaired when read again (_device_bands)
 
     def _rows(self, sql: str, args=()) -> list[sqlite3.Row]:
         if self._read_pool is not None and self._writing != threading.get_ident() and _READ.match(sql):
@@ -348,12 +364,15 @@ class Store:
             for cache in (self._bands, self._max_seq, self._max_end, self._unwritten):
                 for device in [d for d in cache if keys.partition(d) in parts]:
                     del cache[device]
+            # not written now: the partition may already be another process's; it rebuilds what is behind
+            self._dirty = {(d, b) for d, b in self._dirty if keys.partition(d) not in parts}
 
     # --- ingest -----------------------------------------------------------------------------
     #
     # Windows are checked, deduplicated and added to their band's sum in memory, then written in bulk
-    # (executemany) when the batch ends, with the changed band sums (one UPSERT each), all in the
-    # batch's one transaction: a crash loses the batch and the sums together. A bad message is refused
+    # (executemany) when the batch ends, in the batch's one transaction. The changed band sums (one UPSERT
+    # each) go with it when BANDS_WRITE_EVERY_S has passed since they were last written, a new band's at once;
+    # a sum the database holds behind its windows is rebuilt from them when read. A bad message is refused
     # before anything of it is written, so it alone is dead-lettered and the batch goes on.
 
     def ingest(self, key_expr: str, payload: bytes, *, received_at: float | None = None) -> str:
@@ -403,14 +422,13 @@ class Store:
         """band -> [WindowStats, windows, samples, first_seq]: the device's band sums, read once, then kept."""
         bands = self._bands.get(device)
         if bands is None:
-            bands = self._bands[device] = {
-                r["band"]: [_band_sum(r), r["windows"], r["samples"], r["first_seq"]]
-                for r in self._conn.execute(
-                    "SELECT band, stats, stats_json, bin_temp, windows, samples, first_seq FROM band_stats "
-                    "WHERE device = ?",
-                    (device,),
-                )
-            }
+            bands = self._bands[device] = {}
+            for r in self._conn.execute(
+                "SELECT band, stats, stats_json, bin_temp, windows, samples, first_seq FROM band_stats "
+                "WHERE device = ?",
+                (device,),
+            ).fetchall():
+                bands[r["band"]] = self._current_sum(device, r)
             newest = self._conn.execute(
                 "SELECT seq, window_end FROM windows WHERE device = ? ORDER BY seq DESC LIMIT 1", (device,)
             ).fetchone()
@@ -418,6 +436,36 @@ class Store:
             self._max_end[device] = -math.inf if newest is None else newest["window_end"]
             self._unwritten[device] = newest is None
         return bands
+
+    def _current_sum(self, device: str, r: sqlite3.Row) -> list:
+        """A stored band sum as kept in memory, rebuilt from the band's windows when it is behind them (written
+        behind, and the process stopped before it was written again). Every window a sum holds has a seq from its
+        first_seq on, and every window summed after it was written adds one to that count, so a count that differs
+        means windows are missing from it; rebuilt, it holds the band's windows from first_seq on that ended within
+        the horizon of the band's newest, as it would have."""
+        band, first_seq = r["band"], r["first_seq"]
+        (count,) = self._conn.execute(
+            "SELECT count(*) FROM windows WHERE device = ? AND band = ? AND seq >= ?", (device, band, first_seq)
+        ).fetchone()
+        if count == r["windows"] or count == 0:  # none: nothing to rebuild it from (kept as it was written)
+            return [_band_sum(r), r["windows"], r["samples"], first_seq]
+        rows = self._conn.execute(
+            "SELECT seq, samples, window_end, stats, stats_json FROM windows WHERE device = ? AND band = ? "
+            "AND seq >= ? ORDER BY seq",
+            (device, band, first_seq),
+        ).fetchall()
+        if self.band_horizon_s:
+            cutoff = rows[-1]["window_end"] - self.band_horizon_s
+            rows = [w for w in rows if w["window_end"] >= cutoff]
+        total = self._stats_of(rows[0]).window_stats()
+        for w in rows[1:]:
+            total = total.merge(self._stats_of(w).window_stats())
+        log.info(  # after a crash, or a partition another process served and released without writing its sums
+            "band sum behind its windows rebuilt",
+            extra={"device": device, "band": band, "windows_before": r["windows"], "windows": len(rows)},
+        )
+        self._dirty.add((device, band))
+        return [total, len(rows), sum(w["samples"] for w in rows), rows[0]["seq"]]
 
     @staticmethod
     def _stats_of(r: sqlite3.Row) -> wire.PackedStats:
@@ -475,6 +523,7 @@ class Store:
             entry = None
         elif entry is None:  # a band's sum starts here; its stored windows, if any, were forgotten by a restart
             entry = [stats, 1, win.samples, first_seq]
+            batch.new_bands.add((device, band))
         else:
             try:
                 total = entry[0].merge(stats)
@@ -501,7 +550,7 @@ class Store:
             batch.newest[device] = (seq, win.coefficients_version)
         if entry is not None:
             bands[band] = entry
-            batch.dirty.add((device, band))
+            self._dirty.add((device, band))
         return True
 
     def _first_seq_of_new_band(self, device: str, band: int) -> int:
@@ -520,6 +569,7 @@ class Store:
         window stays stored. Returns the bands whose sums changed."""
         changed = []
         with self._tx() as c:
+            self._write_bands(c, {(d, b) for d, b in self._dirty if d == device})  # its first_seqs, as kept
             for row in c.execute("SELECT band, first_seq FROM band_stats WHERE device = ?", (device,)).fetchall():
                 band = row["band"]
                 kept = c.execute(
@@ -549,6 +599,7 @@ class Store:
                     ),
                 )
             self._bands.pop(device, None)  # the kept sums are read again, from what was just written
+            self._dirty = {(d, b) for d, b in self._dirty if d != device}
             self._unwritten.pop(device, None)
         return changed
 
@@ -591,19 +642,26 @@ class Store:
                 [(version, device, seq, device) for device, (seq, version) in batch.newest.items()],
             )
             batch.rows, batch.newest = [], {}
-        if bands and batch.dirty:
-            sums = [(device, band, self._bands[device][band]) for device, band in batch.dirty]
+        if bands:
+            if time.monotonic() - self._bands_written_at >= BANDS_WRITE_EVERY_S:
+                self._write_bands(c, set(self._dirty))
+                self._bands_written_at = time.monotonic()
+            else:
+                self._write_bands(c, batch.new_bands & self._dirty)
+
+    def _write_bands(self, c, which: set[tuple[str, int]]) -> None:
+        """Upsert the kept sums of `which` (device, band), inside the caller's transaction."""
+        sums = [(d, b, self._bands[d][b]) for d, b in which if b in self._bands.get(d, {})]
+        now = time.time()
+        if sums:
             c.executemany(
                 "INSERT INTO band_stats (device, band, stats_json, stats, bin_temp, windows, samples, updated_at, "
                 "first_seq) VALUES (?, ?, '', ?, ?, ?, ?, ?, ?) ON CONFLICT(device, band) DO UPDATE SET "
                 "stats_json = '', stats = excluded.stats, bin_temp = excluded.bin_temp, windows = excluded.windows, "
                 "samples = excluded.samples, updated_at = excluded.updated_at, first_seq = excluded.first_seq",
-                [
-                    (device, band, _pack(e[0]), _pack_bin_temp(e[0]), e[1], e[2], batch.now, e[3])
-                    for device, band, e in sums
-                ],
+                [(device, band, _pack(e[0]), _pack_bin_temp(e[0]), e[1], e[2], now, e[3]) for device, band, e in sums],
             )
-            batch.dirty = set()
+        self._dirty -= which
 
     def dead_letter(
         self, key_expr: str, reason: str, detail: str, payload: bytes, *, received_at: float | None = None
