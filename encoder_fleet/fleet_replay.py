@@ -54,7 +54,27 @@ def replay_fleet(specs: list[DriveSpec], *, real_time_factor: float, progress=No
             for spec, result in zip(specs, results):
                 if result.versions_applied == 0 and spec.motion != "dwell":
                     say(f"{spec.name} applied no set: {_what_the_service_holds(conn, spec.name)}")
+            say(_set_latency(conn, specs[0].window_s))
             return results
+
+
+def _set_latency(conn: sqlite3.Connection, window_s: float) -> str:
+    """How long, in drive time, the sets took from being made (the newest window the service held) to being
+    applied by their drives: the pace the service kept. The in-process loop applies a set at the next window."""
+    lags = sorted(
+        (at - made) / 60.0
+        for at, made in conn.execute(
+            "SELECT a.at, s.created_at FROM acks a JOIN coefficient_sets s ON s.device = a.device AND "
+            "s.version = a.version WHERE a.status = 'applied' AND a.version > 0"
+        )
+    )
+    if not lags:
+        return "no set was applied"
+    median, p90 = lags[len(lags) // 2], lags[min(len(lags) - 1, int(0.9 * len(lags)))]
+    return (
+        f"{len(lags)} sets applied, {median:.1f} drive-minutes after they were made (median; 90th percentile "
+        f"{p90:.1f}, worst {lags[-1]:.1f}; a window is {window_s / 60:g} min)"
+    )
 
 
 def _run_fleet(folder: Path, database: Path, names: list[str], window_s: float, real_time_factor: float) -> None:
