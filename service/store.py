@@ -450,16 +450,14 @@ class Store:
         if count == r["windows"] or count == 0:  # none: nothing to rebuild it from (kept as it was written)
             return [_band_sum(r), r["windows"], r["samples"], first_seq]
         rows = self._conn.execute(
-            "SELECT seq, samples, window_end, stats, stats_json FROM windows WHERE device = ? AND band = ? "
+            "SELECT seq, band, samples, window_end, stats, stats_json FROM windows WHERE device = ? AND band = ? "
             "AND seq >= ? ORDER BY seq",
             (device, band, first_seq),
         ).fetchall()
         if self.band_horizon_s:
             cutoff = rows[-1]["window_end"] - self.band_horizon_s
             rows = [w for w in rows if w["window_end"] >= cutoff]
-        total = self._stats_of(rows[0]).window_stats()
-        for w in rows[1:]:
-            total = total.merge(self._stats_of(w).window_stats())
+        total = self._sum_by_band(rows)[band]
         log.info(  # after a crash, or a partition another process served and released without writing its sums
             "band sum behind its windows rebuilt",
             extra={"device": device, "band": band, "windows_before": r["windows"], "windows": len(rows)},
@@ -573,17 +571,15 @@ class Store:
             for row in c.execute("SELECT band, first_seq FROM band_stats WHERE device = ?", (device,)).fetchall():
                 band = row["band"]
                 kept = c.execute(
-                    "SELECT seq, samples, stats, stats_json FROM windows WHERE device = ? AND band = ? AND seq >= ? "
-                    "AND window_end > ? ORDER BY seq",
+                    "SELECT seq, band, samples, stats, stats_json FROM windows WHERE device = ? AND band = ? "
+                    "AND seq >= ? AND window_end > ? ORDER BY seq",
                     (device, band, row["first_seq"], after),
                 ).fetchall()
                 changed.append(band)
                 if not kept:
                     c.execute("DELETE FROM band_stats WHERE device = ? AND band = ?", (device, band))
                     continue
-                total = self._stats_of(kept[0]).window_stats()
-                for r in kept[1:]:
-                    total = total.merge(self._stats_of(r).window_stats())
+                total = self._sum_by_band(kept)[band]
                 c.execute(
                     "UPDATE band_stats SET stats_json = '', stats = ?, bin_temp = ?, windows = ?, samples = ?, "
                     "first_seq = ?, updated_at = ? WHERE device = ? AND band = ?",
