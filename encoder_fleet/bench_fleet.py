@@ -31,14 +31,17 @@ from fleet_wire.session import loopback_endpoint, session_config
 TEMPLATE_SEED = 1
 
 
-def template_windows(count: int, samples_per_window: int = 3000) -> list[tuple[WindowStats, float]]:
-    """Window statistics of one simulated drive across its temperature cycle, reused for every device."""
+def template_windows(
+    count: int, samples_per_window: int = 3000, steady: bool = False
+) -> list[tuple[WindowStats, float]]:
+    """Window statistics of one simulated drive across its 12 h temperature cycle, reused for every device;
+    steady: over `count` consecutive drive-minutes instead."""
     factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
     scale = normalisation_scale(factory)
-    hours = 12.0
-    source = SimulatedDrive(TEMPLATE_SEED, hours=hours, sample_hz=samples_per_window / (hours * 3600 / count))
+    hours, window_s = (count / 60 + 0.1, 60.0) if steady else (12.0, 12.0 * 3600 / count)
+    source = SimulatedDrive(TEMPLATE_SEED, hours=hours, sample_hz=samples_per_window / window_s)
     out = []
-    while len(out) < count and (block := source.read(hours * 3600 / count)) is not None:
+    while len(out) < count and (block := source.read(window_s)) is not None:
         out.append((window_stats(block, scale), float(block.t[0])))
     return out
 
@@ -70,19 +73,8 @@ def template_messages(count: int, steady: bool = False) -> list[wire.Window]:
                 angle_quality_deg=0.5,
             )
         )
-        for seq, (stats, start) in enumerate(steady_windows(count) if steady else template_windows(count), start=1)
+        for seq, (stats, start) in enumerate(template_windows(count, steady=steady), start=1)
     ]
-
-
-def steady_windows(count: int, samples_per_window: int = 3000) -> list[tuple[WindowStats, float]]:
-    """Window statistics of the template drive over `count` consecutive drive-minutes."""
-    factory = factory_calibration(drive_model(TEMPLATE_SEED), TEMPLATE_SEED)
-    scale = normalisation_scale(factory)
-    source = SimulatedDrive(TEMPLATE_SEED, hours=count / 60 + 0.1, sample_hz=samples_per_window / 60.0)
-    out = []
-    while len(out) < count and (block := source.read(60.0)) is not None:
-        out.append((window_stats(block, scale), float(block.t[0])))
-    return out
 
 
 def as_device(win: wire.Window, name: str) -> wire.Window:
