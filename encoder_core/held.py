@@ -7,12 +7,34 @@ every position by the same vector).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
+from .differential import TERMS, BenchLocus, DriftModel, TermModel
+from .physics import circular_mean
 from .stats import WindowStats
 
 MIN_HELD_COUNT = 20  # samples in an angle bin for it to count as a held position
 MAX_SPREAD_RAD = np.radians(0.2)  # a held position scatters ~0.08° along the circle; a bin crossed in transit, wider
+
+
+DWELT_BINS = 16.0  # a band whose samples fill fewer angle bins than this (Kish's count) was a drive holding positions
+
+
+def dwelt(stats: WindowStats) -> bool:
+    """The samples sit in a few angle bins (a drive holding positions), by Kish's effective count."""
+    counts = stats.bins[:, 0]
+    return float(counts.sum() ** 2 / max(float(np.sum(counts**2)), 1e-12)) < DWELT_BINS
+
+
+@dataclass
+class HeldPoint:
+    point: np.ndarray  # mean raw (d, q)
+    var: float  # variance of that mean per axis, raw units²
+    temp_c: float  # mean temperature of its samples (the windows' means, weighted by their counts in its bins)
+    count: float
+    spread: float = 0.0  # scatter of its samples along the circle, rad
 
 
 def held_points(stats: WindowStats) -> list[tuple[np.ndarray, float]]:
@@ -20,6 +42,14 @@ def held_points(stats: WindowStats) -> list[tuple[np.ndarray, float]]:
     angle bins with enough samples, summed (a position on a bin edge, or pushed across one by a step, is one
     point), and scattered along the circle no more than a held position is (two positions a few degrees apart,
     or a bin a move crosses, scatter wider)."""
+    return [(h.point, h.var) for h in held_runs(stats)]
+
+
+def held_runs(stats: WindowStats, *, split: bool = False) -> list[HeldPoint]:
+    """held_points with each position's temperature and count (from a band's bin temperatures, see
+    WindowStats.bin_temp). split: a run of bins too wide to be one position gives each of its bins that is one,
+    inside the bin by EDGE_SDS of its scatter (two positions a few degrees apart in neighbouring bins, which a
+    band's sums over hours show; a position astride an edge would leave each bin a truncated, biased half)."""
     full = stats.bins[:, 0] >= MIN_HELD_COUNT
     if full.all() or not full.any():
         return []  # nothing held, or a drive that turns: every bin is full
@@ -27,16 +57,289 @@ def held_points(stats: WindowStats) -> list[tuple[np.ndarray, float]]:
     order = np.roll(np.arange(full.size), -int(np.flatnonzero(~full)[0]))
     kept = full[order]
     starts = np.flatnonzero(kept & ~np.concatenate(([False], kept[:-1])))
-    sums = np.add.reduceat(np.where(kept[:, None], stats.bins[order], 0.0), starts)
+    rows = np.where(kept[:, None], stats.bins[order], 0.0)
+    temps = np.where(kept, stats.bin_temps()[order], 0.0)
+    runs = _held_of(stats, np.add.reduceat(rows, starts), np.add.reduceat(temps, starts))
+    out = [h for h, _, ok in runs if ok]
+    if split:
+        wide = [k for k, (_, _, ok) in enumerate(runs) if not ok]
+        for k in wide:
+            stop = starts[k + 1] if k + 1 < starts.size else kept.size
+            for h, spread, ok in _held_of(stats, rows[starts[k] : stop], temps[starts[k] : stop]):
+                angle = np.arctan2(*((h.point - (stats.center_d, stats.center_q))[::-1])) % (2 * np.pi)
+                inside = np.remainder(angle, 2 * np.pi / stats.bins.shape[0])
+                margin = min(inside, 2 * np.pi / stats.bins.shape[0] - inside)
+                if ok and h.count >= MIN_HELD_COUNT and margin > EDGE_SDS * spread:
+                    out.append(h)
+    return out
+
+
+EDGE_SDS = 5.0
+
+
+def _held_of(stats: WindowStats, sums: np.ndarray, temp_sums: np.ndarray) -> list[tuple[HeldPoint, float, bool]]:
+    """Each row of bin sums as a point: (the point, its scatter along the circle in rad, held: narrow enough)."""
     n = sums[:, 0]
-    mean = sums[:, 1:3] / n[:, None]
-    sxx, sxy, syy = (
-        sums[:, 3:6] / n[:, None] - np.column_stack([mean[:, 0] ** 2, mean[:, 0] * mean[:, 1], mean[:, 1] ** 2])
-    ).T
-    r2 = np.einsum("ij,ij->i", mean, mean)
     with np.errstate(divide="ignore", invalid="ignore"):
+        mean = sums[:, 1:3] / n[:, None]
+        sxx, sxy, syy = (
+            sums[:, 3:6] / n[:, None] - np.column_stack([mean[:, 0] ** 2, mean[:, 0] * mean[:, 1], mean[:, 1] ** 2])
+        ).T
+        r2 = np.einsum("ij,ij->i", mean, mean)
         tangential = (mean[:, 1] ** 2 * sxx - 2 * mean[:, 0] * mean[:, 1] * sxy + mean[:, 0] ** 2 * syy) / r2
-        held = (r2 > 0) & (np.sqrt(np.maximum(tangential, 0.0) / r2) < MAX_SPREAD_RAD)
+        spread = np.sqrt(np.maximum(tangential, 0.0) / r2)
+        held = (n > 0) & (r2 > 0) & (spread < MAX_SPREAD_RAD)
+        var = np.maximum((sxx + syy) / 2, 1e-12) * stats.scale**2 / n
+        temps = temp_sums / n
     centre = np.array([stats.center_d, stats.center_q])
-    var = np.maximum((sxx + syy) / 2, 1e-12) * stats.scale**2 / n
-    return [(centre + stats.scale * mean[k], float(var[k])) for k in np.flatnonzero(held)]
+    return [
+        (
+            HeldPoint(centre + stats.scale * mean[k], float(var[k]), float(temps[k]), float(n[k]), float(spread[k])),
+            spread[k],
+            held[k],
+        )
+        for k in range(n.size)
+        if n[k] > 0
+    ]
+
+
+# --- drift from held positions ----------------------------------------------------------------------------------
+
+MIN_POSITIONS = 4  # held positions seen in two bands or more (three within 18° left the rest of the circle a guess)
+MAX_GAP_RAD = np.pi  # ... spread around the circle: no gap between them wider than this
+# ... and the positions along the circle fitted by one drift curve within this many times their own errors: past it
+# they moved in a way no drift in temperature does (an offset step the monitor did not name, s5-20hz-02: with it the
+# fit was 3.6 times its errors along the circle, and confidently 1° wrong; before it, 1.5-2)
+MAX_ALONG_SCALE = 2.5
+SAME_POSITION_RAD = np.radians(0.4)  # held points of two bands this close along the circle are one position (the
+# drift moves a position by ~0.2° at most; servos' positions a degree apart are there)
+OUTLIER_SIGMAS = 5.0
+SPREAD_EXCESS = 1.5  # a held point scattering wider than this times the drive's typical held point mixes positions
+POSITION_REACH_C = 10.0  # a position's angle at a temperature is measured where it was held this close to it
+BENCH_REACH_C = 10.0  # a position held this close to the bench's temperature is tied to the factory's angle there
+HELD_FLOOR = 5e-5  # a held point's error floor per axis, fraction of the radius (0.003°): a servo's repeatability
+# each term's curve: a line plus a square in temperature (DriftModel's), and the rotation of both axes, which held
+# positions see (the ellipse fit cannot); `common` (the channels' common gain) moves no angle
+HELD_TERMS = (*TERMS, "common", "zero")
+# a term's value at the bench is, to the held positions, one more turn of each θ_k: it is held to the factory's (no
+# drift there, as DriftModel's bench point), and the θ_k take the rest
+AT_BENCH_PRIOR = 1e-6
+# a loose prior on each term's slope per 10 K, several times a hall encoder's typical tempcos (offsets ~0.05
+# counts/K on 1,500, gain ratio ~1.5e-4/K, axes ~1.5e-5 rad/K, common gain ~1e-3/K), and on its square per (10 K)²
+# a tenth of that (the squares are a tenth of the slopes over ±10 K or less): where the held positions do not pin a
+# combination of terms, it stays near the factory's (no drift) instead of anywhere. A position held only at +17 and
+# +41 °C, with the square as loose as the slope, was extrapolated to 0.95° at -20 °C (s6-20hz-06; its truth 0.04°)
+SQUARE_PRIOR = 0.1
+SLOPE_PRIOR = {"offset_d": 1e-3, "offset_q": 1e-3, "imbalance": 5e-3, "axis": 1e-3, "common": 3e-2, "zero": 1e-3}
+
+
+@dataclass
+class HeldDrift:
+    """The drift since the bench measured at the positions a drive holds (`held_drift_model`)."""
+
+    model: DriftModel  # the four angle terms, and `common` and `zero`, as DriftModel's curves
+    theta: np.ndarray  # each position's bench angle (rad, the locus's)
+    positions: int  # positions seen in two bands or more
+    points: int
+    chi2_dof: float
+    misfit: np.ndarray  # (points, 2): each held point's misfit across and along the circle, in its own error (nan:
+    # left out as an outlier)
+    scale: np.ndarray  # how far the misfit scaled those errors up, across and along
+    position_temps: list = field(default_factory=list)  # the temperatures each position was held at
+    _along: object = None  # (params) -> each position's angle drift at each temperature asked (see angle_error)
+    _params: np.ndarray | None = None
+    _cov: np.ndarray | None = None
+
+    def covers(self, temp_c: float) -> bool:
+        """Every position was held within POSITION_REACH_C of this temperature: the positions' angles there are
+        measured, not carried from other temperatures by the terms (s6-20hz-06: a position held only at +17 and
+        +41 °C read 0.35° at -20 °C, ±0.06°, where its truth was 0.04°; the other two positions had pinned the
+        terms only in the directions they see)."""
+        return all(np.min(np.abs(np.asarray(t) - temp_c)) <= POSITION_REACH_C for t in self.position_temps)
+
+    def angle_error(self, temp_c: float) -> float:
+        """Standard error (rad) of the angle's drift since the bench at a temperature, the largest around the
+        circle: what a set made from the model is uncertain by, beside the factory's set (the values at the bench,
+        which no held position tells from its own angle, are the factory's uncertainty too). Around the whole
+        circle, not only at the held positions, where it is far smaller: the servo may hold another position next,
+        and three positions within 18° of each other left the rest of s5-20hz-02's circle 1° off."""
+        bench = self.model.terms["offset_d"].bench_c
+        circle = np.linspace(0.0, 2 * np.pi, 72, endpoint=False)
+
+        def since_bench(p: np.ndarray) -> np.ndarray:
+            return self._along(p, temp_c, circle) - self._along(p, bench, circle)
+
+        base = since_bench(self._params)
+        steps = np.sqrt(np.maximum(np.diag(self._cov), 1e-24)) * 1e-3
+        jac = np.column_stack(
+            [
+                (since_bench(self._params + np.eye(self._params.size)[j] * steps[j]) - base) / steps[j]
+                for j in range(self._params.size)
+            ]
+        )
+        return float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", jac, self._cov, jac))))
+
+
+def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations: int = 6) -> HeldDrift | None:
+    """The drift curve (each term a line plus a square in temperature, as DriftModel's) from the positions a
+    drive holds, where its bands' samples fill too few angle bins for the ellipse fit (`fit_drifts`).
+
+    Each held position is one true angle θ_k, the same in every band: the bench locus maps it to where the
+    bench saw it, and the drift at the point's temperature maps that to where the field shows it. So the
+    points of one position in bands of different temperatures see the drift along the circle as well as
+    across it (the ellipse fit sees only across), the rotation of both axes included. Unknowns: every θ_k and
+    each term's curve through the bench (its value there held to the factory's, AT_BENCH_PRIOR; its slope and
+    square to SLOPE_PRIOR and SQUARE_PRIOR); least squares over every band's held points at their own
+    temperatures. Across
+    the circle a held point moves with the channels' common gain (0.1 %/K) times the die's lag behind the
+    temperature the windows report, along it with the angle's drift alone: each direction's errors are scaled
+    by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more. Only while
+    the bench holds (no step since it): the bench's zero drift is what ties the θ_k to the factory's angles."""
+    obs = [h for stats in bands for h in held_runs(stats, split=True)]
+    if obs:
+        # a held position scatters along the circle with the channels' noise, the same at every position of a drive;
+        # a point that scatters wider holds a second position nearby now and then (s6-20hz-06: 118.3° and 120.6°
+        # in one angle bin, mixed in another proportion in each band, read as 0.6° of drift)
+        typical = float(np.median([h.spread for h in obs]))
+        obs = [h for h in obs if h.spread <= SPREAD_EXCESS * typical]
+    if len(obs) < 2 * MIN_POSITIONS:
+        return None
+    c = np.array([locus.d[0], locus.q[0]])
+    radius = locus.radius
+    grid = np.linspace(0.0, 2 * np.pi, 4096, endpoint=False)
+    gd, gq = locus.points(grid)
+    first = np.array([grid[np.argmin((gd - h.point[0]) ** 2 + (gq - h.point[1]) ** 2)] for h in obs])
+    position = _positions(first)
+    temps = np.array([h.temp_c for h in obs])
+    # only positions the drive held near the bench's temperature: there the factory's angle is right, which ties
+    # each θ_k to the reference (elsewhere the curve would be extrapolated to the bench to find it)
+    tied = np.isin(position, position[np.abs(temps - locus.temp_c) <= BENCH_REACH_C])
+    obs, first, temps = [h for h, t in zip(obs, tied) if t], first[tied], temps[tied]
+    _, position = np.unique(position[tied], return_inverse=True)
+    k_pos = int(position.max()) + 1 if position.size else 0
+    if sum(np.sum(position == k) >= 2 for k in range(k_pos)) < MIN_POSITIONS:
+        return None
+    points = np.array([h.point for h in obs])
+    sd = np.sqrt(np.array([h.var for h in obs]) + (HELD_FLOOR * radius) ** 2)
+    outward = (points - c) / np.hypot(*(points - c).T)[:, None]  # each point's radial direction
+    n_coef = 3  # square, slope, value at the bench (np.vander's order)
+    prior = np.concatenate([[SQUARE_PRIOR * SLOPE_PRIOR[t], SLOPE_PRIOR[t], AT_BENCH_PRIOR] for t in HELD_TERMS])
+
+    def field(p: np.ndarray, theta: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the field shows bench angle θ at a temperature: S⁻¹ of the bench point about the bench centre
+        (Drift.inverse), turned by the rotation of both axes, moved by the offsets."""
+        powers = np.vander((np.asarray(temp_c, float) - locus.temp_c) / 10.0, n_coef)
+        coef = p[k_pos:].reshape(len(HELD_TERMS), n_coef)
+        term = {name: powers @ coef[j] for j, name in enumerate(HELD_TERMS)}
+        ld, lq = locus.points(theta)
+        s11 = np.exp(term["common"] - term["imbalance"])
+        s22 = np.exp(term["common"] + term["imbalance"])
+        ud, uq = ld - c[0], lq - c[1]
+        vd, vq = ud / s11, (uq - 2 * term["axis"] * ud / s11) / s22
+        cz, sz = np.cos(term["zero"]), np.sin(term["zero"])
+        return c[0] + radius * term["offset_d"] + cz * vd - sz * vq, c[1] + radius * term[
+            "offset_q"
+        ] + sz * vd + cz * vq
+
+    scale = np.ones(2)  # the errors' scale across and along the circle
+    keep = np.ones(len(obs), bool)  # points not (yet) found to be outliers
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        fd, fq = field(p, p[:k_pos][position], temps)
+        ed, eq = points[:, 0] - fd, points[:, 1] - fq
+        across = keep * (ed * outward[:, 0] + eq * outward[:, 1]) / (sd * scale[0])
+        along = keep * (eq * outward[:, 0] - ed * outward[:, 1]) / (sd * scale[1])
+        return np.concatenate([across, along, p[k_pos:] / prior])
+
+    def jacobian(p: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.column_stack([(residuals(p + np.eye(p.size)[j] * steps[j]) - r) / steps[j] for j in range(p.size)])
+
+    params = np.concatenate([[circular_mean(first[position == k]) for k in range(k_pos)], np.zeros(prior.size)])
+    steps = np.concatenate([np.full(k_pos, 1e-6), np.full(prior.size, 1e-7)])
+    # fit; scale each direction's errors by its misfit; leave out points beyond OUTLIER_SIGMAS of it (a bin where
+    # two positions a fraction of a degree apart mix, or a move's stops); fit again
+    for _ in range(4):
+        for _ in range(iterations):
+            r = residuals(params)
+            delta, *_ = np.linalg.lstsq(jacobian(params, r), -r, rcond=None)
+            params = params + delta
+            if np.max(np.abs(delta)) < 1e-10:
+                break
+        r = residuals(params)
+        if not np.all(np.isfinite(r)):
+            return None
+        dof = max(2 * int(keep.sum()) - k_pos, 2)  # the priors stand for the terms' own degrees of freedom
+        chi2 = np.array([np.sum(r[: len(obs)] ** 2), np.sum(r[len(obs) : 2 * len(obs)] ** 2)]) / (dof / 2)
+        scale = scale * np.sqrt(np.maximum(chi2, 1.0))
+        worst = np.maximum(
+            np.abs(r[: len(obs)]) / np.sqrt(np.maximum(chi2[0], 1.0)),
+            np.abs(r[len(obs) : 2 * len(obs)]) / np.sqrt(np.maximum(chi2[1], 1.0)),
+        )
+        out = keep & (worst > OUTLIER_SIGMAS)
+        if not out.any():
+            break
+        keep &= ~out
+    used = [
+        k for k in range(k_pos) if np.sum(keep & (position == k)) >= 2 and np.ptp(temps[keep & (position == k)]) > 0
+    ]
+    if len(used) < MIN_POSITIONS or _largest_gap(params[used]) > MAX_GAP_RAD or scale[1] > MAX_ALONG_SCALE:
+        return None
+    seen = len(used)
+    r = residuals(params)
+    try:
+        cov = np.linalg.inv(jacobian(params, r).T @ jacobian(params, r))
+    except np.linalg.LinAlgError:
+        return None
+    chi2_dof = float(np.sum(r[: 2 * len(obs)] ** 2) / dof)
+    # to DriftModel's form: polynomials in kelvin from the bench, highest power first
+    to_kelvin = 10.0 ** -np.arange(n_coef - 1, -1, -1)
+    models = {}
+    for j, name in enumerate(HELD_TERMS):
+        sl = slice(k_pos + j * n_coef, k_pos + (j + 1) * n_coef)
+        models[name] = TermModel(
+            coef=params[sl] * to_kelvin, cov=cov[sl, sl] * np.outer(to_kelvin, to_kelvin), bench_c=locus.temp_c
+        )
+
+    def along(p: np.ndarray, temp_c: float, theta: np.ndarray | None = None) -> np.ndarray:
+        """The angle drift (rad) at a temperature at each position (or at the bench angles given): the field
+        point's turn from its bench point."""
+        theta = p[:k_pos] if theta is None else theta
+        fd, fq = field(p, theta, np.full(theta.size, temp_c))
+        ld, lq = locus.points(theta)
+        return np.angle((fd - c[0] + 1j * (fq - c[1])) / (ld - c[0] + 1j * (lq - c[1])))
+
+    misfit = np.column_stack([r[: len(obs)] * scale[0], r[len(obs) : 2 * len(obs)] * scale[1]])
+    misfit[~keep] = np.nan  # left out
+    return HeldDrift(
+        model=DriftModel(terms=models, temps=np.array([*temps, locus.temp_c])),
+        theta=params[:k_pos],
+        position_temps=[temps[keep & (position == k)].tolist() for k in range(k_pos)],
+        positions=int(seen),
+        points=len(obs),
+        chi2_dof=chi2_dof,
+        misfit=misfit,
+        scale=scale,
+        _along=along,
+        _params=params,
+        _cov=cov,
+    )
+
+
+def _largest_gap(angles: np.ndarray) -> float:
+    """The widest arc (rad) between neighbouring angles around the circle."""
+    ordered = np.sort(np.remainder(angles, 2 * np.pi))
+    return float(np.max(np.diff(ordered, append=ordered[0] + 2 * np.pi)))
+
+
+def _positions(angles: np.ndarray) -> np.ndarray:
+    """Each held point's position: points within SAME_POSITION_RAD of the one before along the circle are one."""
+    order = np.argsort(angles)
+    gaps = np.remainder(np.diff(angles[order], append=angles[order[0]] + 2 * np.pi), 2 * np.pi) > SAME_POSITION_RAD
+    # a position's points start after a gap; the circle's wrap joins the last run to the first when no gap is there
+    label = np.concatenate([[0], np.cumsum(gaps[:-1])])
+    if not gaps[-1] and label[-1] > 0:
+        label[label == label[-1]] = 0
+    out = np.empty(angles.size, int)
+    out[order] = label
+    _, out = np.unique(out, return_inverse=True)
+    return out

@@ -52,6 +52,7 @@ N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbala
 MIN_FIT_SAMPLES = 100
 _SAME = math.radians(1.0)  # held positions closer than this along the circle are one
 _HELD_MEMORY_S = 12 * HOUR_S  # a held position not visited for this long is forgotten
+HELD_WATCH_PAIRS = 10.0  # pairs of visits the held map learnt from (decayed): the held positions are watched
 _JUMP_PENDING_S = 1800.0  # a jump of the held positions waits this long to be seen still again
 # a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
 # ellipse through one arc puts its centre anywhere along the arc's axis, and a reversing drive's windows then
@@ -1113,6 +1114,12 @@ class DeviceMonitor:
     def thermal_lag(self) -> tuple[float, float] | None:
         """(τ s, its standard error) of the die's lag behind the reported temperature, once the windows show it."""
         return self.lag.tau()
+
+    def watches_held_positions(self) -> bool:
+        """The held-step test compares the positions the drive holds visit by visit (its map of how they move with
+        temperature has learnt from HELD_WATCH_PAIRS pairs, fading over the memory): a step of them is named. Windows
+        longer than held_match_s (a 0.5 Hz drive's 300 s) are never compared, and their steps go unnamed."""
+        return self.held_map.n >= HELD_WATCH_PAIRS
 
     def _is_absurd(self, f: Features) -> bool:
         s, y = self.settings, f.y

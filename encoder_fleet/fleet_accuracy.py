@@ -375,6 +375,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             after_step=after_step,
             stepped_since_bench=step_at is not None,
             axis_turn=axis_turn,
+            held_watched=watch is not None and watch.watches_held_positions(),  # as service.runtime passes it
         )
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})

@@ -138,6 +138,12 @@ class Monitor:
             mon = self.devices.get(device)
             return mon.thermal_lag() if mon is not None else None
 
+    def watches_held_positions(self, device: str) -> bool:
+        """Whether the monitor would name a step of the positions the device holds (DeviceMonitor's)."""
+        with self._lock:
+            mon = self.devices.get(device)
+            return mon is not None and mon.watches_held_positions()
+
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
         """A step (offset, gain or axes) is cleared once the fleet has re-corrected the drive: a coefficient set
         created after the step has been applied by the agent (the refit history)."""

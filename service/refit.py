@@ -35,6 +35,7 @@ from encoder_core.differential import (
     gate,
 )
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
+from encoder_core.held import HeldDrift, dwelt, held_drift_model, held_runs
 from encoder_core.physics import BAND_WIDTH_C, REFERENCE_TEMP_C, band_of, circular_mean, wrap_rad
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -102,8 +103,15 @@ def refit_device(
     after_step: bool = False,
     stepped_since_bench: bool = False,
     axis_turn: float = 0.0,
+    held_watched: bool = False,
 ) -> RefitResult:
     """The device's next set (or the reasons for none) from its band statistics.
+
+    held_watched: the drift monitor compares the positions the drive holds visit by visit, so a step of them is
+    named (DeviceMonitor.watches_held_positions). Only then does a drive that holds positions get its drift from
+    them (held_model): a step nobody named, inside band sums that mix the times before and after it, fits as a
+    confident, wrong drift curve (0.5 Hz dwelling drives, whose 300 s windows the monitor never compares: 146
+    hours worse than the factory set over 36 drive-runs).
 
     after_step: the monitor saw the channel offsets step (an open offset_step alarm): bands with no data since
     keep the running set moved by the offset change the fitted bands agree on (offset_move).
@@ -131,6 +139,7 @@ def refit_device(
             after_step=after_step,
             stepped_since_bench=stepped_since_bench,
             axis_turn=axis_turn,
+            held_watched=held_watched,
         )
     return refit_legacy(
         band_stats,
@@ -159,17 +168,32 @@ def refit_from_bench(
     after_step: bool = False,
     stepped_since_bench: bool = False,
     axis_turn: float = 0.0,
+    held_watched: bool = False,
 ) -> RefitResult:
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
     count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
     model = drift_model(fits, bench_holds=not stepped_since_bench)
+    chi2_held = None
+    held = held_model(band_stats, anchors, min_samples) if held_watched and not stepped_since_bench else None
+    if held is not None:
+        # a drive that holds positions: the held points see the drift along the circle, where the bands' few
+        # angle bins leave the ellipse fit guessing (or fitting none at all)
+        model, chi2_held = held.model, held.chi2_dof
+        fits = {band: (None, stats, None, None) for band, stats in held.bands.items()}
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
-    for band, temp_c, stats in model_bands(fits, model):
+    spoken = model_bands(fits, model)
+    for band, temp_c, stats in spoken:
         factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp_c))
-        if model is not None and band == band_of(locus.temp_c):
+        if held is not None and band < spoken[-1][0]:
+            # the held curve speaks at every band's lower edge, ten kelvin apart through the bench's (+20 °C), and
+            # the top band at its centre: the agent interpolates linearly between entries, and an entry at each
+            # band's mean left 15 K between the bench and the band above it, where the curve's square bent away
+            # from the line (s1-20hz-06: 0.0135° at +26.7 °C against the factory's 0.0075°)
+            temp_c = band * BAND_WIDTH_C
+        elif model is not None and band == band_of(locus.temp_c):
             # the band that holds the bench speaks at the bench: there the factory is measured and the curve
             # passes through it, where an entry at the band's mean would leave the agent interpolating to the
             # bench between two fitted temperatures, each with its error (a few millidegrees worse than the factory
@@ -177,12 +201,15 @@ def refit_from_bench(
             temp_c = locus.temp_c
         if model is not None:
             terms, errors = model.at(temp_c)
-            chi2 = fits[band][0].chi2_dof if band in fits else None
+            chi2 = chi2_held if held is not None else fits[band][0].chi2_dof if band in fits else None
         else:
             fit = fits[band][0]
             terms, errors, chi2 = fit.drift.terms(locus.radius), fit.errors, fit.chi2_dof
         ruler = factory.axes_moved(axis_turn) if axis_turn else factory
-        corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus, ruler)
+        if held is not None:
+            corr, quality, err_new = held_candidate(held, terms, errors, temp_c, factory, locus)
+        else:
+            corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus, ruler)
         quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
         now = running.at(corr.temp_c)
         if stats is not None:
@@ -191,6 +218,8 @@ def refit_from_bench(
             )
         err_now = difference_deg(now, corr)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
+        if held is not None and not held.drift.covers(corr.temp_c):
+            adopt = False  # a position the drive holds was not seen near this temperature: its angle is a guess
         entry = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
         chosen[band] = entry if adopt else band_entry(band, now, {**quality, "estimated_error_deg": err_now})
         result.decisions.append(
@@ -220,6 +249,28 @@ def refit_from_bench(
     adopted = {d.band for d in result.decisions if d.adopted and dwelt(fits[d.band][1])} if model is None else set()
     result.bands = with_running_bands(chosen, running if moved is None else running.offsets_moved(*moved), adopted)
     return result
+
+
+@dataclass
+class HeldFit:
+    model: DriftModel
+    chi2_dof: float
+    bands: dict[int, WindowStats]  # the bands it speaks for: those with held points
+    drift: HeldDrift
+
+
+def held_model(band_stats: dict[int, WindowStats], anchors, min_samples: int) -> HeldFit | None:
+    """The drift curve from the positions the drive holds (encoder_core.held.held_drift_model), when most of its
+    samples are in bands where it dwelt; None otherwise, or when too few positions were held across bands."""
+    bands = {band: stats for band, stats in band_stats.items() if stats.n >= min_samples}
+    dwelling = sum(stats.n for stats in bands.values() if dwelt(stats))
+    if not bands or dwelling < 0.5 * sum(stats.n for stats in bands.values()):
+        return None
+    locus = min(anchors, key=lambda a: abs(a[1].temp_c - REFERENCE_TEMP_C))[1]
+    found = held_drift_model(list(bands.values()), locus)
+    if found is None:
+        return None
+    return HeldFit(found.model, found.chi2_dof, {b: s for b, s in bands.items() if held_runs(s, split=True)}, found)
 
 
 def step_moved_bands(bands: list[dict], cause: str, step: dict, scale: float) -> list[dict]:
@@ -415,6 +466,28 @@ def drift_candidate(
     return corr, quality, err
 
 
+def held_candidate(
+    held: HeldFit, terms: dict, errors: dict, temp_c: float, factory: Correction, locus: BenchLocus
+) -> tuple[Correction, dict, float]:
+    """The factory's correction after the drift the held positions measured, its zero turned by their rotation,
+    with its uncertainty where the drive sits (deg). No term is gated: a combination of terms that moves no held
+    position stays near the factory's by the fit's prior, and one that moves them is measured by them, however
+    loosely each term alone is."""
+    radius = locus.radius
+    drift = Drift.from_terms({t: terms[t] for t in TERMS}, np.array([locus.d[0], locus.q[0]]), radius)
+    # not anchored to the factory's zero (drift_candidate's anchor_zero): the held positions measured the turn
+    # along the circle, the lower-triangular map's share of it included
+    corr = compose(factory, drift)
+    corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad - terms["zero"]))
+    corr.temp_c = float(temp_c)
+    err = float(np.degrees(held.drift.angle_error(temp_c)))
+    quality = {
+        "drift_terms": {t: terms[t] for t in TERMS},
+        "drift_errors": {t: errors[t] if np.isfinite(errors[t]) else None for t in TERMS},
+    }
+    return corr, quality, err
+
+
 def refit_legacy(
     band_stats: dict[int, WindowStats],
     running: BandedCorrection,
@@ -489,15 +562,6 @@ def refit_legacy(
         result.moved_bands = sorted({band_index(c) for c in running.bands} - set(kept))
     result.bands = with_running_bands(kept, running if moved is None else running.offsets_moved(*moved))
     return result
-
-
-DWELT_BINS = 16.0  # a band whose samples fill fewer angle bins than this (Kish's count) was a drive holding positions
-
-
-def dwelt(stats: WindowStats) -> bool:
-    """The band's samples sit in a few angle bins (a drive holding positions), by Kish's effective count."""
-    counts = stats.bins[:, 0]
-    return float(counts.sum() ** 2 / max(float(np.sum(counts**2)), 1e-12)) < DWELT_BINS
 
 
 def with_running_bands(

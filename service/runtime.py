@@ -926,6 +926,7 @@ class FleetService:
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
             axis_turn=sum(a["parameters"]["delta_skew"] for a in self.store.alarms(device, cause="axis_step")),
+            held_watched=self.monitor.watches_held_positions(device),
         )
 
     def _issue_set(

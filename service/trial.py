@@ -14,6 +14,7 @@ import numpy as np
 
 from encoder_core.correction import BandedCorrection
 from encoder_core.ellipse import ellipse_correction, fit_ellipse
+from encoder_core.held import dwelt
 from encoder_core.outcome import compare_sets, guard_decision
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -63,6 +64,10 @@ def judge(evidence: TrialEvidence) -> Verdict:
 
 
 def judge_against_bench(evidence: TrialEvidence, anchors) -> Verdict:
+    if evidence.soak and all(dwelt(stats) for stats in evidence.soak.values()):
+        # a drive holding positions shows no circle to measure either set on, however long it soaks; the set's
+        # uncertainty where it sits is the refit's own (held_drift_model), and waiting held back a step's move
+        return Verdict("confirm", "the drive holds positions: no circle to measure the set on; kept on the refit's")
     trial = BandedCorrection.from_dict({"bands": evidence.trial["bands"]})
     before = BandedCorrection.from_dict({"bands": evidence.before["bands"]})
     comparisons = []

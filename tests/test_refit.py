@@ -277,8 +277,8 @@ def test_the_lone_band_reach_is_kept_for_a_drive_that_dwelt():
     drift at those positions only; on a drive that turns or reverses over an arc it cost three reversing drives an
     hour each (bench-fleet-accuracy, seeds 1-6: 20 -> 17 worse hours without it there). `dwelt` tells them apart
     by the band's samples over the angle bins (Kish's effective count), whatever the moves between positions."""
+    from encoder_core.held import dwelt
     from encoder_core.samples import Samples
-    from service.refit import dwelt
 
     rng = np.random.default_rng(8)
     n = 20000
