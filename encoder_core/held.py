@@ -235,7 +235,7 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
         s11 = np.exp(term["common"] - term["imbalance"])
         s22 = np.exp(term["common"] + term["imbalance"])
         ud, uq = ld - c[0], lq - c[1]
-        vd, vq = ud / s11, (uq - 2 * term["axis"] * ud / s11) / s22
+        vd, vq = ud / s11, uq / s22 - 2 * term["axis"] * ud / s11  # S = [[s11, 0], [2·axis·s22, s22]], inverted
         cz, sz = np.cos(term["zero"]), np.sin(term["zero"])
         return c[0] + radius * term["offset_d"] + cz * vd - sz * vq, c[1] + radius * term[
             "offset_q"
@@ -249,16 +249,19 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
         ed, eq = points[:, 0] - fd, points[:, 1] - fq
         across = keep * (ed * outward[:, 0] + eq * outward[:, 1]) / (sd * scale[0])
         along = keep * (eq * outward[:, 0] - ed * outward[:, 1]) / (sd * scale[1])
-        return np.concatenate([across, along, p[k_pos:] / prior])
+        # each θ_k held loosely to where it started (a radian): a position whose points were all left out keeps a
+        # defined column, and no measured position notices it
+        return np.concatenate([across, along, p[k_pos:] / prior, p[:k_pos] - theta0])
 
     def jacobian(p: np.ndarray, r: np.ndarray) -> np.ndarray:
         return np.column_stack([(residuals(p + np.eye(p.size)[j] * steps[j]) - r) / steps[j] for j in range(p.size)])
 
-    params = np.concatenate([[circular_mean(first[position == k]) for k in range(k_pos)], np.zeros(prior.size)])
+    theta0 = np.array([circular_mean(first[position == k]) for k in range(k_pos)])
+    params = np.concatenate([theta0, np.zeros(prior.size)])
     steps = np.concatenate([np.full(k_pos, 1e-6), np.full(prior.size, 1e-7)])
     # fit; scale each direction's errors by its misfit; leave out points beyond OUTLIER_SIGMAS of it (a bin where
     # two positions a fraction of a degree apart mix, or a move's stops); fit again
-    for _ in range(4):
+    for attempt in range(5):
         for _ in range(iterations):
             r = residuals(params)
             delta, *_ = np.linalg.lstsq(jacobian(params, r), -r, rcond=None)
@@ -278,6 +281,8 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
         out = keep & (worst > OUTLIER_SIGMAS)
         if not out.any():
             break
+        if attempt == 4:
+            return None  # still leaving points out after four rounds: no one curve holds these positions
         keep &= ~out
     used = [
         k for k in range(k_pos) if np.sum(keep & (position == k)) >= 2 and np.ptp(temps[keep & (position == k)]) > 0
@@ -313,7 +318,7 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
     return HeldDrift(
         model=DriftModel(terms=models, temps=np.array([*temps, locus.temp_c])),
         theta=params[:k_pos],
-        position_temps=[temps[keep & (position == k)].tolist() for k in range(k_pos)],
+        position_temps=[temps[keep & (position == k)].tolist() for k in used],
         positions=int(seen),
         points=len(obs),
         chi2_dof=chi2_dof,

@@ -261,12 +261,15 @@ class HeldFit:
 
 def held_model(band_stats: dict[int, WindowStats], anchors, min_samples: int) -> HeldFit | None:
     """The drift curve from the positions the drive holds (encoder_core.held.held_drift_model), when most of its
-    samples are in bands where it dwelt; None otherwise, or when too few positions were held across bands."""
+    samples are in bands where it dwelt and the factory was measured at one bench temperature; None otherwise, or
+    when too few positions were held across bands."""
     bands = {band: stats for band, stats in band_stats.items() if stats.n >= min_samples}
     dwelling = sum(stats.n for stats in bands.values() if dwelt(stats))
-    if not bands or dwelling < 0.5 * sum(stats.n for stats in bands.values()):
+    if len(anchors) != 1 or not bands or dwelling < 0.5 * sum(stats.n for stats in bands.values()):
+        # one bench: the held fit is the drift since it, applied to its factory band (a factory measured at several
+        # temperatures has the drift to each in its own band, and the ellipse path keeps to it)
         return None
-    locus = min(anchors, key=lambda a: abs(a[1].temp_c - REFERENCE_TEMP_C))[1]
+    locus = anchors[0][1]
     found = held_drift_model(list(bands.values()), locus)
     if found is None:
         return None

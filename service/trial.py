@@ -14,7 +14,7 @@ import numpy as np
 
 from encoder_core.correction import BandedCorrection
 from encoder_core.ellipse import ellipse_correction, fit_ellipse
-from encoder_core.held import dwelt
+from encoder_core.held import dwelt, held_runs
 from encoder_core.outcome import compare_sets, guard_decision
 from encoder_core.samples import InputError
 from encoder_core.stats import WindowStats
@@ -64,9 +64,12 @@ def judge(evidence: TrialEvidence) -> Verdict:
 
 
 def judge_against_bench(evidence: TrialEvidence, anchors) -> Verdict:
-    if evidence.soak and all(dwelt(stats) for stats in evidence.soak.values()):
+    soak = evidence.soak.values()
+    if evidence.soak_samples >= MIN_SOAK_SAMPLES and all(dwelt(stats) and held_runs(stats) for stats in soak):
         # a drive holding positions shows no circle to measure either set on, however long it soaks; the set's
-        # uncertainty where it sits is the refit's own (held_drift_model), and waiting held back a step's move
+        # uncertainty where it sits is the refit's own (held_drift_model), and waiting for the longest soak held a
+        # step's move back for hours (s2-20hz-10). Only positions held, not an arc swept (a reversing drive's short
+        # arcs are dwelt too, and may show a circle later)
         return Verdict("confirm", "the drive holds positions: no circle to measure the set on; kept on the refit's")
     trial = BandedCorrection.from_dict({"bands": evidence.trial["bands"]})
     before = BandedCorrection.from_dict({"bands": evidence.before["bands"]})

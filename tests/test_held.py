@@ -12,11 +12,12 @@ from encoder_core.held import held_points
 from encoder_core.monitor import DeviceMonitor, Settings, window_features
 from encoder_core.physics import band_of
 from encoder_core.samples import Samples
-from encoder_core.stats import normalisation_scale, window_stats
+from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from encoder_fleet.fleet_accuracy import windows_of
 from service.refit import refit_device
+from service.trial import MIN_SOAK_SAMPLES, TrialEvidence, judge
 from tests.monitor_runs import offset_step_alarms
 
 SEEDS = range(4)
@@ -254,3 +255,31 @@ def test_the_held_positions_measure_the_drift_a_dwelling_drive_shows_no_circle_f
             assert rms_fitted <= rms_factory + 3 * stated.get(band, 0.0) + 0.002, (seed, hour, band)
         gains.append(np.sqrt(np.mean(factory_err**2)) / np.sqrt(np.mean(fitted_err**2)))
     assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains  # seeds 0-3: 1.0, 12.1, 7.0, 1.2
+
+
+def test_a_trial_is_confirmed_unmeasured_only_where_the_drive_held_positions():
+    """A drive holding positions shows no circle to judge a set on, however long it soaks: its trial is kept on the
+    refit's word once the minimum soak has run. A reversing drive's short arc is as few angle bins (`dwelt`) but no
+    held position, and may show a circle later: it waits, as does a soak with nothing in it."""
+    rng = np.random.default_rng([407, 1])
+    phys = fieldsim.draw_drive(rng, event=None, days=1.0)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    scale = normalisation_scale(factory)
+    bands = [{**b.to_dict(), "band": 2} for b in factory.bands]
+    trial = {"bands": [{**bands[0], "zero_offset_rad": bands[0]["zero_offset_rad"] + np.radians(1.0)}], "version": 2}
+    before, fac = {"bands": bands, "version": 1}, {"bands": bands, "version": 0}
+
+    def soak(theta):
+        t = np.arange(theta.size) * 0.05
+        temp = np.full(theta.size, 24.0)
+        d, q = phys.measure(theta % (2 * np.pi), temp, t, rng)
+        return {2: window_stats(Samples(t=t, d=d, q=q, temp_c=temp), scale)}
+
+    positions = rng.uniform(0, 2 * np.pi, 4)
+    held = np.repeat(positions, MIN_SOAK_SAMPLES // 4 + 1) + rng.normal(
+        0, np.radians(0.02), 4 * (MIN_SOAK_SAMPLES // 4 + 1)
+    )
+    arc = rng.uniform(0, 2 * np.pi) + np.radians(36) * np.sin(np.arange(MIN_SOAK_SAMPLES + 1) * 0.05)
+    assert judge(TrialEvidence(trial, before, soak(held), factory=fac)).action == "confirm"
+    assert judge(TrialEvidence(trial, before, soak(arc), factory=fac)).action == "wait"
+    assert judge(TrialEvidence(trial, before, {2: WindowStats(scale=scale)}, factory=fac)).action == "wait"
