@@ -190,11 +190,11 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
     across it (the ellipse fit sees only across), the rotation of both axes included. Unknowns: every θ_k and
     each term's curve through the bench (its value there held to the factory's, AT_BENCH_PRIOR; its slope and
     square to SLOPE_PRIOR and SQUARE_PRIOR); least squares over every band's held points at their own
-    temperatures. Across
-    the circle a held point moves with the channels' common gain (0.1 %/K) times the die's lag behind the
-    temperature the windows report, along it with the angle's drift alone: each direction's errors are scaled
-    by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more. Only while
-    the bench holds (no step since it): the bench's zero drift is what ties the θ_k to the factory's angles."""
+    temperatures. Across the circle a held point moves with the channels' common gain (0.1 %/K) times the die's
+    lag behind the temperature the windows report, along it with the angle's drift alone: each direction's errors
+    are scaled by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more.
+    Only while the bench holds (no step since it): the bench's zero drift is what ties the θ_k to the factory's
+    angles."""
     obs = [h for stats in bands for h in held_runs(stats, split=True)]
     if obs:
         # a held position scatters along the circle with the channels' noise, the same at every position of a drive;
@@ -291,8 +291,9 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
         return None
     seen = len(used)
     r = residuals(params)
+    jac = jacobian(params, r)
     try:
-        cov = np.linalg.inv(jacobian(params, r).T @ jacobian(params, r))
+        cov = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
         return None
     chi2_dof = float(np.sum(r[: 2 * len(obs)] ** 2) / dof)

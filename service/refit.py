@@ -174,12 +174,11 @@ def refit_from_bench(
     count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
     model = drift_model(fits, bench_holds=not stepped_since_bench)
-    chi2_held = None
     held = held_model(band_stats, anchors, min_samples) if held_watched and not stepped_since_bench else None
     if held is not None:
         # a drive that holds positions: the held points see the drift along the circle, where the bands' few
         # angle bins leave the ellipse fit guessing (or fitting none at all)
-        model, chi2_held = held.model, held.chi2_dof
+        model = held.drift.model
         fits = {band: (None, stats, None, None) for band, stats in held.bands.items()}
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
@@ -201,7 +200,7 @@ def refit_from_bench(
             temp_c = locus.temp_c
         if model is not None:
             terms, errors = model.at(temp_c)
-            chi2 = chi2_held if held is not None else fits[band][0].chi2_dof if band in fits else None
+            chi2 = held.drift.chi2_dof if held is not None else fits[band][0].chi2_dof if band in fits else None
         else:
             fit = fits[band][0]
             terms, errors, chi2 = fit.drift.terms(locus.radius), fit.errors, fit.chi2_dof
@@ -253,10 +252,8 @@ def refit_from_bench(
 
 @dataclass
 class HeldFit:
-    model: DriftModel
-    chi2_dof: float
-    bands: dict[int, WindowStats]  # the bands it speaks for: those with held points
     drift: HeldDrift
+    bands: dict[int, WindowStats]  # the bands it speaks for: those with held points
 
 
 def held_model(band_stats: dict[int, WindowStats], anchors, min_samples: int) -> HeldFit | None:
@@ -273,7 +270,7 @@ def held_model(band_stats: dict[int, WindowStats], anchors, min_samples: int) ->
     found = held_drift_model(list(bands.values()), locus)
     if found is None:
         return None
-    return HeldFit(found.model, found.chi2_dof, {b: s for b, s in bands.items() if held_runs(s, split=True)}, found)
+    return HeldFit(found, {b: s for b, s in bands.items() if held_runs(s, split=True)})
 
 
 def step_moved_bands(bands: list[dict], cause: str, step: dict, scale: float) -> list[dict]:
