@@ -131,6 +131,11 @@ AT_BENCH_PRIOR = 1e-6
 # +41 °C, with the square as loose as the slope, was extrapolated to 0.95° at -20 °C (s6-20hz-06; its truth 0.04°)
 SQUARE_PRIOR = 0.1
 SLOPE_PRIOR = {"offset_d": 1e-3, "offset_q": 1e-3, "imbalance": 5e-3, "axis": 1e-3, "common": 3e-2, "zero": 1e-3}
+# after an offset step the offsets at the bench are the step's: held loosely (fraction of the radius; the monitor names
+# steps of 0.2-1 %), so the held points' radial parts measure them and their angles along the circle still tie each
+# θ_k to the factory's (a shift of the circle is no turn of it)
+STEPPED_OFFSET_PRIOR = 0.05
+STEPPED_TERMS = ("offset_d", "offset_q")
 
 
 @dataclass
@@ -149,6 +154,7 @@ class HeldDrift:
     _along: object = None  # (params) -> each position's angle drift at each temperature asked (see angle_error)
     _params: np.ndarray | None = None
     _cov: np.ndarray | None = None
+    _step_share: np.ndarray | None = None  # which parameters are a step's, not drift (offsets_stepped)
 
     def covers(self, temp_c: float) -> bool:
         """Every position was held within POSITION_REACH_C of this temperature: the positions' angles there are
@@ -167,7 +173,8 @@ class HeldDrift:
         circle = np.linspace(0.0, 2 * np.pi, 72, endpoint=False)
 
         def since_bench(p: np.ndarray) -> np.ndarray:
-            return self._along(p, temp_c, circle) - self._along(p, bench, circle)
+            # against the bench without the step: a set after an offset step carries the step too, and its error
+            return self._along(p, temp_c, circle) - self._along(np.where(self._step_share, 0.0, p), bench, circle)
 
         base = since_bench(self._params)
         steps = np.sqrt(np.maximum(np.diag(self._cov), 1e-24)) * 1e-3
@@ -180,7 +187,9 @@ class HeldDrift:
         return float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", jac, self._cov, jac))))
 
 
-def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations: int = 6) -> HeldDrift | None:
+def held_drift_model(
+    bands: list[WindowStats], locus: BenchLocus, *, offsets_stepped: bool = False, iterations: int = 6
+) -> HeldDrift | None:
     """The drift curve (each term a line plus a square in temperature, as DriftModel's) from the positions a
     drive holds, where its bands' samples fill too few angle bins for the ellipse fit (`fit_drifts`).
 
@@ -193,8 +202,10 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
     temperatures. Across the circle a held point moves with the channels' common gain (0.1 %/K) times the die's
     lag behind the temperature the windows report, along it with the angle's drift alone: each direction's errors
     are scaled by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more.
-    Only while the bench holds (no step since it): the bench's zero drift is what ties the θ_k to the factory's
-    angles."""
+    The bench's zero drift is what ties the θ_k to the factory's angles, so only while the bench holds, or after
+    offset steps alone (offsets_stepped: the band sums hold only windows since the last step, and the offsets'
+    values at the bench, the steps', are fitted too, STEPPED_OFFSET_PRIOR; a gain or axis step's rotation half
+    would turn every θ_k alike, which no held point tells from the factory's zero)."""
     obs = [h for stats in bands for h in held_runs(stats, split=True)]
     if obs:
         # a held position scatters along the circle with the channels' noise, the same at every position of a drive;
@@ -223,7 +234,12 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
     sd = np.sqrt(np.array([h.var for h in obs]) + (HELD_FLOOR * radius) ** 2)
     outward = (points - c) / np.hypot(*(points - c).T)[:, None]  # each point's radial direction
     n_coef = 3  # square, slope, value at the bench (np.vander's order)
-    prior = np.concatenate([[SQUARE_PRIOR * SLOPE_PRIOR[t], SLOPE_PRIOR[t], AT_BENCH_PRIOR] for t in HELD_TERMS])
+    stepped = STEPPED_TERMS if offsets_stepped else ()
+    at_bench = [STEPPED_OFFSET_PRIOR if t in stepped else AT_BENCH_PRIOR for t in HELD_TERMS]
+    prior = np.concatenate([[SQUARE_PRIOR * SLOPE_PRIOR[t], SLOPE_PRIOR[t], b] for t, b in zip(HELD_TERMS, at_bench)])
+    # the step's share of the parameters (the stepped offsets at the bench): the drift since the bench leaves it out
+    step_share = np.zeros(k_pos + prior.size, bool)
+    step_share[[k_pos + j * n_coef + n_coef - 1 for j, t in enumerate(HELD_TERMS) if t in stepped]] = True
 
     def field(p: np.ndarray, theta: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where the field shows bench angle θ at a temperature: S⁻¹ of the bench point about the bench centre
@@ -327,6 +343,7 @@ def held_drift_model(bands: list[WindowStats], locus: BenchLocus, *, iterations:
         scale=scale,
         _along=along,
         _params=params,
+        _step_share=step_share,
         _cov=cov,
     )
 

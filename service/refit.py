@@ -102,6 +102,7 @@ def refit_device(
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
     stepped_since_bench: bool = False,
+    offsets_stepped_only: bool = False,
     axis_turn: float = 0.0,
     held_watched: bool = False,
 ) -> RefitResult:
@@ -118,6 +119,9 @@ def refit_device(
 
     stepped_since_bench: the monitor has named a step (offsets, gain or axes) since the factory's bench: the bench
     is then no point of the drift curve (no drift at its temperature would undo the step there).
+
+    offsets_stepped_only: every step named since the bench was an offset step. The positions a drive holds then
+    still measure its drift, the steps' offsets with it (held_model).
 
     axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
     is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a
@@ -138,6 +142,7 @@ def refit_device(
             bin_temps=bin_temps,
             after_step=after_step,
             stepped_since_bench=stepped_since_bench,
+            offsets_stepped_only=offsets_stepped_only,
             axis_turn=axis_turn,
             held_watched=held_watched,
         )
@@ -167,6 +172,7 @@ def refit_from_bench(
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
     stepped_since_bench: bool = False,
+    offsets_stepped_only: bool = False,
     axis_turn: float = 0.0,
     held_watched: bool = False,
 ) -> RefitResult:
@@ -174,7 +180,11 @@ def refit_from_bench(
     count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
     model = drift_model(fits, bench_holds=not stepped_since_bench)
-    held = held_model(band_stats, anchors, min_samples) if held_watched and not stepped_since_bench else None
+    held = None
+    if held_watched and (not stepped_since_bench or offsets_stepped_only):
+        # after offset steps the band sums hold the drive since the last one (restart_band_memory), and a shift of
+        # the circle is no turn of it: the held positions' angles still tie to the bench's
+        held = held_model(band_stats, anchors, min_samples, offsets_stepped=stepped_since_bench)
     if held is not None:
         # a drive that holds positions: the held points see the drift along the circle, where the bands' few
         # angle bins leave the ellipse fit guessing (or fitting none at all)
@@ -256,7 +266,9 @@ class HeldFit:
     bands: dict[int, WindowStats]  # the bands it speaks for: those with held points
 
 
-def held_model(band_stats: dict[int, WindowStats], anchors, min_samples: int) -> HeldFit | None:
+def held_model(
+    band_stats: dict[int, WindowStats], anchors, min_samples: int, *, offsets_stepped: bool = False
+) -> HeldFit | None:
     """The drift curve from the positions the drive holds (encoder_core.held.held_drift_model), when most of its
     samples are in bands where it dwelt and the factory was measured at one bench temperature; None otherwise, or
     when too few positions were held across bands."""
@@ -267,7 +279,7 @@ def held_model(band_stats: dict[int, WindowStats], anchors, min_samples: int) ->
         # temperatures has the drift to each in its own band, and the ellipse path keeps to it)
         return None
     locus = anchors[0][1]
-    found = held_drift_model(list(bands.values()), locus)
+    found = held_drift_model(list(bands.values()), locus, offsets_stepped=offsets_stepped)
     if found is None:
         return None
     return HeldFit(found, {b: s for b, s in bands.items() if held_runs(s, split=True)})

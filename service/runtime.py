@@ -912,6 +912,7 @@ class FleetService:
         if running_version is None:
             return None  # no factory set known yet: nothing to anchor a rollout to
         step_at = self._last_step_at(device)
+        shape_stepped = any(self.store.alarms(device, cause=c, limit=1) for c in ("gain_step", "axis_step"))
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
@@ -925,6 +926,7 @@ class FleetService:
             after_step=self._stepped_recently(device, step_at)
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
+            offsets_stepped_only=not shape_stepped,
             axis_turn=sum(a["parameters"]["delta_skew"] for a in self.store.alarms(device, cause="axis_step")),
             held_watched=self.monitor.watches_held_positions(device),
         )
