@@ -166,7 +166,8 @@ class HeldDrift:
     def angle_error(self, temp_c: float) -> float:
         """Standard error (rad) of the angle's drift since the bench at a temperature, the largest around the
         circle: what a set made from the model is uncertain by, beside the factory's set (the values at the bench,
-        which no held position tells from its own angle, are the factory's uncertainty too). Around the whole
+        which no held position tells from its own angle, are the factory's uncertainty too; after an offset step
+        the step's offsets are the fit's, and their error is in this one). Around the whole
         circle, not only at the held positions, where it is far smaller: the servo may hold another position next,
         and three positions within 18° of each other left the rest of s5-20hz-02's circle 1° off."""
         bench = self.model.terms["offset_d"].bench_c

@@ -200,6 +200,8 @@ class FleetService:
         self._resent: dict[str, tuple[int, float, float]] = {}  # device -> (version, wall, drive time) of last resend
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
         self._step_moves: dict[str, tuple] = {}  # device -> the step the monitor measured (cause, size, raised_at)
+        # device -> raised_at of the newest step whose band memory this process restarted (or found restarted)
+        self._restarted_for: dict[str, float] = {}
         self._corrections: dict[tuple[str, int], BandedCorrection] = {}  # decoded coefficient sets
         self._lock = threading.Lock()
         self._alive_unknown: dict[str, float] = {}  # tokens of devices that have sent nothing valid yet
@@ -311,6 +313,7 @@ class FleetService:
             self._fitted_at = {d: t for d, t in self._fitted_at.items() if keys.partition(d) not in parts}
             self._watched_at = {d: t for d, t in self._watched_at.items() if keys.partition(d) not in parts}
             self._step_moves = {d: m for d, m in self._step_moves.items() if keys.partition(d) not in parts}
+            self._restarted_for = {d: t for d, t in self._restarted_for.items() if keys.partition(d) not in parts}
         self.store.forget_partitions(parts)
         self.monitor.reload(lambda device: keys.partition(device) in parts)
 
@@ -349,11 +352,14 @@ class FleetService:
         for device, alarm in newest.items():
             since = self.store.versions_since(device, alarm["raised_at"])
             if any(self._bands_made_at(device, v) >= alarm["raised_at"] for v in since):
+                with self._lock:  # its memory was restarted when the step was published, and a set made since
+                    self._restarted_for[device] = alarm["raised_at"]
                 continue  # a set with bands made since (the move, or a fit after the step; a rollback's are older)
             # the process may have stopped between storing the alarm and publishing it (which restarts band
             # memory): restart it here too (it keeps the same windows if it was)
             self.store.restart_band_memory(device, after=alarm["raised_at"])
             with self._lock:
+                self._restarted_for[device] = alarm["raised_at"]
                 if device not in self._step_moves:
                     self._step_moves[device] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
                     self._changed.add(device)
@@ -576,6 +582,7 @@ class FleetService:
             # memory is drive time and a detected step restarts it: refits learn the drive as it is now
             bands = self.store.restart_band_memory(alarm["device"], after=alarm["raised_at"])
             with self._lock:
+                self._restarted_for[alarm["device"]] = alarm["raised_at"]
                 self._changed.add(alarm["device"])
                 self._refit_now.add(alarm["device"])
                 self._step_moves[alarm["device"]] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
@@ -913,6 +920,7 @@ class FleetService:
             return None  # no factory set known yet: nothing to anchor a rollout to
         step_at = self._last_step_at(device)
         shape_stepped = any(self.store.alarms(device, cause=c, limit=1) for c in ("gain_step", "axis_step"))
+        restarted = self._memory_restarted_since(device, step_at)
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
@@ -926,7 +934,7 @@ class FleetService:
             after_step=self._stepped_recently(device, step_at)
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
-            offsets_stepped_only=not shape_stepped,
+            offsets_stepped_only=restarted and not shape_stepped,
             axis_turn=sum(a["parameters"]["delta_skew"] for a in self.store.alarms(device, cause="axis_step")),
             held_watched=self.monitor.watches_held_positions(device),
         )
@@ -1111,6 +1119,19 @@ class FleetService:
         """Drive time of the newest step (offset, gain or axes) the monitor raised for the device."""
         raised = [a["raised_at"] for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
         return max(raised, default=None)
+
+    def _memory_restarted_since(self, device: str, step_at: float | None) -> bool:
+        """The device's band sums hold only the drive since its newest step (raised at step_at), as the held fit
+        after a step needs: restarted when this process published the step or took it over (_resume_step_moves),
+        or long ago (the alarm cleared: a set made after it was applied). Not a step the monitor has stored but not
+        yet published: it publishes after its pass, and the publication restarts them (_publish_alarm)."""
+        if step_at is None:
+            return True
+        with self._lock:
+            if self._restarted_for.get(device) == step_at:
+                return True
+        newest = [a for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
+        return bool(newest) and max(newest, key=lambda a: a["raised_at"])["cleared_at"] is not None
 
     def _drive_now(self, device: str) -> float:
         """The device's newest window end: message times are on the drive's clock."""

@@ -291,11 +291,11 @@ def test_after_an_offset_step_the_held_positions_still_measure_the_drift_and_the
     offsets as two more unknowns (held_drift_model(offsets_stepped=True)). Hidden from the refit: the drive's
     drift, die lag, positions and the step (0.4-0.8 % of amplitude, axis, sign and time), drawn from the seed; the
     running set is the factory's moved by the step the drift monitor measured, as the service moves it. The set the
-    refit makes from a day of sums after the alarm (each band then holds its last visit, as the service's band
-    horizon leaves it), run on the rest of the run, leaves no hour worse than the moved set by more than the
-    refit's stated uncertainty, and at least two drives of four gain twice over it (before, no drive got a held fit
-    after any step: 1.0x). Seeds 8-11: 1.0, 2.6, 1.0, 5.7 (the other two do not qualify, as a
-    drive with fewer positions or a half circle without one does not, and keep the moved set)."""
+    refit makes from a day of sums after the alarm (every band of the daily cycle visited), run on the rest of the
+    run, leaves no hour worse than the moved set by more than the refit's stated uncertainty (which holds the
+    fitted step's), and at least two drives of four gain twice over it (before, no drive got a held fit after any
+    step: 1.0x). Seeds 8-11: 1.0, 2.6, 1.0, 5.7 (the other two do not qualify, as a drive with fewer positions or a
+    half circle without one does not, and keep the moved set)."""
     gains, named = [], 0
     for seed in range(8, 12):
         rng = np.random.default_rng([406, seed])
@@ -331,6 +331,9 @@ def test_after_an_offset_step_the_held_positions_still_measure_the_drift_and_the
         )
         fitted = BandedCorrection.from_dict({"bands": result.bands}) if result.changed else moved
         stated = {d.band: d.candidate_error_deg for d in result.decisions if d.adopted}
+        for decision in [d for d in result.decisions if d.adopted]:  # the step's offsets are fitted: their error too
+            offsets = [decision.quality["drift_errors"][t] or 0.0 for t in ("offset_d", "offset_q")]
+            assert decision.candidate_error_deg >= 0.99 * np.degrees(max(offsets)), (seed, decision.band)
         later = np.flatnonzero(run.samples.t > raised.at + fieldsim.DAY_S)
         hours = np.floor((run.samples.t[later] - run.samples.t[later[0]]) / 3600.0).astype(int)
         moved_err = fieldsim.true_error_deg(moved, run, later)
