@@ -502,11 +502,12 @@ def run_bench(
         for seed in seeds
     ]
     started = time.monotonic()
+
+    def progress(text: str) -> None:
+        print(f"… {text}", file=sys.stderr, flush=True)
+
     if through_service:
         from encoder_fleet.fleet_replay import replay_fleet
-
-        def progress(text: str) -> None:
-            print(f"… {text}", file=sys.stderr, flush=True)
 
         results = [
             r for fleet in fleets for r in replay_fleet(fleet, real_time_factor=through_service, progress=progress)
@@ -514,8 +515,16 @@ def run_bench(
     else:
         # spawned, not forked: the caller may hold a Zenoh session (a test run, the service), and a forked child of a
         # process with Zenoh's threads can hang on a lock one of them held
+        specs = [spec for fleet in fleets for spec in fleet]
+        results = []
         with multiprocessing.get_context("spawn").Pool(processes) as pool:
-            results = pool.map(run_drive, [spec for fleet in fleets for spec in fleet], chunksize=1)
+            for r in pool.imap(run_drive, specs, chunksize=1):  # in order, each drive as it is done
+                results.append(r)
+                worse = f", {r.worse_hours} worse hour(s)" if r.worse_hours else ""
+                progress(
+                    f"{len(results)}/{len(specs)} drives, {time.monotonic() - started:.0f} s: {r.name} "
+                    f"{r.factory_deg / r.fleet_deg:.2f}x{worse}"
+                )
     report = {"elapsed_s": time.monotonic() - started, "regimes": {}, "drives": []}
     for rate in rates:
         mine = [r for r in results if r.rate_hz == rate]
