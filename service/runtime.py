@@ -576,8 +576,13 @@ class FleetService:
                 self.counters.analysis_waited_s += waited
 
     def _publish_alarm(self, key: str, payload: bytes) -> None:
-        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         alarm = json.loads(payload)
+        try:
+            self._act_on_alarm(alarm)
+        finally:  # the restart first: a put that fails must not leave the sums mixing the drive before a step
+            self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _act_on_alarm(self, alarm: dict) -> None:
         if alarm["cause"] in STEP_CAUSES and alarm["event"] == "raised":
             # memory is drive time and a detected step restarts it: refits learn the drive as it is now
             bands = self.store.restart_band_memory(alarm["device"], after=alarm["raised_at"])
@@ -914,13 +919,18 @@ class FleetService:
         return corr.thermal_lag_s if corr is not None else 0.0
 
     def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
-        """The refit of the device's band sums against the set it runs; None when no set is known yet."""
+        """The refit of the device's band sums against the set it runs; None when no set is known yet, or while a
+        step's band memory restart is pending (_memory_restarted_since)."""
         running_version = self.store.published_version(device)
         if running_version is None:
             return None  # no factory set known yet: nothing to anchor a rollout to
         step_at = self._last_step_at(device)
+        if not self._memory_restarted_since(device, step_at):
+            # a step the monitor stored and will publish at the end of its pass, which restarts band memory: the
+            # sums still mix the drive before and after it, and a set made now would also stand for the step's move
+            # (refit: a set fitted after the step has nothing to move). The publication asks for the refit at once.
+            return None
         shape_stepped = any(self.store.alarms(device, cause=c, limit=1) for c in ("gain_step", "axis_step"))
-        restarted = self._memory_restarted_since(device, step_at)
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
@@ -934,7 +944,7 @@ class FleetService:
             after_step=self._stepped_recently(device, step_at)
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
-            offsets_stepped_only=restarted and not shape_stepped,
+            offsets_stepped_only=not shape_stepped,
             axis_turn=sum(a["parameters"]["delta_skew"] for a in self.store.alarms(device, cause="axis_step")),
             held_watched=self.monitor.watches_held_positions(device),
         )
@@ -1121,8 +1131,8 @@ class FleetService:
         return max(raised, default=None)
 
     def _memory_restarted_since(self, device: str, step_at: float | None) -> bool:
-        """The device's band sums hold only the drive since its newest step (raised at step_at), as the held fit
-        after a step needs: restarted when this process published the step or took it over (_resume_step_moves),
+        """The device's band sums hold only the drive since its newest step (raised at step_at), as a refit after
+        a step needs: restarted when this process published the step or took it over (_resume_step_moves),
         or long ago (the alarm cleared: a set made after it was applied). Not a step the monitor has stored but not
         yet published: it publishes after its pass, and the publication restarts them (_publish_alarm)."""
         if step_at is None:

@@ -442,11 +442,12 @@ def test_after_a_step_only_a_set_whose_bands_predate_it_moves_its_unvisited_band
     assert service._bands_made_at(DEVICE, 5) == float("-inf")
 
 
-def test_the_held_fit_after_a_step_waits_for_the_band_memory_it_restarts(fleet):
+def test_a_refit_after_a_step_waits_for_the_band_memory_it_restarts(fleet):
     """The drift monitor stores a step's alarm, then publishes it after its pass; the publication restarts band
-    memory. A refit between the two saw the step but sums from before and after it; the held fit after an offset
-    step (service.refit.held_model) needs the drive since the step alone, so it waits for the restart: the
-    publication in this process, a process taking the open step over, or the step cleared long ago."""
+    memory. A refit between the two saw the step but sums from before and after it (the held fit after an offset
+    step, service.refit.held_model, fitted them as one drive), and its set, made after the step, then stood for the
+    step's move, which was dropped. So a refit waits for the restart: the publication in this process, a process
+    taking the open step over, or the step cleared long ago."""
     from fleet_wire import alarms
     from fleet_wire.session import loopback_endpoint
     from service.runtime import FleetService, open_session
@@ -458,8 +459,9 @@ def test_the_held_fit_after_a_step_waits_for_the_band_memory_it_restarts(fleet):
     event = {"kind": "raise", "cause": "offset_step", "at": 3000.0, "parameters": {"delta_d": 0.01, "delta_q": 0.0}}
     (step,) = store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
     assert service._last_step_at(DEVICE) == 3000.0 and not service._memory_restarted_since(DEVICE, 3000.0)
+    assert service.fit(DEVICE) is None  # no refit over sums that mix the drive before and after the step
     service._publish_alarm(*alarms.encode(step))
-    assert service._memory_restarted_since(DEVICE, 3000.0)
+    assert service._memory_restarted_since(DEVICE, 3000.0) and service.fit(DEVICE) is not None
     service.stop()
     session = open_session(listen=[loopback_endpoint()])
     after = FleetService(store, session, refit_interval_s=0)  # a new process knows nothing of it yet
