@@ -106,7 +106,9 @@ def _held_of(stats: WindowStats, sums: np.ndarray, temp_sums: np.ndarray) -> lis
 # --- drift from held positions ----------------------------------------------------------------------------------
 
 MIN_POSITIONS = 4  # held positions seen in two bands or more (three within 18° left the rest of the circle a guess)
-MAX_GAP_RAD = np.pi  # ... spread around the circle: no gap between them wider than this
+# ... spread around the circle: no gap between them wider than this (225°: the set's error is the largest around the
+# whole circle, gap included; at 180° s12-20hz-02, s3-20hz-02, s5-20hz-10 and s7-20hz-06 kept sets 1.2-3.5x worse)
+MAX_GAP_RAD = 1.25 * np.pi
 # ... and the positions along the circle fitted by one drift curve within this many times their own errors: past it
 # they moved in a way no drift in temperature does (an offset step the monitor did not name, s5-20hz-02: with it the
 # fit was 3.6 times its errors along the circle, and confidently 1° wrong; before it, 1.5-2)
