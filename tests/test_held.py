@@ -223,6 +223,21 @@ def band_sums(samples, scale: float, monitor: DeviceMonitor, window_s: float = 6
     return bands
 
 
+def gain_with_no_hour_worse(run, idx, before, after, stated: dict, seed, reach: int = 0) -> float:
+    """`before`'s RMS true angle error over `after`'s on the samples idx of the run; no hour of them may be worse
+    with `after` by more than three times the refit's stated error (`stated`: band -> deg) for the hour's band, or
+    a band within `reach` of it, and 0.002°."""
+    hours = np.floor((run.samples.t[idx] - run.samples.t[idx[0]]) / 3600.0).astype(int)
+    before_err, after_err = (fieldsim.true_error_deg(c, run, idx) for c in (before, after))
+    for hour in np.unique(hours):
+        rows = hours == hour
+        band = band_of(float(np.mean(run.samples.temp_c[idx][rows])))
+        error = max(stated.get(b, 0.0) for b in range(band - reach, band + reach + 1))
+        rms_before, rms_after = (float(np.sqrt(np.mean(e[rows] ** 2))) for e in (before_err, after_err))
+        assert rms_after <= rms_before + 3 * error + 0.002, (seed, hour, band, rms_after, rms_before)
+    return float(np.sqrt(np.mean(before_err**2)) / np.sqrt(np.mean(after_err**2)))
+
+
 def test_the_held_positions_measure_the_drift_a_dwelling_drive_shows_no_circle_for():
     """A servo holding a few positions shows too few angle bins for the ellipse fit, but each position is one true
     angle at every temperature: its held points in bands of different temperatures show the drift along the circle
@@ -244,16 +259,7 @@ def test_the_held_positions_measure_the_drift_a_dwelling_drive_shows_no_circle_f
         result = refit_device(bands, factory, factory, held_watched=True)
         fitted = BandedCorrection.from_dict({"bands": result.bands}) if result.changed else factory
         stated = {d.band: d.candidate_error_deg for d in result.decisions if d.adopted}
-        second = np.flatnonzero(~first_day)
-        hours = np.floor((run.samples.t[second] - run.samples.t[second[0]]) / 3600.0).astype(int)
-        factory_err = fieldsim.true_error_deg(factory, run, second)
-        fitted_err = fieldsim.true_error_deg(fitted, run, second)
-        for hour in np.unique(hours):
-            rows = hours == hour
-            band = band_of(float(np.mean(run.samples.temp_c[second][rows])))
-            rms_factory, rms_fitted = (float(np.sqrt(np.mean(e[rows] ** 2))) for e in (factory_err, fitted_err))
-            assert rms_fitted <= rms_factory + 3 * stated.get(band, 0.0) + 0.002, (seed, hour, band)
-        gains.append(np.sqrt(np.mean(factory_err**2)) / np.sqrt(np.mean(fitted_err**2)))
+        gains.append(gain_with_no_hour_worse(run, np.flatnonzero(~first_day), factory, fitted, stated, seed))
     assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains  # seeds 0-3: 1.0, 12.1, 7.0, 1.2
 
 
@@ -335,16 +341,7 @@ def test_after_an_offset_step_the_held_positions_still_measure_the_drift_and_the
             offsets = [decision.quality["drift_errors"][t] or 0.0 for t in ("offset_d", "offset_q")]
             assert decision.candidate_error_deg >= 0.99 * np.degrees(max(offsets)), (seed, decision.band)
         later = np.flatnonzero(run.samples.t > raised.at + fieldsim.DAY_S)
-        hours = np.floor((run.samples.t[later] - run.samples.t[later[0]]) / 3600.0).astype(int)
-        moved_err = fieldsim.true_error_deg(moved, run, later)
-        fitted_err = fieldsim.true_error_deg(fitted, run, later)
-        for hour in np.unique(hours):
-            rows = hours == hour
-            band = band_of(float(np.mean(run.samples.temp_c[later][rows])))
-            # the agent interpolates between neighbouring bands' entries: either one's error may show here
-            error = max(stated.get(b, 0.0) for b in (band - 1, band, band + 1))
-            rms_moved, rms_fitted = (float(np.sqrt(np.mean(e[rows] ** 2))) for e in (moved_err, fitted_err))
-            assert rms_fitted <= rms_moved + 3 * error + 0.002, (seed, hour, band, rms_fitted, rms_moved)
-        gains.append(np.sqrt(np.mean(moved_err**2)) / np.sqrt(np.mean(fitted_err**2)))
+        # the agent interpolates between neighbouring bands' entries: either one's error may show in an hour
+        gains.append(gain_with_no_hour_worse(run, later, moved, fitted, stated, seed, reach=1))
     assert named >= 3, named
     assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains
