@@ -523,7 +523,7 @@ def run_bench(
                 worse = f", {r.worse_hours} worse hour(s)" if r.worse_hours else ""
                 progress(
                     f"{len(results)}/{len(specs)} drives, {time.monotonic() - started:.0f} s: {r.name} "
-                    f"{r.factory_deg / r.fleet_deg:.2f}x{worse}"
+                    f"{r.gain:.2f}x{worse}"
                 )
     report = {"elapsed_s": time.monotonic() - started, "regimes": {}, "drives": []}
     for rate in rates:

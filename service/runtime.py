@@ -924,13 +924,15 @@ class FleetService:
         running_version = self.store.published_version(device)
         if running_version is None:
             return None  # no factory set known yet: nothing to anchor a rollout to
-        step_at = self._last_step_at(device)
-        if not self._memory_restarted_since(device, step_at):
+        newest_step = self._newest_step(device)
+        step_at = None if newest_step is None else newest_step["raised_at"]
+        if not self._memory_restarted_since(device, newest_step):
             # a step the monitor stored and will publish at the end of its pass, which restarts band memory: the
             # sums still mix the drive before and after it, and a set made now would also stand for the step's move
             # (refit: a set fitted after the step has nothing to move). The publication asks for the refit at once.
             return None
-        shape_stepped = any(self.store.alarms(device, cause=c, limit=1) for c in ("gain_step", "axis_step"))
+        axis_steps = self.store.alarms(device, cause="axis_step")
+        shape_stepped = bool(axis_steps) or bool(self.store.alarms(device, cause="gain_step", limit=1))
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
@@ -945,7 +947,7 @@ class FleetService:
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
             offsets_stepped_only=not shape_stepped,
-            axis_turn=sum(a["parameters"]["delta_skew"] for a in self.store.alarms(device, cause="axis_step")),
+            axis_turn=sum(a["parameters"]["delta_skew"] for a in axis_steps),
             held_watched=self.monitor.watches_held_positions(device),
         )
 
@@ -1125,23 +1127,27 @@ class FleetService:
         bands it has no data for."""
         return step_at is not None and self._drive_now(device) - step_at < STEP_OPEN_S
 
+    def _newest_step(self, device: str) -> dict | None:
+        """The newest step alarm (offset, gain or axes) the monitor raised for the device, open or cleared."""
+        newest = [a for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
+        return max(newest, key=lambda a: a["raised_at"], default=None)
+
     def _last_step_at(self, device: str) -> float | None:
         """Drive time of the newest step (offset, gain or axes) the monitor raised for the device."""
-        raised = [a["raised_at"] for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
-        return max(raised, default=None)
+        newest = self._newest_step(device)
+        return None if newest is None else newest["raised_at"]
 
-    def _memory_restarted_since(self, device: str, step_at: float | None) -> bool:
-        """The device's band sums hold only the drive since its newest step (raised at step_at), as a refit after
-        a step needs: restarted when this process published the step or took it over (_resume_step_moves),
-        or long ago (the alarm cleared: a set made after it was applied). Not a step the monitor has stored but not
-        yet published: it publishes after its pass, and the publication restarts them (_publish_alarm)."""
-        if step_at is None:
+    def _memory_restarted_since(self, device: str, newest_step: dict | None) -> bool:
+        """The device's band sums hold only the drive since its newest step (_newest_step's), as a refit after a
+        step needs: restarted when this process published the step or took it over (_resume_step_moves), or long
+        ago (the alarm cleared: a set made after it was applied). Not a step the monitor has stored but not yet
+        published: it publishes after its pass, and the publication restarts them (_publish_alarm)."""
+        if newest_step is None:
             return True
         with self._lock:
-            if self._restarted_for.get(device) == step_at:
+            if self._restarted_for.get(device) == newest_step["raised_at"]:
                 return True
-        newest = [a for cause in STEP_CAUSES for a in self.store.alarms(device, cause=cause, limit=1)]
-        return bool(newest) and max(newest, key=lambda a: a["raised_at"])["cleared_at"] is not None
+        return newest_step["cleared_at"] is not None
 
     def _drive_now(self, device: str) -> float:
         """The device's newest window end: message times are on the drive's clock."""

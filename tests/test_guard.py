@@ -458,17 +458,18 @@ def test_a_refit_after_a_step_waits_for_the_band_memory_it_restarts(fleet):
     assert service._memory_restarted_since(DEVICE, None)  # no step: the sums are the drive's
     event = {"kind": "raise", "cause": "offset_step", "at": 3000.0, "parameters": {"delta_d": 0.01, "delta_q": 0.0}}
     (step,) = store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
-    assert service._last_step_at(DEVICE) == 3000.0 and not service._memory_restarted_since(DEVICE, 3000.0)
+    assert service._last_step_at(DEVICE) == 3000.0
+    assert not service._memory_restarted_since(DEVICE, service._newest_step(DEVICE))
     assert service.fit(DEVICE) is None  # no refit over sums that mix the drive before and after the step
     service._publish_alarm(*alarms.encode(step))
-    assert service._memory_restarted_since(DEVICE, 3000.0) and service.fit(DEVICE) is not None
+    assert service._memory_restarted_since(DEVICE, service._newest_step(DEVICE)) and service.fit(DEVICE) is not None
     service.stop()
     session = open_session(listen=[loopback_endpoint()])
     after = FleetService(store, session, refit_interval_s=0)  # a new process knows nothing of it yet
-    assert not after._memory_restarted_since(DEVICE, 3000.0)
+    assert not after._memory_restarted_since(DEVICE, after._newest_step(DEVICE))
     after.start()  # and takes the open step over (_resume_step_moves)
     try:
-        assert after._memory_restarted_since(DEVICE, 3000.0)
+        assert after._memory_restarted_since(DEVICE, after._newest_step(DEVICE))
     finally:
         after.stop()
         session.close()
