@@ -194,7 +194,7 @@ def refit_from_bench(
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
     spoken = model_bands(fits, model)
-    running_bands = {band_index(c) for c in running.bands}
+    running_at = {band_index(c): c.temp_c for c in running.bands}  # each running entry's temperature, by band
     for band, temp_c, stats in spoken:
         factory, locus = min(anchors, key=lambda a: abs(a[1].temp_c - temp_c))
         if held is not None and band < spoken[-1][0]:
@@ -232,14 +232,16 @@ def refit_from_bench(
             adopt = False  # a position the drive holds was not seen near this temperature: its angle is a guess
         entry = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
         lower_c = band * BAND_WIDTH_C
-        bench_here = not stepped_since_bench and lower_c - 1.0 <= locus.temp_c < lower_c + BAND_WIDTH_C
-        if not adopt and held is not None and bench_here and band == spoken[-1][0] and band not in running_bands:
-            # the top band kept as the device runs it, and the bench at its lower edge or inside it: it speaks at the
-            # bench, where the drift is none, not at its centre (s9-20hz-02's first held set: the drift fitted at +10 °C
+        bench_below = not stepped_since_bench and lower_c - 1.0 <= locus.temp_c < lower_c  # (holding it: at it already)
+        kept_at_edge = abs(running_at.get(band, lower_c) - lower_c) < 1e-6  # no running entry there, or ours
+        if not adopt and held is not None and bench_below and band == spoken[-1][0] and kept_at_edge:
+            # the top band kept as the device runs it, with the bench just below its lower edge: it speaks at that
+            # edge, where the drift is none, not at its centre (s9-20hz-02's first held set: the drift fitted at +10 °C
             # and the factory at +25 °C, so the agent ran a third of the +10 °C drift at the bench: 0.0124° in an hour
-            # at +18..+29 °C, the factory set's 0.0097°). A top band above the bench keeps handing over at its centre:
-            # there the drift grows on past the data (s11-20hz-06 lost 5 % of its gain at the lower edge)
-            now = running.at(max(lower_c, locus.temp_c))
+            # at +18..+29 °C, the factory set's 0.0097°), and so do the refits after it. A top band above the bench
+            # keeps handing over at its centre: there the drift grows on past the data (s11-20hz-06 lost 5 % of its
+            # gain at the lower edge)
+            now = running.at(lower_c)
         chosen[band] = entry if adopt else band_entry(band, now, {**quality, "estimated_error_deg": err_now})
         result.decisions.append(
             BandDecision(
