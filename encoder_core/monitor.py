@@ -129,6 +129,14 @@ class Settings:
     # tail moved a clean drive's position by 0.003 more than its reported temperature said)
     held_far_sd_per_c: float = 5e-5  # ... what the map may miss per kelvin between the visits, beyond its own error
     held_map_min_c2: float = 4.0  # ... once the pairs it learnt from span this much Σ ΔT² (°C²)
+    held_check_sd: float = 4.0  # a step the held positions showed is named an offset step once a position the
+    # drive held before it, where a gain or an axis step would have moved it otherwise, moved alike: within this many
+    # standard deviations or a third of the step (s3-20hz-22: a 0.41 % gain step of q moved the position the drive
+    # held by 0.3 % along q, one common vector to a lone position; named an offset step, the service moved the offsets
+    # for it and the drive ran 15 hours worse than its factory set. The next position, two minutes later, had not
+    # moved: 13 standard deviations off the offset step) ...
+    held_check_s: float = 3 * HOUR_S  # ... compared with its visit before the step this recent and close in
+    held_check_c: float = 20.0  # temperature, through the map (a servo may come back to a position hours later)
     rate_tau_s: float = 3 * HOUR_S  # memory of the rate regressions (drive time)
     rates_after_s: float = 12 * HOUR_S  # rates are judged once the device has been judged this long
     rate_min_span_s: float = 3 * HOUR_S  # a rate is judged once its regression spans this much drive time
@@ -926,6 +934,9 @@ class DeviceMonitor:
     # [Δx, Δy, t, windows, after, far]: the held positions jumped at t, not yet seen still again; the step came
     # after `after` (the latest visit they were compared with); far: compared against the temperature map
     held_jump: list | None = None
+    # [Δx, Δy, since, after, far, x, y]: the jump of held_jump, seen still again at (x, y), not yet named: waiting for
+    # a position held before it to say whether it moved every position alike (an offset step) or not
+    held_candidate: list | None = None
     held_map: HeldMap = field(default_factory=HeldMap)
     temp_rate_last: float | None = None  # the last window's temperature rate (°C/s)
     calm_since: float | None = None  # since when the rate has moved by no more than held_far_rate_change a window
@@ -978,6 +989,7 @@ class DeviceMonitor:
             "online": self.online,
             "held_last": self.held_last,
             "held_jump": self.held_jump,
+            "held_candidate": self.held_candidate,
             "held_map": _plain(self.held_map),
             "temp_rate_last": self.temp_rate_last,
             "calm_since": self.calm_since,
@@ -1017,6 +1029,7 @@ class DeviceMonitor:
             online=d.get("online", True),
             held_last=d.get("held_last", []),
             held_jump=d.get("held_jump"),
+            held_candidate=d.get("held_candidate"),
             held_map=HeldMap(**d.get("held_map", {})),
             temp_rate_last=d.get("temp_rate_last"),
             calm_since=d.get("calm_since"),
@@ -1037,7 +1050,7 @@ class DeviceMonitor:
         loads += [c.load for c in self.frac.values()]
         recent_absurd = self.last_absurd_t is not None and self.last_t is not None
         recent_absurd = recent_absurd and self.last_t - self.last_absurd_t < self.settings.clear_after_s
-        pending = self._gain_jump_pending()
+        pending = self._gain_jump_pending() or self.held_candidate is not None  # a step seen, its cause not yet told
         return "watch" if max(loads) >= 0.5 or recent_absurd or pending else "ok"
 
     def _gain_jump_pending(self) -> bool:
@@ -1441,18 +1454,23 @@ class DeviceMonitor:
         the drive moved between positions shows at the next one it comes back to, an hour and kelvins later: that
         position against where the drive's own temperature map (HeldMap) puts its last visit."""
         s = self.settings
-        moves, spans, far = [], [], []
+        moves, spans, far, checks = [], [], [], []
         for x, y, sd in f.held:
             # the same position: the last one visited within a degree along the circle (a step is far smaller)
             angle = math.atan2(y, x)
             near = [p for p in self.held_last if abs(math.remainder(math.atan2(p[1], p[0]) - angle, math.tau)) < _SAME]
             last = max(near, key=lambda p: p[4]) if near else None
             matched = last is not None and self._held_match(f, last)
-            if matched:
+            if last is not None and self.held_candidate is not None and last[4] < self.held_candidate[2]:
+                check = self._held_check(f, x, y, sd, last, matched)  # a position last held before the step
+                if check is not None:
+                    checks.append(check)
+                matched = False  # and no span reaches back across the step
+            elif matched:
                 move = np.array([x - last[0], y - last[1]])
                 moved = float(np.hypot(*move))
                 if moved <= s.held_step_max:
-                    moves.append((move, math.hypot(sd, last[2]), last[4]))
+                    moves.append((move, math.hypot(sd, last[2]), last[4], (x, y)))
                 if moved < s.held_step_min / 2:  # still: how the position moves with temperature
                     self.held_map.learn(f.t, f.temp_c - last[3], (last[0], last[1]), move, _HELD_MEMORY_S)
                 before = last[5] if len(last) > 5 else None  # the visit before the last (older state: none kept)
@@ -1470,23 +1488,28 @@ class DeviceMonitor:
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
         if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
             self.held_jump = None  # never seen held again: no evidence either way
+        if self.held_candidate is not None:
+            self._held_judge(f, checks, events)
+            return
         jumped, compared = False, moves
         if moves:
             delta, size, jumped = self._held_jump_of(moves)
-            if not jumped and self.held_jump is None and len(spans) == len(moves):
-                delta, size, jumped = self._held_jump_of(spans)  # the step fell inside the last window
-                compared = spans
+            if self.held_jump is None and len(spans) == len(moves):  # the step fell inside the last window?
+                span_delta, span_size, span_jumped = self._held_jump_of(spans)
+                if span_jumped and span_size > size:  # then the span holds all of it (a jump of the part in this
+                    # window alone named s8-20hz-02's 0.75 % step 0.46 %)
+                    delta, size, jumped, compared = span_delta, span_size, True, spans
         if not jumped and self.held_jump is None and far:
             far_delta, _, far_jumped = self._held_jump_of(far)
             if far_jumped:  # the step came after the last visits these positions are compared with
-                after = max(t for _, _, t in far)
+                after = max(m[2] for m in far)
                 self.held_jump = [float(far_delta[0]), float(far_delta[1]), f.t, 1, after, True]
                 return
         if not moves:
             return
         if jumped:
             # a jump; a step is one (or two, when it fell inside a window), a shaft creeping along keeps jumping
-            after = max(t for _, _, t in compared)
+            after = max(m[2] for m in compared)
             dx, dy, since, count, *rest = self.held_jump or [0.0, 0.0, f.t, 0, after, False]
             grown = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1, *rest]
             self.held_jump = grown if count < 2 else None
@@ -1496,6 +1519,72 @@ class DeviceMonitor:
         dx, dy, since, _, *rest = self.held_jump  # the positions are still again: it was a step
         after, far_jump = rest if rest else (since, False)  # (state kept before these were: a jump as the window's)
         self.held_jump = None
+        at = np.mean([p for *_, p in moves], axis=0)  # where the positions seen still again are
+        self.held_candidate = [dx, dy, since, after, far_jump, float(at[0]), float(at[1])]
+        kept = []
+        for last in self.held_last:  # positions not seen since the jump: where they sit after an offset step
+            if after < last[4] < since or (far_jump and last[4] == since):
+                continue  # seen between the visit a jump was judged against and the jump (for a far one its window
+                # too, which may hold the position the drive left at the step): before or after the step?
+            if last[4] < since:
+                last[0], last[1] = last[0] + dx, last[1] + dy
+            last[5:6] = [None]  # and no span reaches back across the step
+            kept.append(last)
+        self.held_last = kept
+
+    def _held_check(self, f: Features, x: float, y: float, sd: float, last: list, matched: bool) -> tuple | None:
+        """(x, y, where the position sits against where an offset step would have moved its visit before the step,
+        its standard error), against that visit itself when close (held_match_c, _s), else through the temperature
+        map (_held_far); None when not comparable."""
+        if matched:
+            return x, y, np.array([x - last[0], y - last[1]]), math.hypot(sd, last[2])
+        got = self._held_far(f, x, y, sd, last, check=True)
+        return None if got is None else (x, y, got[0], got[1])
+
+    def _held_judge(self, f: Features, checks: list, events) -> None:
+        """The candidate step is an offset step when a position held before it moved alike, at a place where each
+        step of one channel's gain or axis that explains the move seen would have moved it otherwise (it sits off
+        the moves those predict by twice the tolerance); not one when a position moved otherwise (off the step by twice
+        the tolerance, or by the tolerance where one of those steps explains it within it). Undecided once no
+        position held before it can be compared any more (held_check_s): named as the positions held across it saw it
+        (a servo may hold one position for hours)."""
+        s = self.settings
+        dx, dy, since, after, far_jump, x0, y0 = self.held_candidate
+        step = np.array([dx, dy])
+        size = float(np.hypot(dx, dy))
+        others = []  # the moves at (x, y) of the steps of one channel that move (x0, y0) by the step seen
+        for moved_d, by in ((True, 0), (True, 1), (False, 0), (False, 1)):  # d or q moved in proportion to d or q
+            if abs((x0, y0)[by]) > 0.2 and abs(dy if moved_d else dx) < size / 2:
+                others.append((moved_d, by))
+        for x, y, rest, sd in checks:
+            tolerance = max(size / 3, s.held_check_sd * sd)
+            off = float(np.hypot(*rest))
+            unlike = []  # how far it sits from where each of those steps would have moved it
+            for moved_d, by in others:
+                there = (dx if moved_d else dy) / (x0, y0)[by] * (x, y)[by]  # the move at (x, y) of that step
+                predicted = np.array([there, 0.0] if moved_d else [0.0, there]) - step
+                unlike.append(float(np.hypot(*predicted - rest)))
+            if off > 2 * tolerance or (off > tolerance and min(unlike, default=math.inf) <= tolerance):
+                self._held_undo()  # it moved otherwise, or as one of those steps would have moved it
+                return
+            if off <= tolerance and all(u > 2 * tolerance for u in unlike):
+                apart = math.degrees(abs(math.remainder(math.atan2(y, x) - math.atan2(y0, x0), math.tau)))
+                self._held_name(f, events, f"a position held before it, {apart:.0f}° along the circle, moved alike")
+                return
+        if not any(p[4] < since and f.t - p[4] <= s.held_check_s for p in self.held_last):
+            # none left to compare: the step as the positions held across it saw it
+            self._held_name(f, events, "no position held before the step was left to compare with")
+
+    def _held_undo(self) -> None:
+        """Not an offset step: the positions held before it are forgotten (the step moved each its own way)."""
+        since = self.held_candidate[2]
+        self.held_candidate = None
+        self.held_last = [p for p in self.held_last if p[4] >= since]
+
+    def _held_name(self, f: Features, events, confirmed: str) -> None:
+        s = self.settings
+        dx, dy, since, after, far_jump, _, _ = self.held_candidate
+        self.held_candidate = None
         how = (
             f"where the drive's temperature map puts their visit {(since - after) / 60:.0f} min before"
             if far_jump
@@ -1507,27 +1596,19 @@ class DeviceMonitor:
             f.t,
             {"delta_d": round(dx, 6), "delta_q": round(dy, 6)},
             f"the positions the drive holds moved by {_pct(dx)} (d) and {_pct(dy)} (q) of the amplitude against "
-            f"{how}, each over {s.held_step_z:g}× its uncertainty, and stayed there; at {f.temp_c:.1f} °C "
+            f"{how}, each over {s.held_step_z:g}× its uncertainty, and stayed there; {confirmed}; at {f.temp_c:.1f} °C "
             f"(band {f.band}).",
         )
         self._forget_offset_pairs("held")
-        kept = []
-        for last in self.held_last:  # positions not seen since the jump: where they sit after the step
-            if after < last[4] < since or (far_jump and last[4] == since):
-                continue  # seen between the visit a jump was judged against and the jump (for a far one its window
-                # too, which may hold the position the drive left at the step): before or after the step?
-            if last[4] < since:
-                last[0], last[1] = last[0] + dx, last[1] + dy
-            last[5:6] = [None]  # and no span reaches back across the step
-            kept.append(last)
-        self.held_last = kept
 
-    def _held_far(self, f: Features, x: float, y: float, sd: float, last: list) -> tuple | None:
+    def _held_far(self, f: Features, x: float, y: float, sd: float, last: list, check: bool = False) -> tuple | None:
         """(the move the temperature map does not explain, its standard error, the last visit's time) of a held
-        position against its last visit within held_far_s and held_far_c; None when not comparable."""
+        position against its last visit within held_far_s and held_far_c (a check of a step: held_check_s and
+        held_check_c); None when not comparable."""
         s = self.settings
         d_temp = f.temp_c - last[3]
-        if f.t - last[4] > s.held_far_s or abs(d_temp) > s.held_far_c or len(last) < 7:
+        reach_s, reach_c = (s.held_check_s, s.held_check_c) if check else (s.held_far_s, s.held_far_c)
+        if f.t - last[4] > reach_s or abs(d_temp) > reach_c or len(last) < 7:
             return None  # (state kept before the rate was: not judged)
         if abs(f.temp_rate - last[6]) > s.held_far_rate_change:
             return None  # the die's lag not alike at both visits
@@ -1561,10 +1642,10 @@ class DeviceMonitor:
         """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, and
         all moved alike (an offset step moves every position by the same vector)."""
         s = self.settings
-        jumps = np.array([m for m, _, _ in moves])
+        jumps = np.array([m[0] for m in moves])
         delta = jumps.mean(axis=0)
         size = float(np.hypot(*delta))
-        clear = all(float(np.hypot(*m)) > s.held_step_z * sd for m, sd, _ in moves)
+        clear = all(float(np.hypot(*m[0])) > s.held_step_z * m[1] for m in moves)
         alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
         return delta, size, size >= s.held_step_min and clear and alike
 
