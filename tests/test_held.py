@@ -30,6 +30,20 @@ def dwelling_drive(seed: int, event: str | None):
     return phys, factory, fieldsim.field_run(phys, days=1.0, rate_hz=20.0, regime="dwell", rng=rng)
 
 
+def half_day_dwelling(rng):
+    """(physics, factory set, run) of a drive holding positions for half a day at 20 Hz."""
+    phys = fieldsim.draw_drive(rng, days=0.5)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    return phys, factory, fieldsim.field_run(phys, days=0.5, rate_hz=20.0, regime="dwell", rng=rng)
+
+
+def remeasured(phys, run, rng):
+    """The same shaft, temperature and clock measured again by phys (after events were planted in it)."""
+    d, q = phys.measure(run.theta, run.die_c, run.samples.t, rng)
+    samples = Samples(t=run.samples.t, d=d, q=q, temp_c=run.samples.temp_c)
+    return fieldsim.FieldRun(samples, run.theta, run.die_c, phys, run.regime, run.rate_hz)
+
+
 def with_offset_step(phys, run, rng, t_step: float, low: float, high: float):
     """The same drive and shaft with an offset step at t_step of low-high of amplitude (sign and axis drawn from
     rng): (the stepped run, the step in counts, its axis: 0 d, 1 q)."""
@@ -38,9 +52,7 @@ def with_offset_step(phys, run, rng, t_step: float, low: float, high: float):
     size = rng.uniform(low, high) * amplitude * rng.choice([-1.0, 1.0])
     axis = rng.integers(2)
     phys.events.append(fieldsim.Event(t_step, "offset_step", d_offset=size * (axis == 0), q_offset=size * (axis == 1)))
-    d, q = phys.measure(run.theta, run.die_c, run.samples.t, rng)
-    samples = Samples(t=run.samples.t, d=d, q=q, temp_c=run.samples.temp_c)
-    return fieldsim.FieldRun(samples, run.theta, run.die_c, phys, run.regime, run.rate_hz), size, axis
+    return remeasured(phys, run, rng), size, axis
 
 
 def sized_hit(hits: list[dict], factory, size: float, axis: int) -> bool:
@@ -177,9 +189,7 @@ def test_a_step_while_the_servo_moves_is_named_at_the_next_position_it_comes_bac
     named, named_without_map, tried = 0, 0, 0
     for seed in range(6):
         rng = np.random.default_rng([406, seed])
-        phys = fieldsim.draw_drive(rng, days=0.5)
-        factory = calibrate(fieldsim.bench_sweep(phys, rng))
-        run = fieldsim.field_run(phys, days=0.5, rate_hz=20.0, regime="dwell", rng=rng)
+        phys, factory, run = half_day_dwelling(rng)
         t, theta = run.samples.t, np.unwrap(run.theta)
         # the truth, which only the test sees: the moves between holds, and where each one lands
         moving = np.flatnonzero(np.abs(np.diff(theta)) > np.radians(0.5))
@@ -223,9 +233,7 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
     tried, refused, named = 0, 0, 0
     for seed in range(8):
         rng = np.random.default_rng([407, seed])
-        phys = fieldsim.draw_drive(rng, days=0.5)
-        factory = calibrate(fieldsim.bench_sweep(phys, rng))
-        run = fieldsim.field_run(phys, days=0.5, rate_hz=20.0, regime="dwell", rng=rng)
+        phys, factory, run = half_day_dwelling(rng)
         t, theta = run.samples.t, np.unwrap(run.theta)
         # the truth, which only the test sees: the holds (start, end, angle) between the servo's moves
         moving = np.abs(np.diff(theta)) > np.radians(0.5)
@@ -250,22 +258,14 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
         t_step, angle = chosen
         gain = rng.uniform(0.005, 0.01) * rng.choice([-1.0, 1.0])
         phys.events.append(fieldsim.Event(t_step, "gain_step", q_gain=gain))
-        d, q = phys.measure(run.theta, run.die_c, t, rng)
-        stepped = fieldsim.FieldRun(
-            Samples(t=t, d=d, q=q, temp_c=run.samples.temp_c), run.theta, run.die_c, phys, run.regime, run.rate_hz
-        )
-        raised = offset_step_alarms(stepped, factory)[0]
+        raised = offset_step_alarms(remeasured(phys, run, rng), factory)[0]
         refused += not [at for at, _ in raised if at >= t_step]
         phys.events.clear()
         circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
         amplitude = np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[1]) / 2
         size = gain * np.sin(angle) * amplitude  # the move the gain step made at the position held across it
         phys.events.append(fieldsim.Event(t_step, "offset_step", q_offset=size))
-        d, q = phys.measure(run.theta, run.die_c, t, rng)
-        stepped = fieldsim.FieldRun(
-            Samples(t=t, d=d, q=q, temp_c=run.samples.temp_c), run.theta, run.die_c, phys, run.regime, run.rate_hz
-        )
-        raised = offset_step_alarms(stepped, factory)[0]
+        raised = offset_step_alarms(remeasured(phys, run, rng), factory)[0]
         named += sized_hit([p for at, p in raised if t_step <= at <= t_step + 3 * 3600.0], factory, size, 1)
     assert tried >= 4, tried
     assert refused >= tried - 1 and named >= tried - 1, (tried, refused, named)
