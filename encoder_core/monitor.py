@@ -1452,7 +1452,9 @@ class DeviceMonitor:
         has moved, and by the same vector. A step inside a window splits over two pairs of windows, each jump under
         the bar: then the position against the visit before its last, where that is as close in time. A step while
         the drive moved between positions shows at the next one it comes back to, an hour and kelvins later: that
-        position against where the drive's own temperature map (HeldMap) puts its last visit."""
+        position against where the drive's own temperature map (HeldMap) puts its last visit. A jump seen still again
+        is a candidate (held_candidate), named by _held_judge once a position held before it tells a gain or axis
+        step apart."""
         s = self.settings
         moves, spans, far, checks = [], [], [], []
         for x, y, sd in f.held:
@@ -1549,7 +1551,7 @@ class DeviceMonitor:
         position held before it can be compared any more (held_check_s): named as the positions held across it saw it
         (a servo may hold one position for hours)."""
         s = self.settings
-        dx, dy, since, after, far_jump, x0, y0 = self.held_candidate
+        dx, dy, since, _, _, x0, y0 = self.held_candidate
         step = np.array([dx, dy])
         size = float(np.hypot(dx, dy))
         others = []  # the moves at (x, y) of the steps of one channel that move (x0, y0) by the step seen

@@ -44,12 +44,16 @@ def remeasured(phys, run, rng):
     return fieldsim.FieldRun(samples, run.theta, run.die_c, phys, run.regime, run.rate_hz)
 
 
+def amplitude_of(phys, channel: int) -> float:
+    """A channel's amplitude (counts, 0 d, 1 q) over one turn at 20 °C."""
+    circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    return float(np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[channel]) / 2)
+
+
 def with_offset_step(phys, run, rng, t_step: float, low: float, high: float):
     """The same drive and shaft with an offset step at t_step of low-high of amplitude (sign and axis drawn from
     rng): (the stepped run, the step in counts, its axis: 0 d, 1 q)."""
-    circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
-    amplitude = np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[0]) / 2
-    size = rng.uniform(low, high) * amplitude * rng.choice([-1.0, 1.0])
+    size = rng.uniform(low, high) * amplitude_of(phys, 0) * rng.choice([-1.0, 1.0])
     axis = rng.integers(2)
     phys.events.append(fieldsim.Event(t_step, "offset_step", d_offset=size * (axis == 0), q_offset=size * (axis == 1)))
     return remeasured(phys, run, rng), size, axis
@@ -261,9 +265,7 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
         raised = offset_step_alarms(remeasured(phys, run, rng), factory)[0]
         refused += not [at for at, _ in raised if at >= t_step]
         phys.events.clear()
-        circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
-        amplitude = np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[1]) / 2
-        size = gain * np.sin(angle) * amplitude  # the move the gain step made at the position held across it
+        size = gain * np.sin(angle) * amplitude_of(phys, 1)  # the gain step's move at the position held across it
         phys.events.append(fieldsim.Event(t_step, "offset_step", q_offset=size))
         raised = offset_step_alarms(remeasured(phys, run, rng), factory)[0]
         named += sized_hit([p for at, p in raised if t_step <= at <= t_step + 3 * 3600.0], factory, size, 1)
