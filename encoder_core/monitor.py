@@ -110,6 +110,11 @@ class Settings:
     held_step_z: float = 8.0  # ... and this many standard deviations at every position that shows it
     held_step_max: float = 0.012  # ... and no larger (the planted steps: 0.003-0.01): two positions a few degrees
     # apart can share an angle bin, and a drive switching between them moves the bin's point by 0.01-0.07
+    held_along: float = 0.2  # ... and not along the circle: off it by more than this fraction of the jump (a servo
+    # switching between two positions 0.4-0.7° apart moved its point by ~1 % at each switch, off the circle by up
+    # to 0.14 of that where the locus is not round: each switch read as an offset step, s4-5hz-10 0.11x its factory
+    # set; a step of random direction lies along the circle within 11.5° one time in eight, and is named at the
+    # next position the drive holds)
     held_match_c: float = 1.0  # a held position is compared with its last visit this close in temperature (at
     # 2 °C the channels' common gain, 0.15 %/K on s6-20hz-02, moved a lone held position radially by the whole
     # held_step_min: a false step at +61 °C, moved for; 1 °C kept all 17 steps of the 20 Hz dwelling drives of
@@ -1479,11 +1484,11 @@ class DeviceMonitor:
                 if before is not None and self._held_match(f, before):
                     span = np.array([x - before[0], y - before[1]])
                     if float(np.hypot(*span)) <= s.held_step_max:
-                        spans.append((span, math.hypot(sd, before[2]), before[4]))
+                        spans.append((span, math.hypot(sd, before[2]), before[4], (x, y)))
             elif last is not None:
                 got = self._held_far(f, x, y, sd, last)
                 if got is not None:
-                    far.append(got)
+                    far.append((*got, (x, y)))
             for p in near:
                 self.held_last.remove(p)
             self.held_last.append([x, y, sd, f.temp_c, f.t, last[:5] if matched else None, f.temp_rate])
@@ -1641,15 +1646,20 @@ class DeviceMonitor:
         return abs(f.temp_c - visit[3]) <= s.held_match_c and f.t - visit[4] <= s.held_match_s
 
     def _held_jump_of(self, moves: list) -> tuple[np.ndarray, float, bool]:
-        """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, and
-        all moved alike (an offset step moves every position by the same vector)."""
+        """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, all
+        moved alike (an offset step moves every position by the same vector), and not all along the circle (moves
+        hold (move, its standard error, the visit's time, the position now))."""
         s = self.settings
         jumps = np.array([m[0] for m in moves])
         delta = jumps.mean(axis=0)
         size = float(np.hypot(*delta))
         clear = all(float(np.hypot(*m[0])) > s.held_step_z * m[1] for m in moves)
         alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
-        return delta, size, size >= s.held_step_min and clear and alike
+        # along the circle at every position: the shaft moved to a position beside it, not the offsets
+        along = all(
+            abs(float(np.dot(m[0], m[3]))) / math.hypot(*m[3]) <= max(s.held_along * size, 2 * m[1]) for m in moves
+        )
+        return delta, size, size >= s.held_step_min and clear and alike and not along
 
     def _rates(self, f: Features, e: np.ndarray, fleet: FleetRates | None, events) -> None:
         s = self.settings
