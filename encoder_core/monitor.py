@@ -1435,9 +1435,13 @@ class DeviceMonitor:
             return
         if source != "circle":
             self.gain_jump = WindowJump()
+        self._imbalance_stepped(gain[0])
+
+    def _imbalance_stepped(self, delta: float) -> None:
+        """After a gain step of delta (log(d/q)): the level moves by it, and what learnt the drive before restarts."""
         if self.level is not None:
             level = list(self.level)
-            level[_IMB] += gain[0]
+            level[_IMB] += delta
             self.level = level
         self._restart_after_step()
 
@@ -1552,7 +1556,9 @@ class DeviceMonitor:
         """The candidate step is an offset step when a position held before it moved alike, at a place where each
         step of one channel's gain or axis that explains the move seen would have moved it otherwise (it sits off
         the moves those predict by twice the tolerance); not one when a position moved otherwise (off the step by twice
-        the tolerance, or by the tolerance where one of those steps explains it within it). Undecided once no
+        the tolerance, or by the tolerance where one of those steps explains it within it); a gain step where the
+        step of that channel's gain explains it within the tolerance and the offset step and every other such step
+        sit over twice the tolerance away (_held_gain_step). Undecided once no
         position held before it can be compared any more (held_check_s): named as the positions held across it saw it
         (a servo may hold one position for hours)."""
         s = self.settings
@@ -1571,6 +1577,17 @@ class DeviceMonitor:
                 there = (dx if moved_d else dy) / (x0, y0)[by] * (x, y)[by]  # the move at (x, y) of that step
                 predicted = np.array([there, 0.0] if moved_d else [0.0, there]) - step
                 unlike.append(float(np.hypot(*predicted - rest)))
+            best = int(np.argmin(unlike)) if unlike else None
+            if (
+                best is not None
+                and off > 2 * tolerance
+                and unlike[best] <= tolerance
+                and all(u > 2 * tolerance for k, u in enumerate(unlike) if k != best)
+                and others[best][0] == (others[best][1] == 0)  # a channel moved in proportion to itself: its gain
+            ):
+                apart = math.degrees(abs(math.remainder(math.atan2(y, x) - math.atan2(y0, x0), math.tau)))
+                self._held_gain_step(f, events, others[best][1], apart)
+                return
             if off > 2 * tolerance or (off > tolerance and min(unlike, default=math.inf) <= tolerance):
                 self._held_undo()  # it moved otherwise, or as one of those steps would have moved it
                 return
@@ -1581,6 +1598,28 @@ class DeviceMonitor:
         if not any(p[4] < since and f.t - p[4] <= s.held_check_s for p in self.held_last):
             # none left to compare: the step as the positions held across it saw it
             self._held_name(f, events, "no position held before the step was left to compare with")
+
+    def _held_gain_step(self, f: Features, events, channel: int, apart: float) -> None:
+        """The candidate was a step of one channel's gain (channel 0: d, 1: q): a position held before it moved as
+        that step moves it, and as no offset or other one-channel step would. Raised as a gain_step, which the
+        service moves the running set for as it does the circles' (the positions held before it are forgotten:
+        each moved its own way)."""
+        dx, dy, _, _, _, x0, y0 = self.held_candidate
+        grown = (dx, dy)[channel] / (x0, y0)[channel]  # the channel's amplitude grew by this fraction
+        delta = math.log1p(grown) * (1.0 if channel == 0 else -1.0)  # log(d amplitude / q amplitude)
+        self._held_undo()
+        parameters = {"delta_imbalance": round(delta, 6)}
+        self._raise(
+            events,
+            "gain_step",
+            f.t,
+            parameters,
+            f"{cause_of('gain_step').state(**parameters)}: a position the drive holds moved by {_pct(dx)} (d) and "
+            f"{_pct(dy)} (q) of the amplitude and stayed there, and a position held before it, {apart:.0f}° along "
+            f"the circle, moved as the {'dq'[channel]} channel's gain moves it and as no offset step would; at "
+            f"{f.temp_c:.1f} °C (band {f.band}).",
+        )
+        self._imbalance_stepped(delta)
 
     def _held_undo(self) -> None:
         """Not an offset step: the positions held before it are forgotten (the step moved each its own way)."""

@@ -5,6 +5,8 @@ are drawn from the seed, and the monitor sees only window statistics."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from encoder_core.correction import BandedCorrection
@@ -18,7 +20,7 @@ from encoder_fleet.calibrate import calibrate
 from encoder_fleet.fleet_accuracy import drive_of, fleet_specs, windows_of, worse_than
 from service.refit import difference_deg, refit_device, step_moved_bands
 from service.trial import MIN_SOAK_SAMPLES, TrialEvidence, judge
-from tests.monitor_runs import offset_step_alarms
+from tests.monitor_runs import offset_step_alarms, step_alarms
 
 SEEDS = range(4)
 
@@ -264,9 +266,10 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
     before the step too, tells them apart: moved alike, an offset step; otherwise not one. The step (a q gain of
     0.5-1 %, sign drawn from the seed) comes in the middle of a hold of 8 minutes or more at a position whose q is 0.4
     of the amplitude or more; the next position held, with q 0.5 of the amplitude or more away, was last held 10-60
-    min before. An offset step that moves the first position alike, at the same second, is named at its size; the
-    monitor sees window statistics."""
-    tried, refused, named = 0, 0, 0
+    min before. Where that position moved as q's gain moves it and as no other one-channel step would, the step is
+    named a gain step at its size. An offset step that moves the first position alike, at the same second, is named
+    at its size; the monitor sees window statistics."""
+    tried, refused, named, named_gain = 0, 0, 0, 0
     for seed in range(8):
         rng = np.random.default_rng([407, seed])
         phys, factory, run = half_day_dwelling(rng)
@@ -294,8 +297,15 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
         t_step, angle = chosen
         gain = rng.uniform(0.005, 0.01) * rng.choice([-1.0, 1.0])
         phys.events.append(fieldsim.Event(t_step, "gain_step", q_gain=gain))
-        raised = offset_step_alarms(remeasured(phys, run, rng), factory)[0]
+        stepped = remeasured(phys, run, rng)
+        raised = offset_step_alarms(stepped, factory)[0]
         refused += not [at for at, _ in raised if at >= t_step]
+        as_gain = step_alarms(stepped, factory, 60.0, "gain_step")[0]
+        assert not [at for at, _ in as_gain if at < t_step], (seed, as_gain)
+        # log(d/q) falls by q's growth: named at its size (within a third) and sign, or not at all
+        sized = [p["delta_imbalance"] for at, p in as_gain if at <= t_step + 3 * 3600.0]
+        assert all(abs(d + math.log1p(gain)) < abs(gain) / 3 for d in sized), (seed, gain, sized)
+        named_gain += bool(sized)
         phys.events.clear()
         size = gain * np.sin(angle) * amplitude_of(phys, 1)  # the gain step's move at the position held across it
         phys.events.append(fieldsim.Event(t_step, "offset_step", q_offset=size))
@@ -303,6 +313,7 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
         named += sized_hit([p for at, p in raised if t_step <= at <= t_step + 3 * 3600.0], factory, size, 1)
     assert tried >= 4, tried
     assert refused >= tried - 1 and named >= tried - 1, (tried, refused, named)
+    assert named_gain >= tried // 2, (tried, named_gain)  # where the positions tell it: a gain step, for the service
 
 
 def band_sums(samples, scale: float, monitor: DeviceMonitor, window_s: float = 60.0) -> dict:
