@@ -1422,26 +1422,28 @@ class DeviceMonitor:
                     f"{cause_of(name).state(**parameters)} {how} and held there, "
                     f"{abs(step[0]) / step[1]:.0f}× the windows' uncertainty, at {f.temp_c:.1f} °C (band {f.band}).",
                 )
-        if axis is not None or gain is not None:
+        self._shape_restart(None if gain is None else gain[0], axis is not None, source)
+
+    def _shape_restart(self, gain: float | None, axis: bool, source: str) -> None:
+        """After a gain step of `gain` (log(d/q)) or an axis step found by `source` ("circle", "arc", "blocks", or
+        "held": the positions a drive holds): the other sources' tests of it start over, so that one step gives one
+        alarm (and one move of the running set); a gain step moves the level, and what learnt the drive restarts."""
+        if axis or gain is not None:
             self.arc_block, self.short = None, None
             for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
                 if name != source:  # the next pair starts after the step: one with the step in it would name it again
                     chain.last = None
-                    chain.axis = WindowJump() if axis is not None else chain.axis
+                    chain.axis = WindowJump() if axis else chain.axis
                     chain.gain = WindowJump() if gain is not None else chain.gain
-        if axis is not None and source != "circle":
+        if axis and source != "circle":
             self.axis_jump = WindowJump()
         if gain is None:
             return
         if source != "circle":
             self.gain_jump = WindowJump()
-        self._imbalance_stepped(gain[0])
-
-    def _imbalance_stepped(self, delta: float) -> None:
-        """After a gain step of delta (log(d/q)): the level moves by it, and what learnt the drive before restarts."""
         if self.level is not None:
             level = list(self.level)
-            level[_IMB] += delta
+            level[_IMB] += gain
             self.level = level
         self._restart_after_step()
 
@@ -1605,8 +1607,9 @@ class DeviceMonitor:
         service moves the running set for as it does the circles' (the positions held before it are forgotten:
         each moved its own way)."""
         dx, dy, _, _, _, x0, y0 = self.held_candidate
-        grown = (dx, dy)[channel] / (x0, y0)[channel]  # the channel's amplitude grew by this fraction
-        delta = math.log1p(grown) * (1.0 if channel == 0 else -1.0)  # log(d amplitude / q amplitude)
+        # (x0, y0) is where the position sits after the step: before it, its channel read (1 - moved) of that
+        moved = (dx, dy)[channel] / (x0, y0)[channel]
+        delta = -math.log1p(-moved) * (1.0 if channel == 0 else -1.0)  # log(d amplitude / q amplitude)
         self._held_undo()
         parameters = {"delta_imbalance": round(delta, 6)}
         self._raise(
@@ -1619,7 +1622,7 @@ class DeviceMonitor:
             f"the circle, moved as the {'dq'[channel]} channel's gain moves it and as no offset step would; at "
             f"{f.temp_c:.1f} °C (band {f.band}).",
         )
-        self._imbalance_stepped(delta)
+        self._shape_restart(delta, False, "held")
 
     def _held_undo(self) -> None:
         """Not an offset step: the positions held before it are forgotten (the step moved each its own way)."""
