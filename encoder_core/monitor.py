@@ -112,9 +112,9 @@ class Settings:
     # apart can share an angle bin, and a drive switching between them moves the bin's point by 0.01-0.07
     held_along: float = 0.2  # ... and not along the circle: off it by more than this fraction of the jump (a servo
     # switching between two positions 0.4-0.7° apart moved its point by ~1 % at each switch, off the circle by up
-    # to 0.14 of that where the locus is not round: each switch read as an offset step, s4-5hz-10 0.11x its factory
-    # set; a step of random direction lies along the circle within 11.5° one time in eight, and is named at the
-    # next position the drive holds)
+    # to 0.24 of that, mostly under 0.1, where the locus is not round: each switch read as an offset step, s4-5hz-10
+    # 0.11x its factory set; a step of random direction lies along the circle within 11.5° one time in eight, more
+    # where two standard errors exceed the fraction, and is named at the next position the drive holds)
     held_match_c: float = 1.0  # a held position is compared with its last visit this close in temperature (at
     # 2 °C the channels' common gain, 0.15 %/K on s6-20hz-02, moved a lone held position radially by the whole
     # held_step_min: a false step at +61 °C, moved for; 1 °C kept all 17 steps of the 20 Hz dwelling drives of
@@ -1572,6 +1572,7 @@ class DeviceMonitor:
             if abs((x0, y0)[by]) > 0.2 and abs(dy if moved_d else dx) < size / 2:
                 others.append((moved_d, by))
         for x, y, rest, sd in checks:
+            apart = math.degrees(abs(math.remainder(math.atan2(y, x) - math.atan2(y0, x0), math.tau)))
             tolerance = max(size / 3, s.held_check_sd * sd)
             off = float(np.hypot(*rest))
             unlike = []  # how far it sits from where each of those steps would have moved it
@@ -1587,14 +1588,12 @@ class DeviceMonitor:
                 and all(u > 2 * tolerance for k, u in enumerate(unlike) if k != best)
                 and others[best][0] == (others[best][1] == 0)  # a channel moved in proportion to itself: its gain
             ):
-                apart = math.degrees(abs(math.remainder(math.atan2(y, x) - math.atan2(y0, x0), math.tau)))
                 self._held_gain_step(f, events, others[best][1], apart)
                 return
             if off > 2 * tolerance or (off > tolerance and min(unlike, default=math.inf) <= tolerance):
                 self._held_undo()  # it moved otherwise, or as one of those steps would have moved it
                 return
             if off <= tolerance and all(u > 2 * tolerance for u in unlike):
-                apart = math.degrees(abs(math.remainder(math.atan2(y, x) - math.atan2(y0, x0), math.tau)))
                 self._held_name(f, events, f"a position held before it, {apart:.0f}° along the circle, moved alike")
                 return
         if not any(p[4] < since and f.t - p[4] <= s.held_check_s for p in self.held_last):

@@ -52,6 +52,12 @@ def amplitude_of(phys, channel: int) -> float:
     return float(np.ptp(phys.channels(circle, np.full(360, 20.0), np.zeros(360))[channel]) / 2)
 
 
+def measured_shaft(phys, t, theta, temp, rng) -> Samples:
+    """What phys reads of a shaft at theta (rad) at times t, the die lagging the reported temperature temp."""
+    d, q = phys.measure(theta % (2 * np.pi), fieldsim.lagged_fast(temp, t, phys.die_lag_s), t, rng)
+    return Samples(t=t, d=d, q=q, temp_c=temp)
+
+
 def with_offset_step(phys, run, rng, t_step: float, low: float, high: float):
     """The same drive and shaft with an offset step at t_step of low-high of amplitude (sign and axis drawn from
     rng): (the stepped run, the step in counts, its axis: 0 d, 1 q)."""
@@ -139,8 +145,7 @@ def test_a_shaft_creeping_along_is_not_a_step():
     t = fieldsim.sample_times(0.25, 20.0, rng)
     temp = fieldsim.reported_temperature(t, rng)
     theta = rng.uniform(0, 2 * np.pi) + np.radians(rng.uniform(0.25, 0.6) / 60.0) * t
-    d, q = phys.measure(theta % (2 * np.pi), fieldsim.lagged_fast(temp, t, phys.die_lag_s), t, rng)
-    samples = Samples(t=t, d=d, q=q, temp_c=temp)
+    samples = measured_shaft(phys, t, theta, temp, rng)
     scale = normalisation_scale(factory)
     monitor, moved, raised, last = DeviceMonitor("creeping"), 0, [], None
     for start, end in windows_of(t, 60.0):
@@ -171,8 +176,7 @@ def test_a_servo_switching_between_two_positions_under_a_degree_apart_is_not_a_s
         here, apart = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(0.3, 0.8))
         switches = np.cumsum(rng.uniform(600.0, 3600.0, size=int(t[-1] / 600.0) + 2))
         theta = here + apart * (np.searchsorted(switches, t) % 2)
-        d, q = phys.measure(theta % (2 * np.pi), fieldsim.lagged_fast(temp, t, phys.die_lag_s), t, rng)
-        samples = Samples(t=t, d=d, q=q, temp_c=temp)
+        samples = measured_shaft(phys, t, theta, temp, rng)
         scale = normalisation_scale(factory)
         monitor, raised = DeviceMonitor("two-positions"), []
         for start, end in windows_of(t, 60.0):
