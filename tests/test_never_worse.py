@@ -118,18 +118,24 @@ def test_the_loop_judges_a_trial_at_the_services_pace_and_refits_an_hour_after_t
     assert result.factory_deg / result.fleet_deg > 3.0
 
 
-def test_worse_hours_the_reference_free_floor_shares_are_counted_apart():
-    """A worse hour in which the floor (the best set without a reference) is worse too is no refit's to avoid."""
+def test_worse_hours_the_reference_free_floor_shares_and_those_at_a_step_are_counted_apart():
+    """A worse hour in which the floor (the best set without a reference) is worse too is no refit's to avoid; one
+    in a planted step's hour or the next is counted apart too (the drive runs its set from before the step until the
+    step is seen). A drive worse in more than 1 % of its hours fails the issue's bar."""
     r = DriveResult(
-        "d", "reverse", None, 0.5, 1,
+        "d", "reverse", "offset_step", 0.5, 1,
         factory_hour_deg=[0.10, 0.10, 0.10, 0.10, 0.10],
         fleet_hour_deg=[0.15, 0.10, 0.15, 0.1005, 0.05],  # worse in hours 0 and 2 (hour 3 is within the margin)
         floor_hour_deg=[0.12, 0.12, 0.05, 0.05, 0.12],  # the floor worse in hours 0, 1 and 4
+        step_hours=[1],  # hours 1 and 2 are the step's
     )  # fmt: skip
     assert r.worse_hour_indices == [0, 2] and r.floor_worse_hour_indices == [0, 1, 4]
-    assert r.floor_shared_worse_hours == 1
-    summary = summarise([r, r])
-    assert summary["worse_hours"] == 4 and summary["worse_hours_floor_shares"] == 2
+    assert r.floor_shared_worse_hours == 1 and r.step_worse_hours == 1
+    clean = DriveResult("c", "even", None, 0.5, 1, [0.1] * 200, [0.05] * 199 + [0.2], [0.05] * 200)
+    assert clean.worse_hours == 1 and clean.step_worse_hours == 0  # 0.5 % of its hours: within the bar
+    summary = summarise([r, r, clean])
+    assert summary["worse_hours"] == 5 and summary["worse_hours_floor_shares"] == 2
+    assert summary["worse_hours_at_steps"] == 2 and summary["drives_past_1pct"] == 2
     assert summary["floor_worse_hours"] == 6
 
 
