@@ -141,6 +141,13 @@ class DriveResult:
         """The fraction of the drive's hours it ran worse than its factory set."""
         return self.worse_hours / max(len(self.fleet_hour_deg), 1)
 
+    @property
+    def own_worse_share(self) -> float:
+        """worse_share without the hours the floor shares or a step's own (the refit's to avoid)."""
+        near = {h + k for h in self.step_hours for k in (0, 1)}
+        own = set(self.worse_hour_indices) - set(self.floor_worse_hour_indices) - near
+        return len(own) / max(len(self.fleet_hour_deg), 1)
+
 
 def worse_than(hour_deg, factory_hour_deg) -> list[int]:
     """The hours in which `hour_deg` is worse than the factory's (WORSE_MARGIN and WORSE_MIN_DEG both)."""
@@ -499,6 +506,7 @@ def summarise(results: list[DriveResult]) -> dict:
         "worse_hours_at_steps": sum(r.step_worse_hours for r in results),
         # the issue's bar: no drive worse than its factory set in more than 1 % of its hours
         "drives_past_1pct": sum(r.worse_share > MAX_WORSE_SHARE for r in results),
+        "drives_past_1pct_own": sum(r.own_worse_share > MAX_WORSE_SHARE for r in results),
         "floor_worse_hours": sum(len(r.floor_worse_hour_indices) for r in results),
     }
 
@@ -571,7 +579,8 @@ def default_window(rate_hz: float) -> float:
 def format_report(report: dict) -> str:
     lines = [
         "| regime | drives | drive-hours | factory ° | fleet ° | median gain | reference-free floor | worst drive gain "
-        "| worse hours | of which the floor shares | of which at a step | drives past 1 % | floor's own worse hours |",
+        "| worse hours | of which the floor shares | of which at a step | drives past 1 % (besides those) "
+        "| floor's own worse hours |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, s in report["regimes"].items():
@@ -580,7 +589,8 @@ def format_report(report: dict) -> str:
             f"{s['median_gain']:.1f}× | {s['floor_median_gain']:.1f}× | {s['worst_gain']:.2f}× | "
             f"{s['worse_hours']} ({s['worse_hours_pct']:.1f} %, "
             f"worst drive {s['max_drive_worse_hours_pct']:.1f} %) | {s['worse_hours_floor_shares']} | "
-            f"{s['worse_hours_at_steps']} | {s['drives_past_1pct']} | {s['floor_worse_hours']} |"
+            f"{s['worse_hours_at_steps']} | {s['drives_past_1pct']} ({s['drives_past_1pct_own']}) | "
+            f"{s['floor_worse_hours']} |"
         )
     lines.append(f"\n{len(report['drives'])} drives in {report['elapsed_s']:.0f} s")
     return "\n".join(lines)

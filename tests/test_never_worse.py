@@ -136,6 +136,7 @@ def test_worse_hours_the_reference_free_floor_shares_and_those_at_a_step_are_cou
     summary = summarise([r, r, clean])
     assert summary["worse_hours"] == 5 and summary["worse_hours_floor_shares"] == 2
     assert summary["worse_hours_at_steps"] == 2 and summary["drives_past_1pct"] == 2
+    assert summary["drives_past_1pct_own"] == 0  # r's hour 0 is the floor's, hour 2 the step's
     assert summary["floor_worse_hours"] == 6
 
 
