@@ -1667,7 +1667,9 @@ class DeviceMonitor:
             return None
         shift, map_sd = got
         rest = np.array([x - last[0], y - last[1]]) - shift
-        if float(np.hypot(*rest)) > s.held_step_max:
+        if float(np.hypot(*rest)) > (2 if check else 1) * s.held_step_max:
+            # (a check's rest is its move against the offset step's: a gain step moves a position on the far side
+            # of the circle the other way, by up to twice the step; s1-5hz-22's 0.9 % gain step sat 1.7 % off it)
             return None
         return rest, math.hypot(sd, last[2]) + map_sd + s.held_far_sd_per_c * abs(d_temp), last[4]
 
