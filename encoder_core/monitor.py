@@ -1590,6 +1590,9 @@ class DeviceMonitor:
             ):
                 self._held_gain_step(f, events, others[best][1], apart)
                 return
+            if off > s.held_step_max:
+                continue  # past what one position moves (_held_far lets a check reach twice it): only a gain step
+                # explains that (above); two positions sharing an angle bin, or the map over hours, may too
             if off > 2 * tolerance or (off > tolerance and min(unlike, default=math.inf) <= tolerance):
                 self._held_undo()  # it moved otherwise, or as one of those steps would have moved it
                 return
@@ -1669,7 +1672,8 @@ class DeviceMonitor:
         rest = np.array([x - last[0], y - last[1]]) - shift
         if float(np.hypot(*rest)) > (2 if check else 1) * s.held_step_max:
             # (a check's rest is its move against the offset step's: a gain step moves a position on the far side
-            # of the circle the other way, by up to twice the step; s1-5hz-22's 0.9 % gain step sat 1.7 % off it)
+            # of the circle the other way, by up to twice the step; s1-5hz-22's 0.9 % gain step sat 1.7 % off it.
+            # Past held_step_max a check only names a gain step, _held_judge)
             return None
         return rest, math.hypot(sd, last[2]) + map_sd + s.held_far_sd_per_c * abs(d_temp), last[4]
 

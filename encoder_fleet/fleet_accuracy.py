@@ -132,9 +132,10 @@ class DriveResult:
         """Worse hours in a planted step's own hour or the next: the drive runs its set from before the step
         until the step is seen in its windows and a set moved for it is applied, and where the drift the set
         corrects had cancelled part of the step's error, that set is worse than the factory's meanwhile (the floor
-        knows a step the moment it happens, so it does not share these)."""
+        knows a step the moment it happens, so it does not share these). Those the floor shares are counted there, not
+        here."""
         near = {h + k for h in self.step_hours for k in (0, 1)}
-        return len(set(self.worse_hour_indices) & near)
+        return len((set(self.worse_hour_indices) & near) - set(self.floor_worse_hour_indices))
 
     @property
     def worse_share(self) -> float:
