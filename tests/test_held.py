@@ -46,6 +46,15 @@ def remeasured(phys, run, rng):
     return fieldsim.FieldRun(samples, run.theta, run.die_c, phys, run.regime, run.rate_hz)
 
 
+def stepped_by(phys, run, rng, event: fieldsim.Event):
+    """remeasured with one event planted in phys for this measurement only."""
+    phys.events.append(event)
+    try:
+        return remeasured(phys, run, rng)
+    finally:
+        phys.events.remove(event)
+
+
 def amplitude_of(phys, channel: int) -> float:
     """A channel's amplitude (counts, 0 d, 1 q) over one turn at 20 °C."""
     circle = np.linspace(0, 2 * np.pi, 360, endpoint=False)
@@ -314,16 +323,14 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
     for rng, phys, factory, run, t_step, angle in holds_before_a_return(407, 8, q_at_least=0.4, q_apart=0.5):
         tried += 1
         gain = rng.uniform(0.005, 0.01) * rng.choice([-1.0, 1.0])
-        phys.events.append(fieldsim.Event(t_step, "gain_step", q_gain=gain))
-        stepped = remeasured(phys, run, rng)
-        phys.events.clear()
+        stepped = stepped_by(phys, run, rng, fieldsim.Event(t_step, "gain_step", q_gain=gain))
         raised = offset_step_alarms(stepped, factory)[0]
         refused += not [at for at, _ in raised if at >= t_step]
         named_gain += gain_step_named(stepped, factory, t_step, gain)
         size = gain * np.sin(angle) * amplitude_of(phys, 1)  # the gain step's move at the position held across it
-        phys.events.append(fieldsim.Event(t_step, "offset_step", q_offset=size))
-        raised = offset_step_alarms(remeasured(phys, run, rng), factory)[0]
-        phys.events.clear()
+        raised = offset_step_alarms(
+            stepped_by(phys, run, rng, fieldsim.Event(t_step, "offset_step", q_offset=size)), factory
+        )[0]
         named += sized_hit([p for at, p in raised if t_step <= at <= t_step + 3 * 3600.0], factory, size, 1)
     assert tried >= 4, tried
     assert refused >= tried - 1 and named >= tried - 1, (tried, refused, named)
@@ -344,9 +351,7 @@ def test_a_gain_step_is_named_where_the_position_held_before_it_sits_across_the_
     for rng, phys, factory, run, t_step, _ in holds_before_a_return(408, 16, 0.6, 1.4):
         tried += 1
         gain = rng.uniform(0.008, 0.01) * rng.choice([-1.0, 1.0])
-        phys.events.append(fieldsim.Event(t_step, "gain_step", q_gain=gain))
-        stepped = remeasured(phys, run, rng)
-        phys.events.clear()
+        stepped = stepped_by(phys, run, rng, fieldsim.Event(t_step, "gain_step", q_gain=gain))
         named_gain += gain_step_named(stepped, factory, t_step, gain)
         as_offset += bool([at for at, _ in offset_step_alarms(stepped, factory)[0] if at >= t_step])
     assert tried >= 6, tried
