@@ -109,6 +109,20 @@ class Correction:
             row += [a, b]
         return np.array(row)
 
+    @classmethod
+    def from_params(cls, p, orders: list[int], temp_c: float | None = None) -> Correction:
+        """The correction whose params(orders) are p."""
+        return cls(
+            w1=p[0],
+            w2=p[1],
+            w3=p[2],
+            w4=p[3],
+            w5=p[4],
+            zero_offset_rad=p[5],
+            harmonics={m: (p[6 + 2 * i], p[7 + 2 * i]) for i, m in enumerate(orders)},
+            temp_c=temp_c,
+        )
+
 
 def _affine(p: np.ndarray, d, q) -> tuple[np.ndarray, np.ndarray]:
     """u1, u2 of the correction form with per-sample parameters p (columns w1..w5)."""
@@ -199,17 +213,7 @@ class BandedCorrection:
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
         orders, p = self._interpolated(np.array([float(temp_c)]))
-        p = p[0]
-        return Correction(
-            w1=p[0],
-            w2=p[1],
-            w3=p[2],
-            w4=p[3],
-            w5=p[4],
-            zero_offset_rad=p[5],
-            harmonics={m: (p[6 + 2 * i], p[7 + 2 * i]) for i, m in enumerate(orders)},
-            temp_c=float(temp_c),
-        )
+        return Correction.from_params(p[0], orders, float(temp_c))
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
         orders, p = self._interpolated(self._temps_for(d, temp_c))

@@ -16,7 +16,7 @@ The windows and band sums go through the service's own store (a SQLite file per 
 Scoring uses the simulator's truth, which the loop never sees: the true angle error of what each drive
 ran (the factory set, then every applied set from the window after its refit), on noise-free signals
 at the samples' true angles and die temperatures, as an RMS per drive-hour. Beside it, the
-reference-free floor (`floor_set`): the best any refit without a reference could have done.
+reference-free floors (`floor_sets`): the best any refit without a reference could have done.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from edge_agent.agent import check_plausible, factory_message, temp_rate
-from encoder_core.correction import BandedCorrection
+from encoder_core.correction import BandedCorrection, Correction
 from encoder_core.methods import OursLsRef
 from encoder_core.monitor import DeviceMonitor, window_features
 from encoder_core.physics import BAND_WIDTH_C, band_of
@@ -83,6 +83,7 @@ class DriveResult:
     factory_hour_deg: list[float] = field(default_factory=list)
     fleet_hour_deg: list[float] = field(default_factory=list)
     floor_hour_deg: list[float] = field(default_factory=list)
+    drift_floor_hour_deg: list[float] = field(default_factory=list)  # floor_sets' second reading
     step_hours: list[int] = field(default_factory=list)  # the hours (from the start) a planted step happened in
 
     @property
@@ -99,7 +100,7 @@ class DriveResult:
 
     @property
     def floor_gain(self) -> float:
-        """The best gain any reference-free refit could reach on this drive (see `floor_set`)."""
+        """The best gain any reference-free refit could reach on this drive (see `floor_sets`)."""
         return self.factory_deg / self.floor_deg if self.floor_deg > 0 else float("inf")
 
     @property
@@ -117,10 +118,13 @@ class DriveResult:
 
     @property
     def floor_worse_hour_indices(self) -> list[int]:
-        """The drive-hours in which the reference-free floor itself is worse than the factory set: on the arc the
-        drive visited that hour, the factory's drift errors happened to cancel part of the zero's own drift, which
-        no refit without a reference can see (a clean reversing drive, s3-0.5hz-03: five such hours)."""
-        return worse_than(self.floor_hour_deg, self.factory_hour_deg)
+        """The drive-hours in which a floor (`floor_sets`) is itself worse than the factory set. The reference-free
+        floor: on the arc the drive visited that hour, the factory's drift errors happened to cancel part of the
+        zero's own drift, which no refit without a reference can see (a clean reversing drive, s3-0.5hz-03: five
+        such hours). The drift floor: there they cancelled part of the factory set's own residual from the bench,
+        which no refit without a reference can see either (s1-20hz-06-dwell, hour 23)."""
+        floors = (self.floor_hour_deg, self.drift_floor_hour_deg)
+        return sorted({h for hours in floors if hours for h in worse_than(hours, self.factory_hour_deg)})
 
     @property
     def floor_shared_worse_hours(self) -> int:
@@ -248,6 +252,7 @@ def run_drive(spec: DriveSpec) -> DriveResult:
 def scored(spec: DriveSpec, factory: BandedCorrection, run: fieldsim.FieldRun, timeline) -> DriveResult:
     """A drive's result from the timeline of what it ran (from drive time, set), on true angle."""
     factory_hours, fleet_hours = score(run, factory, timeline)
+    floor_hours, drift_floor_hours = score_floor(run, factory)
     return DriveResult(
         name=spec.name,
         motion=spec.motion,
@@ -256,7 +261,8 @@ def scored(spec: DriveSpec, factory: BandedCorrection, run: fieldsim.FieldRun, t
         versions_applied=len(timeline) - 1,
         factory_hour_deg=factory_hours,
         fleet_hour_deg=fleet_hours,
-        floor_hour_deg=score_floor(run, factory),
+        floor_hour_deg=floor_hours,
+        drift_floor_hour_deg=drift_floor_hours,
         step_hours=sorted({int((e.t_s - run.samples.t[0]) // 3600) for e in run.physics.events}),
     )
 
@@ -459,34 +465,61 @@ def score(run: fieldsim.FieldRun, factory: BandedCorrection, timeline) -> tuple[
 FLOOR_TEMPS_C = np.arange(-35.0, 95.0, BAND_WIDTH_C)  # the floor set's bands: one per band, across the range
 
 
-def floor_set(phys: fieldsim.DrivePhysics, factory: BandedCorrection, t_s: float) -> BandedCorrection:
-    """What a perfect reference-free refit would send at drive time t_s: each band fitted against the truth
-    (noise-free channels at 3600 true angles, the band's temperature at the die), then its zero turned to the
-    factory's on average around the locus (as the refit's anchor_zero does). The windows cannot see a rotation
-    of both sensor axes together (it is a shift of the zero), so no refit without a reference beats this."""
+def truth_fit(phys: fieldsim.DrivePhysics, temp_c: float, t_s: float):
+    """A band fitted against the truth: noise-free channels at 3600 true angles, the die at temp_c, drive time t_s."""
     theta = np.arange(3600) * (2 * np.pi / 3600)
-    bands = []
+    d, q = phys.channels(theta, np.full(theta.size, temp_c), np.full(theta.size, t_s))
+    corr, _ = OursLsRef().fit_band(
+        Samples(t=theta, d=d, q=q, temp_c=np.full(theta.size, temp_c), theta_ref=theta), None
+    )
+    return corr
+
+
+def zero_turned(corr: Correction, factory: BandedCorrection, temp_c: float) -> Correction:
+    """corr with its zero turned to the factory's on average around its locus (as the refit's anchor_zero does)."""
+    ld, lq = corr.locus()
+    shift = np.angle(np.mean(np.exp(1j * (factory.at(temp_c).angle(ld, lq) - corr.angle(ld, lq)))))
+    corr.zero_offset_rad = float(corr.zero_offset_rad + shift)
+    corr.temp_c = float(temp_c)
+    return corr
+
+
+def floor_sets(
+    phys: fieldsim.DrivePhysics, factory: BandedCorrection, t_s: float, bench: Correction
+) -> tuple[BandedCorrection, BandedCorrection]:
+    """What a perfect reference-free refit would send at drive time t_s, in two readings.
+
+    The floor: each band fitted against the truth, then its zero turned to the factory's. The windows cannot see
+    a rotation of both sensor axes together (it is a shift of the zero), so no refit without a reference beats it.
+
+    The drift floor: the factory set plus the change of the truth-fitted band from the bench (`bench`: +20 °C,
+    drive time 0) to each band now, its zero turned the same way. What a refit would send that knew exactly how
+    the sensor changed since the bench but, like every refit without a reference, not what the bench left: the
+    factory set's own residual along the circle (a few millidegrees), which the floor above removes too. On an
+    arc, the drift the factory set does not correct can cancel part of that residual, and then the factory set
+    is better there than any set that corrects the drift (s1-20hz-06-dwell, hour 23)."""
+    floor, drift_floor = [], []
     for temp in FLOOR_TEMPS_C:
-        d, q = phys.channels(theta, np.full(theta.size, temp), np.full(theta.size, t_s))
-        corr, _ = OursLsRef().fit_band(
-            Samples(t=theta, d=d, q=q, temp_c=np.full(theta.size, temp), theta_ref=theta), None
-        )
-        ld, lq = corr.locus()
-        shift = np.angle(np.mean(np.exp(1j * (factory.at(temp).angle(ld, lq) - corr.angle(ld, lq)))))
-        corr.zero_offset_rad = float(corr.zero_offset_rad + shift)
-        corr.temp_c = float(temp)
-        bands.append(corr)
-    return BandedCorrection(bands)
+        now = truth_fit(phys, float(temp), t_s)
+        orders = sorted({*now.harmonics, *bench.harmonics, *factory.at(float(temp)).harmonics})
+        p = factory.at(float(temp)).params(orders) + now.params(orders) - bench.params(orders)
+        moved = Correction.from_params(p, orders)
+        floor.append(zero_turned(now, factory, float(temp)))
+        drift_floor.append(zero_turned(moved, factory, float(temp)))
+    return BandedCorrection(floor), BandedCorrection(drift_floor)
 
 
-def score_floor(run: fieldsim.FieldRun, factory: BandedCorrection) -> list[float]:
-    """RMS true angle error per drive-hour of the reference-free floor, its set refreshed every 6 hours (aging,
-    planted steps: the floor knows them the moment they happen)."""
+def score_floor(run: fieldsim.FieldRun, factory: BandedCorrection) -> tuple[list[float], list[float]]:
+    """RMS true angle error per drive-hour of the reference-free floor and of the drift floor (`floor_sets`),
+    their sets refreshed every 6 hours (aging, planted steps: the floors know them the moment they happen)."""
     t = run.samples.t
     events = [e.t_s for e in run.physics.events if t[0] < e.t_s < t[-1]]
     starts = sorted({*np.arange(t[0], t[-1], 6 * 3600.0).tolist(), *events})
-    timeline = [(float(start), floor_set(run.physics, factory, float(start))) for start in starts]
-    return score(run, factory, timeline)[1]
+    bench = truth_fit(run.physics, fieldsim.BENCH_TEMP_C, 0.0)
+    sets = [(float(start), floor_sets(run.physics, factory, float(start), bench)) for start in starts]
+    floor = score(run, factory, [(start, pair[0]) for start, pair in sets])[1]
+    drift_floor = score(run, factory, [(start, pair[1]) for start, pair in sets])[1]
+    return floor, drift_floor
 
 
 def summarise(results: list[DriveResult]) -> dict:
@@ -570,6 +603,7 @@ def run_bench(
         row = {k: v for k, v in asdict(r).items() if not k.endswith("hour_deg")}
         row.update(factory_deg=r.factory_deg, fleet_deg=r.fleet_deg, gain=r.gain, worse_hours=r.worse_hours)
         row.update(floor_deg=r.floor_deg, floor_gain=r.floor_gain, worse_hour_indices=r.worse_hour_indices)
+        row.update(drift_floor_deg=float(np.mean(r.drift_floor_hour_deg)))
         row.update(floor_worse_hour_indices=r.floor_worse_hour_indices, step_worse_hours=r.step_worse_hours)
         report["drives"].append(row)
     return report
@@ -584,7 +618,7 @@ def format_report(report: dict) -> str:
     lines = [
         "| regime | drives | drive-hours | factory ° | fleet ° | median gain | reference-free floor | worst drive gain "
         "| worse hours | of which the floor shares | of which at a step | drives past 1 % (besides those) "
-        "| floor's own worse hours |",
+        "| the floors' own worse hours |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, s in report["regimes"].items():
