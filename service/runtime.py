@@ -531,7 +531,10 @@ class FleetService:
     def _monitor_loop(self) -> None:
         for _ in self._paced(self._wake_monitor, self.monitor_interval_s):
             self._renew_if_lost()  # also when no window comes to make the writer notice
-            self.monitor_pass()
+            try:
+                self.monitor_pass()
+            except Exception:  # the thread must outlive a pass: a dead one would never watch again
+                log.exception("monitor pass failed")
 
     def _paced(self, wake: threading.Event, interval_s: float) -> Iterator[None]:
         """Pass after pass until stopped: the next one when `wake` is set (windows stored, a step raised) or
@@ -629,7 +632,10 @@ class FleetService:
     def _refit_loop(self) -> None:
         for _ in self._paced(self._wake_refit, self.refit_interval_s):
             self._renew_if_lost()
-            self.refit_all()
+            try:
+                self.refit_all()
+            except Exception:  # the thread must outlive a pass: a dead one would never refit again
+                log.exception("refit pass failed")
             if not self.partitions.leads():
                 continue  # one process steps the rollouts; every process records and judges from the database
             try:
@@ -645,7 +651,12 @@ class FleetService:
         published, later, done = [], set(), set()
         while (device := self._next_in_pass(pending, done)) is not None:
             self._store_first()
-            drive_now = self._drive_now(device)
+            try:
+                drive_now = self._drive_now(device)
+            except Exception:  # a read the database refused (a dropped session): the device waits for the next pass
+                log.exception("%s: reading its drive time failed", device)
+                later.add(device)
+                continue
             try:
                 version = self.answer_refusal(device)
             except Exception:
@@ -666,7 +677,12 @@ class FleetService:
             if version is not None:
                 published.append(version)
                 continue
-            if not self._refit_due(device, drive_now):
+            try:
+                due = self._refit_due(device, drive_now)
+            except Exception:  # as above: the refit thread died of this once (test_cluster, sessions dropped)
+                log.exception("%s: checking whether a refit is due failed", device)
+                due = False
+            if not due:
                 later.add(device)
                 continue
             try:

@@ -257,6 +257,8 @@ def test_sessions_dropped_by_the_database_mid_run_lose_and_double_nothing(tmp_pa
         )
         outputs = [agent.communicate(timeout=180)[0] for agent in agents]
         assert all(agent.returncode == 0 for agent in agents), outputs
+        # every loop outlived the drops (a read refused between two statements once killed the refit thread)
+        assert all(t.is_alive() for t in (a._writer, a._thread, a._monitor_thread, a._control_thread))
         a.stop()
         stopped = True
         assert_each_window_once(store, names, hours * 60)
