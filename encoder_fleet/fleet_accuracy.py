@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from edge_agent.agent import check_plausible, factory_message, temp_rate
-from encoder_core.correction import BandedCorrection, Correction
+from encoder_core.correction import BandedCorrection, Correction, zero_shift
 from encoder_core.methods import OursLsRef
 from encoder_core.monitor import DeviceMonitor, window_features
 from encoder_core.physics import BAND_WIDTH_C, band_of
@@ -97,6 +97,10 @@ class DriveResult:
     @property
     def floor_deg(self) -> float:
         return float(np.mean(self.floor_hour_deg))
+
+    @property
+    def drift_floor_deg(self) -> float:
+        return float(np.mean(self.drift_floor_hour_deg))
 
     @property
     def floor_gain(self) -> float:
@@ -475,15 +479,6 @@ def truth_fit(phys: fieldsim.DrivePhysics, temp_c: float, t_s: float):
     return corr
 
 
-def zero_turned(corr: Correction, factory: BandedCorrection, temp_c: float) -> Correction:
-    """corr with its zero turned to the factory's on average around its locus (as the refit's anchor_zero does)."""
-    ld, lq = corr.locus()
-    shift = np.angle(np.mean(np.exp(1j * (factory.at(temp_c).angle(ld, lq) - corr.angle(ld, lq)))))
-    corr.zero_offset_rad = float(corr.zero_offset_rad + shift)
-    corr.temp_c = float(temp_c)
-    return corr
-
-
 def floor_sets(
     phys: fieldsim.DrivePhysics, factory: BandedCorrection, t_s: float, bench: Correction
 ) -> tuple[BandedCorrection, BandedCorrection]:
@@ -499,13 +494,15 @@ def floor_sets(
     arc, the drift the factory set does not correct can cancel part of that residual, and then the factory set
     is better there than any set that corrects the drift (s1-20hz-06-dwell, hour 23)."""
     floor, drift_floor = [], []
-    for temp in FLOOR_TEMPS_C:
-        now = truth_fit(phys, float(temp), t_s)
-        orders = sorted({*now.harmonics, *bench.harmonics, *factory.at(float(temp)).harmonics})
-        p = factory.at(float(temp)).params(orders) + now.params(orders) - bench.params(orders)
-        moved = Correction.from_params(p, orders)
-        floor.append(zero_turned(now, factory, float(temp)))
-        drift_floor.append(zero_turned(moved, factory, float(temp)))
+    for temp in FLOOR_TEMPS_C.tolist():
+        here = factory.at(temp)
+        now = truth_fit(phys, temp, t_s)
+        orders = sorted({*now.harmonics, *bench.harmonics, *here.harmonics})
+        moved = Correction.from_params(here.params(orders) + now.params(orders) - bench.params(orders), orders, temp)
+        for corr, out in ((now, floor), (moved, drift_floor)):
+            corr.zero_offset_rad += zero_shift(here, corr)  # the zero the factory's, as the refit's anchor_zero does
+            corr.temp_c = temp
+            out.append(corr)
     return BandedCorrection(floor), BandedCorrection(drift_floor)
 
 
@@ -603,7 +600,7 @@ def run_bench(
         row = {k: v for k, v in asdict(r).items() if not k.endswith("hour_deg")}
         row.update(factory_deg=r.factory_deg, fleet_deg=r.fleet_deg, gain=r.gain, worse_hours=r.worse_hours)
         row.update(floor_deg=r.floor_deg, floor_gain=r.floor_gain, worse_hour_indices=r.worse_hour_indices)
-        row.update(drift_floor_deg=float(np.mean(r.drift_floor_hour_deg)))
+        row.update(drift_floor_deg=r.drift_floor_deg)
         row.update(floor_worse_hour_indices=r.floor_worse_hour_indices, step_worse_hours=r.step_worse_hours)
         report["drives"].append(row)
     return report
