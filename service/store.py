@@ -149,6 +149,7 @@ class Store:
         self._writing: int | None = None  # the thread inside the transaction
         # reads from threads not inside the transaction go to a pool and never wait behind a batch being written
         self._read_pool = None
+        self._checkpointer = None  # SQLite: db.SqliteCheckpointer, the WAL copied off the writer's COMMITs
         self.path = path
         # a band's sum covers the windows that ended within this much drive time (s) of the band's newest,
         # so refits follow a drive as it ages; None keeps all history in the sum (every window is stored)
@@ -196,6 +197,7 @@ class Store:
             conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
             conn.row_factory = sqlite3.Row
             conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA wal_autocheckpoint=0")  # db.SqliteCheckpointer's thread does it instead
             conn.execute("PRAGMA foreign_keys=ON")
             if max_mb is not None:  # a quota: past it writes fail as on a full disk (SQLITE_FULL)
                 page = conn.execute("PRAGMA page_size").fetchone()[0]
@@ -210,6 +212,7 @@ class Store:
             )
         store = cls._migrated(conn, str(path), band_horizon_s, migrations)
         store._read_pool = db.SqliteReadPool(str(path))
+        store._checkpointer = db.SqliteCheckpointer(str(path))
         return store
 
     @classmethod
@@ -224,6 +227,8 @@ class Store:
         return store
 
     def close(self) -> None:
+        if self._checkpointer is not None:
+            self._checkpointer.close()
         if self._read_pool is not None:
             self._read_pool.close()
         with self._lock:

@@ -4,6 +4,7 @@ server (tests/conftest.py), no mocks: every test that takes `store` runs on both
 import json
 import sqlite3
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -315,6 +316,35 @@ def test_a_corrupt_database_is_refused_at_start(tmp_path):
     with pytest.raises(StoreError, match="corrupt") as err:
         Store.open(path, check_integrity=True)
     assert err.value.reason == "unavailable" and str(path) in str(err.value)
+
+
+def _checkpointed(store: Store, after: int) -> None:
+    """Wait (at most 15 s) until the store's checkpointer has copied the whole WAL once more than `after` times."""
+    deadline = time.monotonic() + 15.0
+    while store._checkpointer.checkpoints <= after:
+        assert time.monotonic() < deadline, "no checkpoint in 15 s"
+        time.sleep(0.05)
+
+
+def test_the_wal_is_copied_into_the_file_off_the_writers_commits(tmp_path):
+    """The writer's COMMIT only appends to the WAL (SQLite's own checkpoint inside it was over half of a COMMIT's
+    time on a slow disk); the store's checkpointer thread copies the WAL into the file, so the file alone holds
+    what was committed and the WAL stays one round of writes long however much is stored."""
+    path = tmp_path / "fleet.db"
+    rounds = [[window(seq=seq) for seq in range(1 + 40 * r, 41 + 40 * r)] for r in range(5)]
+    with Store.open(path) as store:
+        assert store._conn.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0
+        wal_sizes = []
+        for msgs in rounds:
+            done = store._checkpointer.checkpoints
+            store.ingest_many([(keys.key("drive-001", keys.STATS), wire.encode("window", m)) for m in msgs])
+            _checkpointed(store, done)
+            wal_sizes.append((tmp_path / "fleet.db-wal").stat().st_size)
+        alone = tmp_path / "copy.db"
+        alone.write_bytes(path.read_bytes())  # the file without its WAL
+        assert sqlite3.connect(alone).execute("SELECT count(*) FROM windows").fetchone()[0] == 200
+    assert max(wal_sizes) < 2 * wal_sizes[0]  # restarted after each copy, not grown by every round
+    assert sqlite3.connect(path).execute("SELECT count(*) FROM windows").fetchone()[0] == 200
 
 
 def test_a_commit_failed_by_a_full_disk_leaves_the_batch_out_of_the_band_sums(tmp_path):
