@@ -262,19 +262,19 @@ class SqliteCheckpointer:
         self._every_s = every_s
         self._stop = threading.Event()
         self.checkpoints = 0  # passes that copied the whole WAL
-        self.failures = 0
+        self.failures = 0  # passes the disk refused (Store.checkpoint_failures, in /metrics)
         self._thread = threading.Thread(target=self._run, name="sqlite-checkpoint", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        conn = sqlite3.connect(self._path, isolation_level=None, check_same_thread=False, timeout=30.0)
+        conn = sqlite3.connect(self._path, isolation_level=None, timeout=30.0)
         try:
             while not self._stop.wait(self._every_s):
-                self.checkpoint(conn)
+                self._checkpoint(conn)
         finally:
             conn.close()
 
-    def checkpoint(self, conn: sqlite3.Connection) -> None:
+    def _checkpoint(self, conn: sqlite3.Connection) -> None:
         try:
             busy, frames, copied = conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
         except sqlite3.Error as exc:  # a full or failing disk: the WAL keeps the data, the next pass tries again

@@ -51,6 +51,11 @@ class FleetCollector(Collector):
             parts,
             ("pending", "in_progress", *OUTCOMES),
         )
+        yield CounterMetricFamily(
+            "encoder_fleet_wal_checkpoint_failures",
+            "Passes copying the SQLite WAL into the database file that the disk refused; the WAL grows meanwhile.",
+            value=self.store.checkpoint_failures,
+        )
         if self.service is None:
             return
         counters = self.service.counters.snapshot()

@@ -240,6 +240,12 @@ class Store:
                 log.exception("writing the band sums at close failed; they are rebuilt from the windows when read")
             self._conn.close()
 
+    @property
+    def checkpoint_failures(self) -> int:
+        """Passes of the SQLite file's checkpointer the disk refused (0 on PostgreSQL): while they fail, the WAL
+        keeps every commit and grows."""
+        return 0 if self._checkpointer is None else self._checkpointer.failures
+
     def __enter__(self) -> Store:
         return self
 

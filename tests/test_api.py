@@ -218,6 +218,7 @@ def test_healthz_readyz_and_metrics_over_a_real_service(tmp_path):
     assert samples[("encoder_fleet_messages_ingested_total", (("outcome", "stored"),))] == 1
     assert samples[("encoder_fleet_ingest_rejections_total", (("reason", "not_json"),))] == 1
     assert samples[("encoder_fleet_storage_failures_total", ())] == 0
+    assert samples[("encoder_fleet_wal_checkpoint_failures_total", ())] == 0
     assert families["encoder_fleet_ingest_latency_seconds"].type == "histogram"
     assert families["encoder_fleet_refit_latency_seconds"].type == "histogram"
     assert "encoder_fleet_open_alarms" in families

@@ -347,6 +347,37 @@ def test_the_wal_is_copied_into_the_file_off_the_writers_commits(tmp_path):
     assert sqlite3.connect(path).execute("SELECT count(*) FROM windows").fetchone()[0] == 200
 
 
+def test_a_checkpoint_the_disk_refuses_is_counted_and_loses_nothing(tmp_path):
+    """The disk is full for the database file (RLIMIT_FSIZE at its size): the checkpointer cannot copy the WAL in,
+    counts each refused pass and keeps trying; the WAL keeps every commit, and once space is back the copy goes
+    through and the file alone holds every window."""
+    import resource
+    import signal
+
+    path = tmp_path / "fleet.db"
+    items = [(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=seq))) for seq in range(1, 81)]
+    with Store.open(path) as store:
+        store.ingest_many(items[:5])
+        _checkpointed(store, store._checkpointer.checkpoints)
+        old_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+        old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails, not the process
+        try:
+            store.ingest_many(items[5:])  # into the WAL: the file does not grow until a checkpoint
+            resource.setrlimit(resource.RLIMIT_FSIZE, (path.stat().st_size, old_limit[1]))
+            deadline = time.monotonic() + 15.0
+            while store.checkpoint_failures == 0:
+                assert time.monotonic() < deadline, "no refused checkpoint counted in 15 s"
+                time.sleep(0.05)
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
+            signal.signal(signal.SIGXFSZ, old_handler)
+        assert store.max_seq("drive-001") == 80  # every commit is still read, from the WAL
+        _checkpointed(store, store._checkpointer.checkpoints)
+        alone = tmp_path / "copy.db"
+        alone.write_bytes(path.read_bytes())
+        assert sqlite3.connect(alone).execute("SELECT count(*) FROM windows").fetchone()[0] == 80
+
+
 def test_a_commit_failed_by_a_full_disk_leaves_the_batch_out_of_the_band_sums(tmp_path):
     """In WAL mode a full disk fails the COMMIT, after the batch was summed in memory. The agents resend the
     batch: each window must be summed once (the sums kept the failed batch: 75 windows summed for 39 stored)."""
