@@ -57,12 +57,12 @@ class Correction:
     def from_dict(cls, data: dict) -> Correction:
         w = data["w"]
         return cls(
-            w1=w[0],
-            w2=w[1],
-            w3=w[2],
-            w4=w[3],
-            w5=data.get("w5", 0.0),
-            zero_offset_rad=data.get("zero_offset_rad", 0.0),
+            w1=float(w[0]),  # floats, as the harmonics: JSON may carry a coefficient as an integer of any size
+            w2=float(w[1]),
+            w3=float(w[2]),
+            w4=float(w[3]),
+            w5=float(data.get("w5", 0.0)),
+            zero_offset_rad=float(data.get("zero_offset_rad", 0.0)),
             harmonics={int(m): (float(a), float(b)) for m, a, b in data.get("harmonics", [])},
             temp_c=data.get("temp_c"),
             bench_locus=data.get("bench_locus"),

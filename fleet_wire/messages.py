@@ -527,7 +527,13 @@ def _parse_json(kind: str, payload: bytes):
     if depth > MAX_DEPTH:
         raise WireError("too_deep", f"{kind} message: JSON nested {depth} deep, more than {MAX_DEPTH}")
     try:
-        msg = json.loads(text, parse_constant=_NonFinite, parse_float=_parse_float, object_pairs_hook=_unique_keys)
+        msg = json.loads(
+            text,
+            parse_constant=_NonFinite,
+            parse_float=_parse_float,
+            parse_int=_parse_int,
+            object_pairs_hook=_unique_keys,
+        )
     except json.JSONDecodeError as exc:
         raise WireError(
             "not_json", f"{kind} message: not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
@@ -616,6 +622,16 @@ class _NonFinite:
 def _parse_float(token: str):
     value = float(token)
     return value if math.isfinite(value) else _NonFinite(token)
+
+
+def _parse_int(token: str):
+    """An integer no float holds (past ~1.8e308) overflows every number it meets, as 1e400 does."""
+    value = int(token)
+    try:
+        float(value)
+    except OverflowError:
+        return _NonFinite(token)
+    return value
 
 
 class _DuplicateKey(ValueError):

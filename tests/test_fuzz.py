@@ -5,6 +5,7 @@ against the project's own OpenAPI, with and without tokens). No 5xx, no crash, e
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import schemathesis
@@ -150,6 +151,20 @@ def test_wire_fuzz_agent_applies_only_signed_plausible_sets_and_counts_the_rest(
         assert agent.counters.bad_messages == bad + 1 or choice != "random" and _is_old(payload, version)
     if choice == "signed" and valid["version"] > version:
         assert agent.version == valid["version"]
+
+
+@pytest.mark.parametrize("w1", [-(2**63) - 1, 10**400])
+def test_a_signed_set_with_an_integer_no_float_holds_is_refused_and_counted(agent, w1):
+    """JSON integers outside int64 (hypothesis found -2**63-1: numpy's finite check raised a TypeError out of the
+    agent) or outside float (10**400): refused as implausible, counted, the running set kept."""
+    valid = {**factory_message("drive-a", agent.factory), "basis": "fit", "created_at": 60.0}
+    valid["version"] = agent.version + 1
+    band = valid["bands"][0]
+    valid["bands"] = [{**band, "w": [w1, *band["w"][1:]]}, *valid["bands"][1:]]
+    version, bad = agent.version, agent.counters.bad_messages
+    agent.on_coefficients(json.dumps(agent.signer.sign(valid)).encode())
+    assert agent.version == version and agent.counters.bad_messages == bad + 1
+    assert re.search(r"w1 = |\.w\[0\]: non-finite", agent.counters.refused[-1][1]), agent.counters.refused[-1]
 
 
 def _is_old(payload, version):

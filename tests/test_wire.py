@@ -141,6 +141,12 @@ def mutate(path, value):
         ),
         (payload(window()).replace(b'"scale": 1400.0', b'"scale": -Infinity'), "non_finite", "$.stats.scale"),
         (payload(window()).replace(b'"window_end": 60.0', b'"window_end": 1e999'), "non_finite", "$.window_end"),
+        # an integer no float holds overflows as 1e999 does (it reached numpy as an object and raised a TypeError)
+        (
+            payload(window()).replace(b'"window_end": 60.0', b'"window_end": 1' + 400 * b"0"),
+            "non_finite",
+            "$.window_end",
+        ),
         (mutate(["seq"], KeyError), "schema", "'seq'"),
         (mutate(["samples"], "400"), "schema", "$.samples"),
         (mutate(["seq"], -1), "schema", "$.seq"),
