@@ -455,7 +455,8 @@ def temp_rate(block: Samples) -> float:
     t, temp = block.t[ok], block.temp_c[ok]
     if t.size < 2 or t[-1] == t[0]:
         return 0.0
-    return float(np.polyfit(t - t[0], temp, 1)[0])
+    dt = t - t.mean()  # the least-squares line's slope in closed form (np.polyfit's SVD cost ~0.3 ms a window)
+    return float(np.dot(dt, temp - temp.mean()) / np.dot(dt, dt))
 
 
 RESUME_GAP_S = 1e-3  # drive time between the service's newest window and the first one renumbered after it

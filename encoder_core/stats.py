@@ -68,9 +68,11 @@ class WindowStats:
         powers_y = [np.ones_like(y), y, y * y, y * y * y, (y * y) ** 2]
         self.moments = self.moments + np.array([np.dot(powers_x[i], powers_y[j]) for i, j in MONOMIALS])
         idx = angle_bin(x, y)
-        cols = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-        binned = np.zeros_like(self.bins)
-        np.add.at(binned, idx, cols)
+        # per-bin sums by bincount, which adds in sample order as np.add.at did, at a tenth of its cost
+        cols = (powers_x[1], powers_y[1], powers_x[2], x * y, powers_y[2])
+        binned = np.column_stack(
+            [np.bincount(idx, minlength=N_BINS)] + [np.bincount(idx, weights=c, minlength=N_BINS) for c in cols]
+        )
         self.bins = self.bins + binned
         if temp_c is not None:
             temp = np.asarray(temp_c, float)

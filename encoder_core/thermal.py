@@ -22,7 +22,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import lfilter
 
 BENCH_C = 20.0  # the regression's temperature origin (the factory bench)
 MAX_LAG_S = 1800.0  # a boardmate sensor half an hour behind is not a lag but a broken sensor
@@ -49,6 +48,8 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float, y0: float | None
         a = np.exp(-(dt[1] if dt.size > 1 else 0.0) / tau_s)
         # y[i] = a*y[i-1] + (1-a)*x[i-1]: the input held over the step that ends at sample i
         x_prev = np.concatenate(([y_start], x[:-1]))
+        from scipy.signal import lfilter  # here, not at the top: importing scipy.signal costs every process ~1.3 s
+
         y, _ = lfilter([1 - a], [1, -a], x_prev[1:], zi=[a * y_start])
         return np.concatenate(([y_start], y))
     # an irregular clock: y[i] = a_i·y[i-1] + (1 - a_i)·x[i-1] with a_i = e^(-dt_i/τ), whose products telescope

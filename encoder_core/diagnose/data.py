@@ -9,7 +9,6 @@ work on a recording of a few hundred rows as on one of a million.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import median_filter
 
 from ..physics import REFERENCE_TEMP_C
 from ..samples import InputError, Samples, check_angle_coverage, check_fit_input
@@ -176,6 +175,8 @@ def local_deviation(radius: np.ndarray, phi: np.ndarray, known_bad: np.ndarray |
     r = radius - med[idx]
     rows = np.arange(r.size)
     filled = r if good.all() else np.interp(rows, rows[good], r[good])  # bad samples: their neighbours' value
+    from scipy.ndimage import median_filter  # here: scipy.ndimage costs every process that imports diagnose ~0.4 s
+
     return r - median_filter(filled, size=11, mode="nearest")
 
 
