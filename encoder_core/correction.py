@@ -124,12 +124,12 @@ class Correction:
         )
 
 
-def _affine(p: np.ndarray, d, q) -> tuple[np.ndarray, np.ndarray]:
-    """u1, u2 of the correction form with per-sample parameters p (columns w1..w5)."""
+def _affine(column, d, q) -> tuple[np.ndarray, np.ndarray]:
+    """u1, u2 of the correction form with per-sample parameters: column(k) is w1..w5 for k = 0..4 (BandedCorrection)."""
     d = np.asarray(d, dtype=float).ravel()
     q = np.asarray(q, dtype=float).ravel()
-    u1 = p[:, 0] * d + p[:, 1]
-    return u1, p[:, 2] * q + p[:, 3] + p[:, 4] * u1
+    u1 = column(0) * d + column(1)
+    return u1, column(2) * q + column(3) + column(4) * u1
 
 
 def zero_shift(reference: Correction, other: Correction) -> float:
@@ -212,22 +212,34 @@ class BandedCorrection:
 
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
-        orders, p = self._interpolated(np.array([float(temp_c)]))
-        return Correction.from_params(p[0], orders, float(temp_c))
+        orders, column = self._columns(np.array([float(temp_c)]))
+        params = [float(np.ravel(column(k))[0]) for k in range(6 + 2 * len(orders))]
+        return Correction.from_params(params, orders, float(temp_c))
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
-        orders, p = self._interpolated(self._temps_for(d, temp_c))
-        u1, u2 = _affine(p, d, q)
+        orders, column = self._columns(self._temps_for(d, temp_c))
+        u1, u2 = _affine(column, d, q)
         theta0 = np.arctan2(u2, u1)
-        theta = theta0 + p[:, 5]
-        for i, m in enumerate(orders):
-            theta = theta + p[:, 6 + 2 * i] * np.cos(m * theta0) + p[:, 7 + 2 * i] * np.sin(m * theta0)
+        theta = theta0 + column(5)
+        if all(isinstance(m, (int, np.integer)) and m >= 1 for m in orders):
+            # e^{imθ0} by repeated products of e^{iθ0}, as harmonic_sum: one exponential, not a cosine and a sine
+            # per order (the agent corrects every sample with this)
+            z = np.exp(1j * theta0)
+            power = np.ones_like(z)
+            place = {m: i for i, m in enumerate(orders)}
+            for m in range(1, max(orders, default=0) + 1):
+                power = power * z
+                if m in place:
+                    theta = theta + column(6 + 2 * place[m]) * power.real + column(7 + 2 * place[m]) * power.imag
+        else:
+            for i, m in enumerate(orders):
+                theta = theta + column(6 + 2 * i) * np.cos(m * theta0) + column(7 + 2 * i) * np.sin(m * theta0)
         return wrap_rad(theta)
 
     def radius(self, d, q, temp_c=None) -> np.ndarray:
         """|u| of the corrected point: 1 everywhere when the gains, offsets and phase are right."""
-        _, p = self._interpolated(self._temps_for(d, temp_c))
-        return np.hypot(*_affine(p, d, q))
+        _, column = self._columns(self._temps_for(d, temp_c))
+        return np.hypot(*_affine(column, d, q))
 
     def _temps_for(self, d, temp_c) -> np.ndarray:
         n = np.asarray(d).size
@@ -237,14 +249,20 @@ class BandedCorrection:
             return np.zeros(n)
         return np.broadcast_to(np.asarray(temp_c, dtype=float), (n,))
 
-    def _interpolated(self, temps: np.ndarray) -> tuple[list[int], np.ndarray]:
-        """Every parameter at each temperature (rows), linear between bands and flat outside them."""
+    def _columns(self, temps: np.ndarray):
+        """(orders, column): column(k) is parameter k of params(orders) at each temperature, linear between bands and
+        flat outside them (np.interp's rule). The bands either side of each temperature are found once, not once per
+        parameter, and no samples × parameters table is built (a day of 20 Hz samples made one of ~500 MB)."""
         orders = sorted({m for b in self.bands for m in b.harmonics})
         table = np.array([b.params(orders) for b in self.bands])
         if len(self.bands) == 1:
-            return orders, np.tile(table[0], (temps.size, 1))
-        centers = np.array([b.temp_c for b in self.bands])
-        return orders, np.column_stack([np.interp(temps, centers, table[:, k]) for k in range(table.shape[1])])
+            return orders, lambda k: table[0, k]
+        centers = np.array([b.temp_c for b in self.bands], dtype=float)
+        lo = np.clip(np.searchsorted(centers, temps, side="right") - 1, 0, centers.size - 2)
+        span = centers[lo + 1] - centers[lo]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            weight = np.clip((temps - centers[lo]) / np.where(span > 0, span, np.inf), 0.0, 1.0)
+        return orders, lambda k: table[lo, k] * (1.0 - weight) + table[lo + 1, k] * weight
 
     def to_dict(self) -> dict:
         out: dict = {"bands": [b.to_dict() for b in self.bands]}

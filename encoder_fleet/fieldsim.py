@@ -131,7 +131,10 @@ class DrivePhysics:
 
     def measure(self, theta, die_c, t_s, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """What the ADC delivers: channels plus noise, quantised to counts if asked."""
-        d, q = self.channels(theta, die_c, t_s)
+        return self.digitise(*self.channels(theta, die_c, t_s), rng)
+
+    def digitise(self, d, q, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """What the ADC makes of noise-free channels: noise added, quantised to counts if asked."""
         d = d + rng.normal(0.0, self.noise_counts, d.shape)
         q = q + rng.normal(0.0, self.noise_counts, q.shape)
         if self.quantise:
@@ -336,6 +339,7 @@ class FieldRun:
     physics: DrivePhysics
     regime: str
     rate_hz: float
+    clean: tuple[np.ndarray, np.ndarray] | None = None  # noise-free d, q at every sample: true_error_deg's, made once
 
 
 def field_run(
@@ -352,8 +356,9 @@ def field_run(
     temp = reported_temperature(t, rng, low=low_c, high=high_c)
     die = lagged_fast(temp, t, phys.die_lag_s)
     theta = shaft_angle(regime, t, rng)
-    d, q = phys.measure(theta, die, t, rng)
-    return FieldRun(Samples(t=t, d=d, q=q, temp_c=temp), theta, die, phys, regime, rate_hz)
+    clean = phys.channels(theta, die, t)
+    d, q = phys.digitise(*clean, rng)
+    return FieldRun(Samples(t=t, d=d, q=q, temp_c=temp), theta, die, phys, regime, rate_hz, clean)
 
 
 def bench_sweep(phys: DrivePhysics, rng: np.random.Generator, *, positions: int = 3600) -> Samples:
@@ -372,7 +377,10 @@ def true_error_deg(correction, run: FieldRun, index=None, temp_c=None) -> np.nda
     what the coefficients leave, not the sensor's noise. The correction sees the reported temperature, or
     temp_c (the selected samples' temperature as the agent reads it)."""
     idx = slice(None) if index is None else index
-    theta, die, t = run.theta[idx], run.die_c[idx], run.samples.t[idx]
-    d, q = run.physics.channels(theta, die, t)
+    theta = run.theta[idx]
+    if run.clean is not None:
+        d, q = run.clean[0][idx], run.clean[1][idx]
+    else:
+        d, q = run.physics.channels(theta, run.die_c[idx], run.samples.t[idx])
     est = correction.angle(d, q, run.samples.temp_c[idx] if temp_c is None else temp_c)
     return np.degrees((est - theta + np.pi) % (2 * np.pi) - np.pi)
