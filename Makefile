@@ -23,7 +23,7 @@ browser:
 test: $(STAMP) browser
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest -q -n auto --maxprocesses 4
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist worksteal
 
 demo: $(STAMP)
 	$(BIN)/encoder-fleet demo --devices 3 --sim-hours 24 --out out/demo
