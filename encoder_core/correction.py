@@ -142,9 +142,10 @@ def zero_shift(reference: Correction, other: Correction) -> float:
     return circular_mean(diff)
 
 
-def harmonic_sum(theta0, harmonics: dict[int, tuple[float, float]]) -> np.ndarray:
-    """Σ a_m cos(mθ) + b_m sin(mθ). e^{imθ} by repeated products of e^{iθ}: one complex exponential instead of a
-    cosine and a sine per order (3x faster for a dozen orders; the refit evaluates sets on every band)."""
+def harmonic_sum(theta0, harmonics: dict) -> np.ndarray:
+    """Σ a_m cos(mθ) + b_m sin(mθ), a_m and b_m numbers or one per θ (a banded set's). e^{imθ} by repeated
+    products of e^{iθ}: one complex exponential instead of a cosine and a sine per order (3x faster for a dozen
+    orders; the refit evaluates sets on every band, the agent every sample)."""
     theta0 = np.asarray(theta0, dtype=float)
     total = np.zeros_like(theta0)
     if not all(isinstance(m, (int, np.integer)) and m >= 1 for m in harmonics):  # not harmonic orders: term by term
@@ -220,20 +221,8 @@ class BandedCorrection:
         orders, column = self._columns(self._temps_for(d, temp_c))
         u1, u2 = _affine(column, d, q)
         theta0 = np.arctan2(u2, u1)
-        theta = theta0 + column(5)
-        if all(isinstance(m, (int, np.integer)) and m >= 1 for m in orders):
-            # e^{imθ0} by repeated products of e^{iθ0}, as harmonic_sum: one exponential, not a cosine and a sine
-            # per order (the agent corrects every sample with this)
-            z = np.exp(1j * theta0)
-            power = np.ones_like(z)
-            place = {m: i for i, m in enumerate(orders)}
-            for m in range(1, max(orders, default=0) + 1):
-                power = power * z
-                if m in place:
-                    theta = theta + column(6 + 2 * place[m]) * power.real + column(7 + 2 * place[m]) * power.imag
-        else:
-            for i, m in enumerate(orders):
-                theta = theta + column(6 + 2 * i) * np.cos(m * theta0) + column(7 + 2 * i) * np.sin(m * theta0)
+        harmonics = {m: (column(6 + 2 * i), column(7 + 2 * i)) for i, m in enumerate(orders)}  # per sample
+        theta = theta0 + column(5) + harmonic_sum(theta0, harmonics)
         return wrap_rad(theta)
 
     def radius(self, d, q, temp_c=None) -> np.ndarray:
