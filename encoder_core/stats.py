@@ -69,7 +69,7 @@ class WindowStats:
         self.moments = self.moments + np.array([np.dot(powers_x[i], powers_y[j]) for i, j in MONOMIALS])
         idx = angle_bin(x, y)
         # per-bin sums by bincount, which adds in sample order as np.add.at did, at a tenth of its cost
-        cols = (powers_x[1], powers_y[1], powers_x[2], x * y, powers_y[2])
+        cols = (x, y, powers_x[2], x * y, powers_y[2])  # BIN_COLUMNS after the count
         binned = np.column_stack(
             [np.bincount(idx, minlength=N_BINS)] + [np.bincount(idx, weights=c, minlength=N_BINS) for c in cols]
         )
