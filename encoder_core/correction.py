@@ -143,23 +143,26 @@ def zero_shift(reference: Correction, other: Correction) -> float:
 
 
 def harmonic_sum(theta0, harmonics: dict) -> np.ndarray:
-    """Σ a_m cos(mθ) + b_m sin(mθ), a_m and b_m numbers or one per θ (a banded set's). e^{imθ} by repeated
-    products of e^{iθ}: one complex exponential instead of a cosine and a sine per order (3x faster for a dozen
-    orders; the refit evaluates sets on every band, the agent every sample)."""
+    """Σ a_m cos(mθ) + b_m sin(mθ), a_m and b_m numbers or one per θ (a banded set's). The real part of the
+    polynomial Σ (a_m - i·b_m)·z^m in z = e^{iθ}, by Horner's rule: one complex exponential instead of a cosine
+    and a sine per order, and two operations per order (the refit evaluates sets on every band, the agent every
+    sample)."""
     theta0 = np.asarray(theta0, dtype=float)
-    total = np.zeros_like(theta0)
     if not all(isinstance(m, (int, np.integer)) and m >= 1 for m in harmonics):  # not harmonic orders: term by term
+        total = np.zeros_like(theta0)
         for m, (a, b) in harmonics.items():
             total = total + a * np.cos(m * theta0) + b * np.sin(m * theta0)
         return total
+    if not harmonics:
+        return np.zeros_like(theta0)
     z = np.exp(1j * theta0)
-    power = np.ones_like(z)
-    for m in range(1, max(harmonics, default=0) + 1):
-        power = power * z
+    acc = 0.0
+    for m in range(max(harmonics), 0, -1):
         if m in harmonics:
             a, b = harmonics[m]
-            total = total + a * power.real + b * power.imag
-    return total
+            acc = acc + (a - 1j * b)
+        acc = acc * z
+    return np.real(acc) + np.zeros_like(theta0)  # the shape of θ even where the coefficients are numbers
 
 
 def from_inverse_matrix(g: np.ndarray, offset: np.ndarray) -> Correction:

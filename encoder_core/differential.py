@@ -204,6 +204,7 @@ class PolarLocus:
         # `period` re-sorts its 2,048 points on every call, and the drift fit calls it ~2,000 times per device
         self._psi_closed = np.concatenate([[self.psi[-1] - 2 * np.pi], self.psi, [self.psi[0] + 2 * np.pi]])
         self._rho_closed = np.concatenate([[self.rho[-1]], self.rho, [self.rho[0]]])
+        self._slope = np.diff(self._rho_closed) / np.diff(self._psi_closed)  # drho/dpsi of each segment
 
     def unit(self, d, q) -> np.ndarray:
         return self.to_unit @ np.vstack([np.asarray(d, float) - self.center[0], np.asarray(q, float) - self.center[1]])
@@ -219,6 +220,13 @@ class PolarLocus:
     def rho_of_unit(self, u: np.ndarray) -> np.ndarray:
         """The curve's radius at the polar angle of points in the unit frame."""
         return np.interp(np.arctan2(u[1], u[0]), self._psi_closed, self._rho_closed)
+
+    def rho_and_slope(self, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The curve's radius at polar angles psi (in [-pi, pi], as arctan2 gives them) and its slope drho/dpsi
+        there: np.interp's line segments, with the derivative the drift fit's Jacobian needs."""
+        segment = np.clip(np.searchsorted(self._psi_closed, psi, side="right") - 1, 0, len(self._slope) - 1)
+        slope = self._slope[segment]
+        return self._rho_closed[segment] + slope * (psi - self._psi_closed[segment]), slope
 
 
 def polar_locus(locus: BenchLocus) -> PolarLocus:
@@ -341,17 +349,20 @@ def fit_drifts(
         if jackknife
         else [None] * len(live)
     )
-    for i, spread in zip(live, spreads):
-        dof = max(pts[i].counts.size - 5, 1)
-        chi2_dof = float(np.sum(weights[i] * resid[i] * resid[i]) / dof)
-        errors = _term_errors(x[i], info[i], max(chi2_dof, 1.0), polar.center, radius)
+    chi2_dofs = [float(np.sum(weights[i] * resid[i] * resid[i]) / max(pts[i].counts.size - 5, 1)) for i in live]
+    term_errors = _term_errors(
+        x[live], np.array([info[i] for i in live]).reshape(-1, 6, 6), np.maximum(chi2_dofs, 1.0), radius
+    )
+    for i, spread, errors, chi2_dof in zip(live, spreads, term_errors, chi2_dofs):
         if spread is not None:
-            errors = {t: max(errors[t], spread[t]) for t in TERMS}
-        out[i] = DriftFit(_drift_of(x[i], polar.center), errors, chi2_dof, pts[i].counts.size)
+            errors = np.maximum(errors, spread)
+        out[i] = DriftFit(
+            _drift_of(x[i], polar.center), dict(zip(TERMS, errors.tolist())), chi2_dof, pts[i].counts.size
+        )
     return out
 
 
-STEPS = np.array([1e-3, 1e-3, 1e-5, 1e-5, 1e-5])  # finite-difference steps: centre (× radius), shape
+STEPS = np.array([1e-3, 1e-3, 1e-5, 1e-5, 1e-5])  # convergence: a step under 1e-3 of these (centre × radius)
 # the sixth parameter, the locus's common log-scale per kelvin inside a band: a Gaussian prior of this width
 # (1/K) keeps it defined where the bins' temperatures do not vary (then it stays 0 and the fit is the five-term
 # one); gains' temperature coefficients are ~0.1 %/K, so 1 %/K holds anything physical
@@ -374,7 +385,6 @@ def _solve(
         return []
     radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
     steps = STEPS * np.array([radius, radius, 1, 1, 1])
-    probes = np.vstack([np.zeros(6), np.diag([*steps, 0.0])[:5]])  # the point and five finite-difference neighbours
     # the problems side by side, padded to the longest with a real point of weight zero
     sizes = [len(p) for p in points]
     field = np.empty((len(points), 2, max(sizes)))
@@ -386,16 +396,31 @@ def _solve(
         if dtemps is not None and dtemps[k] is not None:
             dt[k, : len(p)] = dtemps[k]
 
+    to_unit = polar.to_unit
+
     def residuals(xs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(a, m, 6) parameter sets of problems `rows` -> (a, m, n) residuals and the points' radii:
-        polar.unit(drift.apply(p)) is one 2x2 map per set, because the drift's bench centre is the locus's
-        centre; the slope divides each point's radius by its scale at its temperature."""
-        shapes = np.zeros(xs.shape[:2] + (2, 2))
+        """(a, 6) parameter sets of problems `rows` -> (a, n) residuals and their (a, n, 6) Jacobian, exact:
+        u = to_unit·S·(p - c) is polar.unit(drift.apply(p)), because the drift's bench centre is the locus's
+        centre; the residual is |u|, divided by the locus's scale at the point's temperature, less the curve's
+        radius at u's polar angle (the curve's line segments give its slope)."""
+        c0, c1, b, slope_k = (xs[:, k, None] for k in (0, 1, 3, 5))
         with np.errstate(over="ignore", invalid="ignore"):  # a run-away step: non-finite terms, gated out later
-            shapes[..., 0, 0], shapes[..., 1, 0], shapes[..., 1, 1] = np.exp(xs[..., 2]), xs[..., 3], np.exp(xs[..., 4])
-            u = np.moveaxis((polar.to_unit @ shapes) @ (field[rows, None] - xs[..., :2, None]), -2, 0)  # (2, a, m, n)
-            rad = np.hypot(u[0], u[1]) * np.exp(-xs[..., 5, None] * dt[rows, None])
-            return rad - polar.rho_of_unit(u), rad
+            ea, ec = np.exp(xs[:, 2, None]), np.exp(xs[:, 4, None])
+            v0, v1 = field[rows, 0] - c0, field[rows, 1] - c1
+            s0, s1 = ea * v0, b * v0 + ec * v1  # S·(p - c)
+            u0 = to_unit[0, 0] * s0 + to_unit[0, 1] * s1
+            u1 = to_unit[1, 0] * s0 + to_unit[1, 1] * s1
+            norm = np.hypot(u0, u1)
+            scale = np.exp(-slope_k * dt[rows])
+            rad = norm * scale
+            rho, drho = polar.rho_and_slope(np.arctan2(u1, u0))
+            # dr/du: the radius's gradient less the curve's slope times the polar angle's gradient
+            g0 = scale * u0 / norm + drho * u1 / norm**2
+            g1 = scale * u1 / norm - drho * u0 / norm**2
+            w0 = g0 * to_unit[0, 0] + g1 * to_unit[1, 0]  # dr/d(S·(p - c)), component by component
+            w1 = g0 * to_unit[0, 1] + g1 * to_unit[1, 1]
+            jac = np.stack([-(ea * w0 + b * w1), -ec * w1, w0 * s0, w1 * v0, w1 * ec * v1, -dt[rows] * rad], axis=2)
+        return rad - rho, jac
 
     x = np.array(x0, float)
     info = np.zeros((len(points), 6, 6))
@@ -406,17 +431,12 @@ def _solve(
         rows = np.flatnonzero(active)
         if rows.size == 0:
             break
-        r, rad = residuals(x[rows, None, :] + probes, rows)
-        r0 = r[:, 0]
+        r0, jac = residuals(x[rows], rows)
         # a run-away problem carries non-finite numbers through here (no warning per batch: bench-fleet-accuracy
         # printed dozens); the batch's other problems are not touched by it. A singular one is marked failed below;
         # one whose information is no longer finite ends with NaN parameters, whose terms' errors are infinite
         # (_term_errors), so every term stays the factory's (gate)
         with np.errstate(invalid="ignore", over="ignore"):
-            jac = np.concatenate(  # (a, n, 6): five by differences, the slope's exactly
-                [np.swapaxes((r[:, 1:] - r0[:, None]) / steps[:, None], 1, 2), (-dt[rows] * rad[:, 0])[..., None]],
-                axis=2,
-            )
             info[rows] = np.swapaxes(jac, 1, 2) @ (jac * w[rows, :, None])
             info[rows, 5, 5] += prior
             rhs = -np.einsum("ank,an->ak", jac, w[rows] * r0)
@@ -427,7 +447,7 @@ def _solve(
         x[rows] += np.where(bad[:, None], 0.0, step)
         done = bad | (np.all(np.abs(step[:, :5]) < steps * 1e-3, axis=1) & (np.abs(step[:, 5]) < GAIN_SLOPE_STEP))
         active[rows[done]] = False
-    final = residuals(x[:, None, :], np.arange(len(points)))[0][:, 0]
+    final = residuals(x, np.arange(len(points)))[0]
     return [
         InputError("drift fit: the bins do not constrain the drift") if failed[k] else (x[k], info[k], final[k, :n])
         for k, n in enumerate(sizes)
@@ -450,11 +470,10 @@ def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 def _jackknife(
     polar: PolarLocus, pts_list, weights_list, dtemps_list, xs, radius: float, min_bins: int
-) -> list[dict[str, float]]:
-    """Standard error of each term, per problem, from the four fits that each leave one quarter of the circle
-    out (all problems' quarters in one batch)."""
-    unknown = {t: float("inf") for t in TERMS}
-    out: list[dict[str, float]] = [unknown] * len(pts_list)
+) -> list[np.ndarray]:
+    """Standard error of each term (TERMS' order), per problem, from the four fits that each leave one quarter of
+    the circle out (all problems' quarters in one batch)."""
+    out = [np.full(len(TERMS), np.inf) for _ in pts_list]
     owners, points, weights, dtemps, starts = [], [], [], [], []
     for i, (pts, w, dt) in enumerate(zip(pts_list, weights_list, dtemps_list)):
         quarter = pts.index * 4 // N_BINS
@@ -472,32 +491,54 @@ def _jackknife(
         mine = [solved[k] for k, owner in enumerate(owners) if owner == i]
         if any(isinstance(m, InputError) for m in mine):
             continue
-        values = np.array([[e[t] for t in TERMS] for e in (_drift_of(m[0], polar.center).terms(radius) for m in mine)])
+        values = _terms_of(np.array([m[0] for m in mine]), polar.center, radius)
         if not np.all(np.isfinite(values)):  # a quarter left out and the fit ran away: the circle does not pin it
             continue
-        spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
-        out[i] = {t: float(v) for t, v in zip(TERMS, spread)}
+        out[i] = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
     return out
 
 
-def _term_errors(x, info, inflate: float, bench_center, radius: float) -> dict[str, float]:
-    """Standard errors of the drift terms by the delta method from the parameters' covariance (the in-band
-    gain slope, the sixth parameter, marginalised: its uncertainty widens the terms it can be mistaken for)."""
+def _terms_of(xs: np.ndarray, bench_center: np.ndarray, radius: float) -> np.ndarray:
+    """Drift.terms of fitted parameter vectors (m, 6) as an (m, 4) array in TERMS' order, through the same exp
+    and log, so a fit that ran away reads as inf/nan here too."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        s00, s10, s11 = np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4])
+        offsets = (xs[:, :2] - bench_center) / radius
+        return np.column_stack([offsets, np.log(s11 / s00) / 2, s10 / s11 / 2])
+
+
+def _term_errors(xs: np.ndarray, infos: np.ndarray, inflates: np.ndarray, radius: float) -> np.ndarray:
+    """Standard errors of the drift terms (m, 4; TERMS' order) of m fits, by the delta method from each fit's
+    parameter covariance (the in-band gain slope, the sixth parameter, marginalised: its uncertainty widens the
+    terms it can be mistaken for). inf where the information is singular, ill-conditioned or not finite."""
+    out = np.full((len(xs), len(TERMS)), np.inf)
+    finite = np.all(np.isfinite(infos), axis=(1, 2))
+    if not finite.any():
+        return out
+    rows = np.flatnonzero(finite)
+    rows = rows[np.linalg.cond(infos[rows]) <= 1e14]
     try:
-        cov = np.linalg.inv(info)[:5, :5] * inflate
+        cov = np.linalg.inv(infos[rows])
+    except np.linalg.LinAlgError:  # one singular matrix among them: each on its own, NaN for the singular
+        cov = np.array([_inverse(m) for m in infos[rows]]).reshape(-1, 6, 6)
+    cov = cov[:, :5, :5] * inflates[rows, None, None]
+    # the terms' derivatives by the five parameters: offsets 1/radius, imbalance (x4 - x2)/2, axis x3·e^-x4/2
+    x3, e4 = xs[rows, 3], np.exp(-xs[rows, 4])
+    jac = np.zeros((len(rows), len(TERMS), 5))
+    jac[:, 0, 0] = jac[:, 1, 1] = 1.0 / radius
+    jac[:, 2, 2], jac[:, 2, 4] = -0.5, 0.5
+    jac[:, 3, 3], jac[:, 3, 4] = e4 / 2, -x3 * e4 / 2
+    var = np.einsum("mik,mkl,mil->mi", jac, cov, jac)
+    ok = np.all(np.isfinite(cov), axis=(1, 2))
+    out[rows[ok]] = np.sqrt(np.maximum(var[ok], 0.0))
+    return out
+
+
+def _inverse(matrix: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.inv(matrix)
     except np.linalg.LinAlgError:
-        return {t: float("inf") for t in TERMS}
-    if not np.all(np.isfinite(cov)) or np.linalg.cond(info) > 1e14:
-        return {t: float("inf") for t in TERMS}
-    x = x[:5]
-    base = _drift_of(x, bench_center).terms(radius)
-    steps = np.array([1e-3 * radius, 1e-3 * radius, 1e-6, 1e-6, 1e-6])
-    jac = np.zeros((len(TERMS), 5))
-    for k in range(5):
-        moved = _drift_of(x + np.eye(5)[k] * steps[k], bench_center).terms(radius)
-        jac[:, k] = [(moved[t] - base[t]) / steps[k] for t in TERMS]
-    var = np.einsum("ik,kl,il->i", jac, cov, jac)
-    return {t: float(np.sqrt(max(v, 0.0))) for t, v in zip(TERMS, var)}
+        return np.full(matrix.shape, np.nan)
 
 
 def gate(terms: dict[str, float], errors: dict[str, float], sigmas: float = TERM_SIGMAS) -> dict[str, float]:
