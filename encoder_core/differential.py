@@ -166,25 +166,34 @@ class BinPoints:
     index: np.ndarray  # (k,) the angle bin of each point
 
 
-def bin_points(stats: WindowStats, center, min_count: int = 2) -> BinPoints:
-    counts = stats.bins[:, 0]
+def bin_points(fields: list[WindowStats], centers: np.ndarray, min_count: int = 2) -> list[BinPoints]:
+    """The BinPoints of several statistics, each about its own centre (raw units), in one array pass."""
+    if not fields:
+        return []
+    bins = np.array([f.bins for f in fields])  # (fields, bins, sums)
+    scale = np.array([f.scale for f in fields])[:, None]
+    counts = bins[..., 0]
     ok = counts >= min_count
-    n = counts[ok]
-    mean = stats.bins[ok, 1:3] / n[:, None]
-    second = stats.bins[ok, 3:6] / n[:, None]
-    cxx = second[:, 0] - mean[:, 0] ** 2
-    cxy = second[:, 1] - mean[:, 0] * mean[:, 1]
-    cyy = second[:, 2] - mean[:, 1] ** 2
-    raw = np.column_stack([stats.center_d, stats.center_q]) + stats.scale * mean
-    rel = raw - np.asarray(center, float)
-    radius = np.hypot(rel[:, 0], rel[:, 1])
-    nx, ny = rel[:, 0] / radius, rel[:, 1] / radius
-    var_t = (ny * ny * cxx - 2 * nx * ny * cxy + nx * nx * cyy) * stats.scale**2
-    var_r = (nx * nx * cxx + 2 * nx * ny * cxy + ny * ny * cyy) * stats.scale**2
-    points = raw + (np.maximum(var_t, 0.0) / (2 * radius))[:, None] * np.column_stack([nx, ny])
-    # no bin with min_count samples (a soak of a few samples): no points, which the fits refuse as too few bins
-    sigma = float(np.sqrt(max(np.average(np.maximum(var_r, 0.0), weights=n), 1e-12))) if n.size else 1e-6
-    return BinPoints(points=points, counts=n, sigma=sigma, index=np.flatnonzero(ok))
+    with np.errstate(invalid="ignore", divide="ignore"):  # bins left out (ok False) may divide by zero: unused
+        mean = bins[..., 1:3] / counts[..., None]
+        second = bins[..., 3:6] / counts[..., None]
+        cxx = second[..., 0] - mean[..., 0] ** 2
+        cxy = second[..., 1] - mean[..., 0] * mean[..., 1]
+        cyy = second[..., 2] - mean[..., 1] ** 2
+        raw = np.array([[f.center_d, f.center_q] for f in fields])[:, None, :] + scale[..., None] * mean
+        rel = raw - np.asarray(centers, float).reshape(-1, 1, 2)
+        radius = np.hypot(rel[..., 0], rel[..., 1])
+        nx, ny = rel[..., 0] / radius, rel[..., 1] / radius
+        var_t = (ny * ny * cxx - 2 * nx * ny * cxy + nx * nx * cyy) * scale**2
+        var_r = (nx * nx * cxx + 2 * nx * ny * cxy + ny * ny * cyy) * scale**2
+        points = raw + (np.maximum(var_t, 0.0) / (2 * radius))[..., None] * np.stack([nx, ny], axis=-1)
+    out = []
+    for k in range(len(fields)):
+        n = counts[k, ok[k]]
+        # no bin with min_count samples (a soak of a few samples): no points, which the fits refuse as too few bins
+        sigma = float(np.sqrt(max(np.average(np.maximum(var_r[k, ok[k]], 0.0), weights=n), 1e-12))) if n.size else 1e-6
+        out.append(BinPoints(points=points[k, ok[k]], counts=n, sigma=sigma, index=np.flatnonzero(ok[k])))
+    return out
 
 
 class PolarLocus:
@@ -220,13 +229,6 @@ class PolarLocus:
     def rho_of_unit(self, u: np.ndarray) -> np.ndarray:
         """The curve's radius at the polar angle of points in the unit frame."""
         return np.interp(np.arctan2(u[1], u[0]), self._psi_closed, self._rho_closed)
-
-    def rho_and_slope(self, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The curve's radius at polar angles psi (in [-pi, pi], as arctan2 gives them) and its slope drho/dpsi
-        there: np.interp's line segments, with the derivative the drift fit's Jacobian needs."""
-        segment = np.clip(np.searchsorted(self._psi_closed, psi, side="right") - 1, 0, len(self._slope) - 1)
-        slope = self._slope[segment]
-        return self._rho_closed[segment] + slope * (psi - self._psi_closed[segment]), slope
 
 
 def polar_locus(locus: BenchLocus) -> PolarLocus:
@@ -296,11 +298,34 @@ def fit_drifts(
     cool, and the gains' common temperature coefficient (~0.1 %/K, ten times every other drift of a band)
     then reads as an offset or an imbalance. The scale leaves the angle alone, so it is fitted and set aside;
     where it cannot be told from the terms the errors say so."""
-    polar = polar_locus(locus)
-    radius = locus.radius
+    return fit_drifts_each(
+        fields,
+        [locus] * len(fields),
+        bin_dtemps=bin_dtemps,
+        min_bins=min_bins,
+        iterations=iterations,
+        jackknife=jackknife,
+    )
+
+
+def fit_drifts_each(
+    fields: list[WindowStats],
+    loci: list[BenchLocus],
+    *,
+    bin_dtemps: list[np.ndarray | None] | None = None,
+    min_bins: int = 16,
+    iterations: int = 8,
+    jackknife: bool = True,
+) -> list[DriftFit | InputError]:
+    """fit_drifts with a bench locus per field: all of a drive's new bands in one batch whichever bench band each
+    is nearest (fit_bands), or the bands of many drives. A field's fit does not depend on what else is in the
+    batch: each problem is solved against its own curve, and its sums run over its own points (padding has
+    weight zero)."""
+    curves = [polar_locus(locus) for locus in loci]
+    radii = np.array([locus.radius for locus in loci]).reshape(-1)
     bin_dtemps = bin_dtemps or [None] * len(fields)
     out: list[DriftFit | InputError | None] = [None] * len(fields)
-    x = np.tile([polar.center[0], polar.center[1], 0.0, 0.0, 0.0, 0.0], (len(fields), 1))
+    x = np.array([[c.center[0], c.center[1], 0.0, 0.0, 0.0, 0.0] for c in curves]).reshape(-1, 6)
     pts: list = [None] * len(fields)
     dtemps: list = [None] * len(fields)
     weights: list = [None] * len(fields)
@@ -308,8 +333,7 @@ def fit_drifts(
     live = list(range(len(fields)))
     for _ in range(2):  # the bin points' outward shift depends on the centre: settle it once
         batch = []
-        for i in live:
-            p = bin_points(fields[i], x[i, :2])
+        for i, p in zip(live, bin_points([fields[i] for i in live], x[live, :2])):
             if p.counts.size < min_bins:
                 out[i] = InputError(
                     f"too few angle bins with samples for a drift fit: {p.counts.size}, need {min_bins}"
@@ -318,11 +342,11 @@ def fit_drifts(
             # a bin's weight: its mean's variance plus the bench curve's own; counts capped at the median so
             # that a few positions a servo holds for hours do not outvote the rest of the circle
             capped = np.minimum(p.counts, np.median(p.counts))
-            pts[i], weights[i] = p, radius**2 / (p.sigma**2 / capped + locus.precision**2)
+            pts[i], weights[i] = p, radii[i] ** 2 / (p.sigma**2 / capped + loci[i].precision ** 2)
             dtemps[i] = None if bin_dtemps[i] is None else np.asarray(bin_dtemps[i], float)[p.index]
             batch.append(i)
         solved = _solve(
-            polar,
+            [curves[i] for i in batch],
             [pts[i].points for i in batch],
             [weights[i] for i in batch],
             x[batch],
@@ -338,12 +362,12 @@ def fit_drifts(
             live.append(i)
     spreads = (
         _jackknife(
-            polar,
+            [curves[i] for i in live],
             [pts[i] for i in live],
             [weights[i] for i in live],
             [dtemps[i] for i in live],
             x[live],
-            radius,
+            radii[live],
             min_bins // 2,
         )
         if jackknife
@@ -351,13 +375,13 @@ def fit_drifts(
     )
     chi2_dofs = [float(np.sum(weights[i] * resid[i] * resid[i]) / max(pts[i].counts.size - 5, 1)) for i in live]
     term_errors = _term_errors(
-        x[live], np.array([info[i] for i in live]).reshape(-1, 6, 6), np.maximum(chi2_dofs, 1.0), radius
+        x[live], np.array([info[i] for i in live]).reshape(-1, 6, 6), np.maximum(chi2_dofs, 1.0), radii[live]
     )
     for i, spread, errors, chi2_dof in zip(live, spreads, term_errors, chi2_dofs):
         if spread is not None:
             errors = np.maximum(errors, spread)
         out[i] = DriftFit(
-            _drift_of(x[i], polar.center), dict(zip(TERMS, errors.tolist())), chi2_dof, pts[i].counts.size
+            _drift_of(x[i], curves[i].center), dict(zip(TERMS, errors.tolist())), chi2_dof, pts[i].counts.size
         )
     return out
 
@@ -370,33 +394,64 @@ GAIN_SLOPE_PRIOR = 0.01
 GAIN_SLOPE_STEP = 1e-7  # convergence: a slope step below this (1/K) is negligible
 
 
+class _Curves:
+    """The bench curves of a batch's problems side by side (one per problem, shared ones once): their maps to the
+    unit frame and one table of line segments, each curve's polar angles shifted by 4π per curve so that one
+    search finds every problem's segment. Values come from each curve's own angles, not the shifted ones, so a
+    problem's residuals do not depend on which curves share its batch."""
+
+    def __init__(self, curves: list[PolarLocus]):
+        first: dict[int, int] = {}
+        for curve in curves:
+            first.setdefault(id(curve), len(first))
+        unique = list({id(c): c for c in curves}.values())
+        which = np.array([first[id(c)] for c in curves])
+        self.to_unit = np.array([c.to_unit for c in curves])
+        self.radius = 1.0 / np.sqrt(np.abs(np.linalg.det(self.to_unit)))
+        self.shift = 4 * np.pi * which
+        self.psi = np.concatenate([c._psi_closed for c in unique])
+        self.rho = np.concatenate([c._rho_closed for c in unique])
+        self.slope = np.concatenate([np.append(c._slope, 0.0) for c in unique])  # a curve's last point: no segment
+        self.search = np.concatenate([c._psi_closed + 4 * np.pi * k for k, c in enumerate(unique)])
+        ends = np.cumsum([len(c._psi_closed) for c in unique])
+        self.last_segment = (ends - 2)[which]  # each problem's curve's last segment, in the joined table
+        self.first_segment = (ends - np.array([len(c._psi_closed) for c in unique]))[which]
+
+    def rho_and_slope(self, psi: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """PolarLocus.rho_and_slope of (a, n) polar angles, row k on the curve of problem rows[k]."""
+        segment = np.searchsorted(self.search, psi + self.shift[rows, None], side="right") - 1
+        segment = np.clip(segment, self.first_segment[rows, None], self.last_segment[rows, None])
+        slope = self.slope[segment]
+        return self.rho[segment] + slope * (psi - self.psi[segment]), slope
+
+
 def _solve(
-    polar: PolarLocus,
+    curves: list[PolarLocus],
     points: list[np.ndarray],
     weights: list[np.ndarray],
     x0: np.ndarray,
     iterations: int,
     dtemps: list[np.ndarray | None] | None = None,
 ):
-    """Gauss-Newton on the radial residuals of several problems at once (each stops when its own step is
-    negligible); per problem its six parameters (fit_drifts), their information matrix and its residuals, or
-    an InputError. dtemps: per problem, each point's temperature minus the band's (None: all zero)."""
+    """Gauss-Newton on the radial residuals of several problems at once, each against its own bench curve (each
+    stops when its own step is negligible); per problem its six parameters (fit_drifts), their information
+    matrix and its residuals, or an InputError. dtemps: per problem, each point's temperature minus the band's
+    (None: all zero)."""
     if not points:
         return []
-    radius = 1.0 / np.sqrt(abs(np.linalg.det(polar.to_unit)))
-    steps = STEPS * np.array([radius, radius, 1, 1, 1])
+    stacked = _Curves(curves)
+    steps = STEPS * np.column_stack([stacked.radius, stacked.radius, np.ones((len(curves), 3))])  # (problems, 5)
     # the problems side by side, padded to the longest with a real point of weight zero
     sizes = [len(p) for p in points]
-    field = np.empty((len(points), 2, max(sizes)))
-    w = np.zeros((len(points), max(sizes)))
-    dt = np.zeros((len(points), max(sizes)))
+    longest = max(sizes)
+    field = np.empty((len(points), 2, longest))
+    w = np.zeros((len(points), longest))
+    dt = np.zeros((len(points), longest))
     for k, (p, wk) in enumerate(zip(points, weights)):
-        field[k] = p[np.minimum(np.arange(max(sizes)), len(p) - 1)].T
+        field[k] = p[np.minimum(np.arange(longest), len(p) - 1)].T
         w[k, : len(p)] = wk
         if dtemps is not None and dtemps[k] is not None:
             dt[k, : len(p)] = dtemps[k]
-
-    to_unit = polar.to_unit
 
     def residuals(xs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(a, 6) parameter sets of problems `rows` -> (a, n) residuals and their (a, n, 6) Jacobian, exact:
@@ -408,17 +463,18 @@ def _solve(
             ea, ec = np.exp(xs[:, 2, None]), np.exp(xs[:, 4, None])
             v0, v1 = field[rows, 0] - c0, field[rows, 1] - c1
             s0, s1 = ea * v0, b * v0 + ec * v1  # S·(p - c)
-            u0 = to_unit[0, 0] * s0 + to_unit[0, 1] * s1
-            u1 = to_unit[1, 0] * s0 + to_unit[1, 1] * s1
+            to_unit = stacked.to_unit[rows, :, :, None]  # (a, 2, 2, 1): each problem's map to its curve's frame
+            u0 = to_unit[:, 0, 0] * s0 + to_unit[:, 0, 1] * s1
+            u1 = to_unit[:, 1, 0] * s0 + to_unit[:, 1, 1] * s1
             norm = np.hypot(u0, u1)
             scale = np.exp(-slope_k * dt[rows])
             rad = norm * scale
-            rho, drho = polar.rho_and_slope(np.arctan2(u1, u0))
+            rho, drho = stacked.rho_and_slope(np.arctan2(u1, u0), rows)
             # dr/du: the radius's gradient less the curve's slope times the polar angle's gradient
             g0 = scale * u0 / norm + drho * u1 / norm**2
             g1 = scale * u1 / norm - drho * u0 / norm**2
-            w0 = g0 * to_unit[0, 0] + g1 * to_unit[1, 0]  # dr/d(S·(p - c)), component by component
-            w1 = g0 * to_unit[0, 1] + g1 * to_unit[1, 1]
+            w0 = g0 * to_unit[:, 0, 0] + g1 * to_unit[:, 1, 0]  # dr/d(S·(p - c)), component by component
+            w1 = g0 * to_unit[:, 0, 1] + g1 * to_unit[:, 1, 1]
             jac = np.stack([-(ea * w0 + b * w1), -ec * w1, w0 * s0, w1 * v0, w1 * ec * v1, -dt[rows] * rad], axis=2)
         return rad - rho, jac
 
@@ -445,7 +501,7 @@ def _solve(
         bad = np.isnan(step[:, 0]) & np.all(np.isfinite(info[rows]), axis=(1, 2))
         failed[rows[bad]] = True
         x[rows] += np.where(bad[:, None], 0.0, step)
-        done = bad | (np.all(np.abs(step[:, :5]) < steps * 1e-3, axis=1) & (np.abs(step[:, 5]) < GAIN_SLOPE_STEP))
+        done = bad | (np.all(np.abs(step[:, :5]) < steps[rows] * 1e-3, axis=1) & (np.abs(step[:, 5]) < GAIN_SLOPE_STEP))
         active[rows[done]] = False
     final = residuals(x, np.arange(len(points)))[0]
     return [
@@ -469,12 +525,12 @@ def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 def _jackknife(
-    polar: PolarLocus, pts_list, weights_list, dtemps_list, xs, radius: float, min_bins: int
+    curves: list[PolarLocus], pts_list, weights_list, dtemps_list, xs, radii: np.ndarray, min_bins: int
 ) -> list[np.ndarray]:
     """Standard error of each term (TERMS' order), per problem, from the four fits that each leave one quarter of
     the circle out (all problems' quarters in one batch)."""
     out = [np.full(len(TERMS), np.inf) for _ in pts_list]
-    owners, points, weights, dtemps, starts = [], [], [], [], []
+    owners, points, weights, dtemps, starts, fitted_on = [], [], [], [], [], []
     for i, (pts, w, dt) in enumerate(zip(pts_list, weights_list, dtemps_list)):
         quarter = pts.index * 4 // N_BINS
         keeps = [quarter != k for k in range(4)]
@@ -486,12 +542,13 @@ def _jackknife(
             weights.append(w[keep])
             dtemps.append(None if dt is None else dt[keep])
             starts.append(xs[i])
-    solved = _solve(polar, points, weights, np.array(starts).reshape(-1, 6), 4, dtemps)
-    for i in sorted(set(owners)):
-        mine = [solved[k] for k, owner in enumerate(owners) if owner == i]
+            fitted_on.append(curves[i])
+    solved = _solve(fitted_on, points, weights, np.array(starts).reshape(-1, 6), 4, dtemps)
+    for first in range(0, len(owners), 4):  # each problem's four quarters, in turn
+        i, mine = owners[first], solved[first : first + 4]
         if any(isinstance(m, InputError) for m in mine):
             continue
-        values = _terms_of(np.array([m[0] for m in mine]), polar.center, radius)
+        values = _terms_of(np.array([m[0] for m in mine]), curves[i].center, radii[i])
         if not np.all(np.isfinite(values)):  # a quarter left out and the fit ran away: the circle does not pin it
             continue
         out[i] = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
@@ -507,7 +564,7 @@ def _terms_of(xs: np.ndarray, bench_center: np.ndarray, radius: float) -> np.nda
         return np.column_stack([offsets, np.log(s11 / s00) / 2, s10 / s11 / 2])
 
 
-def _term_errors(xs: np.ndarray, infos: np.ndarray, inflates: np.ndarray, radius: float) -> np.ndarray:
+def _term_errors(xs: np.ndarray, infos: np.ndarray, inflates: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Standard errors of the drift terms (m, 4; TERMS' order) of m fits, by the delta method from each fit's
     parameter covariance (the in-band gain slope, the sixth parameter, marginalised: its uncertainty widens the
     terms it can be mistaken for). inf where the information is singular, ill-conditioned or not finite."""
@@ -525,7 +582,7 @@ def _term_errors(xs: np.ndarray, infos: np.ndarray, inflates: np.ndarray, radius
     # the terms' derivatives by the five parameters: offsets 1/radius, imbalance (x4 - x2)/2, axis x3·e^-x4/2
     x3, e4 = xs[rows, 3], np.exp(-xs[rows, 4])
     jac = np.zeros((len(rows), len(TERMS), 5))
-    jac[:, 0, 0] = jac[:, 1, 1] = 1.0 / radius
+    jac[:, 0, 0] = jac[:, 1, 1] = 1.0 / radii[rows]
     jac[:, 2, 2], jac[:, 2, 4] = -0.5, 0.5
     jac[:, 3, 3], jac[:, 3, 4] = e4 / 2, -x3 * e4 / 2
     var = np.einsum("mik,mkl,mil->mi", jac, cov, jac)

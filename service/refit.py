@@ -31,7 +31,7 @@ from encoder_core.differential import (
     DriftModel,
     anchor_zero,
     compose,
-    fit_drifts,
+    fit_drifts_each,
     gate,
 )
 from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
@@ -367,24 +367,19 @@ def bin_dtemps(bin_temp_sum: np.ndarray, stats: WindowStats) -> np.ndarray:
 
 
 def fit_bands(chosen: dict, *, dtemps: dict | None = None) -> dict:
-    """band -> (statistics, factory band, bench locus) fitted in one batch per bench locus (`fit_drifts`);
+    """band -> (statistics, factory band, bench locus) fitted in one batch, each against its bench locus;
     bands too little of the circle pins are left out. dtemps: per band, its bins' temperatures less its own
     (the fit then has the in-band gain slope, see fit_drifts). A band whose sums and bench locus are the ones
     fitted before is not fitted again (FIT_MEMO): between two hourly refits a drive visits a band or two."""
     dtemps = dtemps or {}
-    found: dict[int, DriftFit | InputError] = {}
-    by_locus: dict[int, list[int]] = {}
     keys = {band: _fit_key(stats, locus, dtemps.get(band)) for band, (stats, _, locus) in chosen.items()}
-    for band, (_, _, locus) in chosen.items():
-        if (hit := FIT_MEMO.get(keys[band])) is not None:
-            found[band] = hit
-        else:
-            by_locus.setdefault(id(locus), []).append(band)
-    for bands in by_locus.values():
-        locus = chosen[bands[0]][2]
-        fits = fit_drifts([chosen[b][0] for b in bands], locus, bin_dtemps=[dtemps.get(b) for b in bands])
-        for band, fit in zip(bands, fits):
-            found[band] = FIT_MEMO.put(keys[band], fit)
+    found = {band: hit for band in chosen if (hit := FIT_MEMO.get(keys[band])) is not None}
+    new = [band for band in chosen if band not in found]
+    fits = fit_drifts_each(
+        [chosen[b][0] for b in new], [chosen[b][2] for b in new], bin_dtemps=[dtemps.get(b) for b in new]
+    )
+    for band, fit in zip(new, fits):
+        found[band] = FIT_MEMO.put(keys[band], fit)
     return {band: (fit, *chosen[band]) for band, fit in sorted(found.items()) if not isinstance(fit, InputError)}
 
 

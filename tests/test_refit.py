@@ -296,6 +296,34 @@ def test_the_lone_band_reach_is_kept_for_a_drive_that_dwelt():
     assert not dwelt(stats_of(centre + np.radians(60) * np.sin(np.arange(n) * 0.05 * 2 * np.pi / 7.0)))  # a 120° arc
 
 
+def test_bands_of_drives_with_different_benches_fit_in_one_batch_as_alone():
+    """fit_drifts_each solves each band against its own bench curve in one batch (the curves' tables joined): two
+    drives' bands interleaved, each must come out exactly as its drive's bands fitted alone."""
+    from encoder_core.differential import BenchLocus, fit_drifts, fit_drifts_each
+
+    rng = np.random.default_rng(31)
+    fields, loci = [], []
+    for _ in range(2):
+        phys = fieldsim.draw_drive(rng, event=None, days=1)
+        factory = calibrate(fieldsim.bench_sweep(phys, rng))
+        locus = BenchLocus.from_dict(factory.bands[0].bench_locus)
+        for temp_c in (-15.0, 35.0, 70.0):
+            theta = rng.uniform(0, 2 * np.pi, 6000)
+            t = np.arange(theta.size) * 0.05
+            d, q = phys.measure(theta, np.full(theta.size, temp_c), t, rng)
+            fields.append(window_stats(Samples(t=t, d=d, q=q, temp_c=np.full(theta.size, temp_c)),
+                                       normalisation_scale(factory)))  # fmt: skip
+            loci.append(locus)
+    order = [0, 3, 1, 4, 2, 5]  # the two drives' bands interleaved
+    together = fit_drifts_each([fields[k] for k in order], [loci[k] for k in order])
+    alone = fit_drifts(fields[:3], loci[0]) + fit_drifts(fields[3:], loci[3])
+    assert loci[0].d[1] != loci[3].d[1]  # two different benches
+    for k, batched in zip(order, together):
+        assert np.array_equal(batched.drift.shape, alone[k].drift.shape)
+        assert np.array_equal(batched.drift.field_center, alone[k].drift.field_center)
+        assert batched.errors == alone[k].errors and batched.chi2_dof == alone[k].chi2_dof
+
+
 def test_a_band_whose_sums_did_not_change_is_not_fitted_again(monkeypatch):
     """Between two hourly refits a drive visits a band or two: only those are fitted again (service.refit
     FIT_MEMO), and the refit is the one without the memo."""
@@ -317,9 +345,11 @@ def test_a_band_whose_sums_did_not_change_is_not_fitted_again(monkeypatch):
         band = band_of(stats.temp_mean)
         bands[band] = bands[band].merge(stats) if band in bands else stats
     fitted = []
-    real_fit_drifts = refit_module.fit_drifts
+    real_fit_drifts = refit_module.fit_drifts_each
     monkeypatch.setattr(
-        refit_module, "fit_drifts", lambda fields, *a, **k: fitted.extend(fields) or real_fit_drifts(fields, *a, **k)
+        refit_module,
+        "fit_drifts_each",
+        lambda fields, *a, **k: fitted.extend(fields) or real_fit_drifts(fields, *a, **k),
     )
     refit_module.FIT_MEMO.clear()
 
