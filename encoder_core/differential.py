@@ -321,6 +321,8 @@ def fit_drifts_each(
     is nearest (fit_bands), or the bands of many drives. A field's fit does not depend on what else is in the
     batch: each problem is solved against its own curve, and its sums run over its own points (padding has
     weight zero)."""
+    if len(loci) != len(fields):
+        raise ValueError(f"one bench locus per field: {len(fields)} fields, {len(loci)} loci")
     curves = [polar_locus(locus) for locus in loci]
     radii = np.array([locus.radius for locus in loci]).reshape(-1)
     bin_dtemps = bin_dtemps or [None] * len(fields)
@@ -418,9 +420,13 @@ class _Curves:
         self.first_segment = (ends - np.array([len(c._psi_closed) for c in unique]))[which]
 
     def rho_and_slope(self, psi: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """PolarLocus.rho_and_slope of (a, n) polar angles, row k on the curve of problem rows[k]."""
-        segment = np.searchsorted(self.search, psi + self.shift[rows, None], side="right") - 1
-        segment = np.clip(segment, self.first_segment[rows, None], self.last_segment[rows, None])
+        """The curves' radius at (a, n) polar angles in [-π, π] (row k on the curve of problem rows[k]) and its
+        slope drho/dpsi there: np.interp's line segments, with the derivative the Jacobian needs."""
+        first, last = self.first_segment[rows, None], self.last_segment[rows, None]
+        segment = np.clip(np.searchsorted(self.search, psi + self.shift[rows, None], side="right") - 1, first, last)
+        # the shift rounds: an angle within an ulp of a node may land one segment off; the curve's own angles say
+        segment = np.clip(segment - (psi < self.psi[segment]), first, last)
+        segment = np.clip(segment + (psi >= self.psi[segment + 1]), first, last)
         slope = self.slope[segment]
         return self.rho[segment] + slope * (psi - self.psi[segment]), slope
 

@@ -324,6 +324,28 @@ def test_bands_of_drives_with_different_benches_fit_in_one_batch_as_alone():
         assert batched.errors == alone[k].errors and batched.chi2_dof == alone[k].chi2_dof
 
 
+def test_joined_bench_curves_give_every_angle_its_own_curves_segment():
+    """_Curves joins the batch's bench curves into one table, each shifted by 4π: the shift rounds, and an angle
+    within an ulp of a node must still get the segment, radius and slope np.interp gives on its own curve."""
+    from encoder_core.differential import BenchLocus, PolarLocus, _Curves
+
+    rng = np.random.default_rng(8)
+    phys = fieldsim.draw_drive(rng, event=None, days=1)
+    locus = BenchLocus.from_dict(calibrate(fieldsim.bench_sweep(phys, rng)).bands[0].bench_locus)
+    curves = [PolarLocus(locus) for _ in range(12)]  # twelve curves: the last shifted by 44π
+    own = curves[0]
+    nodes = own._psi_closed[1:-1]
+    psi = np.concatenate(
+        [nodes, np.nextafter(nodes, np.inf), np.nextafter(nodes, -np.inf), rng.uniform(-3.2, 3.2, 4000)]
+    )
+    psi = psi[np.abs(psi) <= np.pi]
+    segment = np.searchsorted(own._psi_closed, psi, side="right") - 1
+    rho, slope = _Curves(curves).rho_and_slope(np.tile(psi, (len(curves), 1)), np.arange(len(curves)))
+    for k in range(len(curves)):
+        assert np.array_equal(slope[k], own._slope[segment])
+        assert np.allclose(rho[k], np.interp(psi, own._psi_closed, own._rho_closed), rtol=0, atol=1e-15)
+
+
 def test_a_band_whose_sums_did_not_change_is_not_fitted_again(monkeypatch):
     """Between two hourly refits a drive visits a band or two: only those are fitted again (service.refit
     FIT_MEMO), and the refit is the one without the memo."""
