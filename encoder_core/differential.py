@@ -136,13 +136,8 @@ class Drift:
 
     @staticmethod
     def _terms(s: np.ndarray, off: np.ndarray) -> dict[str, float]:
-        return {
-            "offset_d": float(off[0]),
-            "offset_q": float(off[1]),
-            "imbalance": float(np.log(s[1, 1] / s[0, 0]) / 2),
-            "axis": float(s[1, 0] / s[1, 1] / 2),
-            "common": float(np.log(s[0, 0] * s[1, 1]) / 2),
-        }
+        values = _term_values(off[0], off[1], s[0, 0], s[1, 0], s[1, 1])
+        return {**dict(zip(TERMS, values.tolist())), "common": float(np.log(s[0, 0] * s[1, 1]) / 2)}
 
     @classmethod
     def from_terms(cls, terms: dict[str, float], bench_center, radius: float) -> Drift:
@@ -152,6 +147,12 @@ class Drift:
         bench_center = np.asarray(bench_center, float)
         field_center = bench_center + radius * np.array([terms["offset_d"], terms["offset_q"]])
         return cls(field_center=field_center, bench_center=bench_center, shape=shape)
+
+
+def _term_values(offset_d, offset_q, s00, s10, s11) -> np.ndarray:
+    """TERMS of a drift (numbers, or arrays of many drifts: (..., 4)) from its offsets over the radius and its
+    shape's entries: the gain ratio's log and the axis shear."""
+    return np.stack([offset_d, offset_q, np.log(s11 / s00) / 2, s10 / s11 / 2], axis=-1)
 
 
 @dataclass
@@ -217,18 +218,6 @@ class PolarLocus:
 
     def unit(self, d, q) -> np.ndarray:
         return self.to_unit @ np.vstack([np.asarray(d, float) - self.center[0], np.asarray(q, float) - self.center[1]])
-
-    def residual(self, d, q) -> np.ndarray:
-        """Radial distance of points from the curve, in units of the locus radius."""
-        return self.residual_of_unit(self.unit(d, q))
-
-    def residual_of_unit(self, u: np.ndarray) -> np.ndarray:
-        """The same for points already in the locus's unit frame: u[0], u[1] of any shape."""
-        return np.hypot(u[0], u[1]) - self.rho_of_unit(u)
-
-    def rho_of_unit(self, u: np.ndarray) -> np.ndarray:
-        """The curve's radius at the polar angle of points in the unit frame."""
-        return np.interp(np.arctan2(u[1], u[0]), self._psi_closed, self._rho_closed)
 
 
 def polar_locus(locus: BenchLocus) -> PolarLocus:
@@ -403,11 +392,9 @@ class _Curves:
     problem's residuals do not depend on which curves share its batch."""
 
     def __init__(self, curves: list[PolarLocus]):
-        first: dict[int, int] = {}
-        for curve in curves:
-            first.setdefault(id(curve), len(first))
-        unique = list({id(c): c for c in curves}.values())
-        which = np.array([first[id(c)] for c in curves])
+        unique = list({id(c): c for c in curves}.values())  # in order of first use
+        place = {id(c): k for k, c in enumerate(unique)}
+        which = np.array([place[id(c)] for c in curves])
         self.to_unit = np.array([c.to_unit for c in curves])
         self.radius = 1.0 / np.sqrt(np.abs(np.linalg.det(self.to_unit)))
         self.shift = 4 * np.pi * which
@@ -415,9 +402,10 @@ class _Curves:
         self.rho = np.concatenate([c._rho_closed for c in unique])
         self.slope = np.concatenate([np.append(c._slope, 0.0) for c in unique])  # a curve's last point: no segment
         self.search = np.concatenate([c._psi_closed + 4 * np.pi * k for k, c in enumerate(unique)])
-        ends = np.cumsum([len(c._psi_closed) for c in unique])
-        self.last_segment = (ends - 2)[which]  # each problem's curve's last segment, in the joined table
-        self.first_segment = (ends - np.array([len(c._psi_closed) for c in unique]))[which]
+        sizes = np.array([len(c._psi_closed) for c in unique])
+        starts = np.cumsum(sizes) - sizes
+        self.first_segment = starts[which]  # each problem's curve's first and last segment, in the joined table
+        self.last_segment = (starts + sizes - 2)[which]
 
     def rho_and_slope(self, psi: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The curves' radius at (a, n) polar angles in [-π, π] (row k on the curve of problem rows[k]) and its
@@ -565,9 +553,8 @@ def _terms_of(xs: np.ndarray, bench_center: np.ndarray, radius: float) -> np.nda
     """Drift.terms of fitted parameter vectors (m, 6) as an (m, 4) array in TERMS' order, through the same exp
     and log, so a fit that ran away reads as inf/nan here too."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        s00, s10, s11 = np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4])
         offsets = (xs[:, :2] - bench_center) / radius
-        return np.column_stack([offsets, np.log(s11 / s00) / 2, s10 / s11 / 2])
+        return _term_values(offsets[:, 0], offsets[:, 1], np.exp(xs[:, 2]), xs[:, 3], np.exp(xs[:, 4]))
 
 
 def _term_errors(xs: np.ndarray, infos: np.ndarray, inflates: np.ndarray, radii: np.ndarray) -> np.ndarray:
