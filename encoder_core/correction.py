@@ -124,6 +124,24 @@ class Correction:
         )
 
 
+def angles_of(corrections: list[Correction], d: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Correction.angle of several corrections in one array pass: row k of (K, n) d and q through correction k
+    (a refit checks a candidate for every band around its circle)."""
+    orders = sorted({m for c in corrections for m in c.harmonics})
+    table = np.array([c.params(orders) for c in corrections]).reshape(len(corrections), -1)
+    return _angle_of_columns(lambda k: table[:, k, None], orders, np.asarray(d, float), np.asarray(q, float))
+
+
+def _angle_of_columns(column, orders: list[int], d: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The correction form's angle with its parameters given as columns that broadcast against d and q: column(k)
+    is parameter k of params(orders), per sample (BandedCorrection) or per row (angles_of)."""
+    u1 = column(0) * d + column(1)
+    u2 = column(2) * q + column(3) + column(4) * u1
+    theta0 = np.arctan2(u2, u1)
+    harmonics = {m: (column(6 + 2 * i), column(7 + 2 * i)) for i, m in enumerate(orders)}
+    return wrap_rad(theta0 + column(5) + harmonic_sum(theta0, harmonics))
+
+
 def _affine(column, d, q) -> tuple[np.ndarray, np.ndarray]:
     """u1, u2 of the correction form with per-sample parameters: column(k) is w1..w5 for k = 0..4 (BandedCorrection)."""
     d = np.asarray(d, dtype=float).ravel()
@@ -222,11 +240,7 @@ class BandedCorrection:
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
         orders, column = self._columns(self._temps_for(d, temp_c))
-        u1, u2 = _affine(column, d, q)
-        theta0 = np.arctan2(u2, u1)
-        harmonics = {m: (column(6 + 2 * i), column(7 + 2 * i)) for i, m in enumerate(orders)}  # per sample
-        theta = theta0 + column(5) + harmonic_sum(theta0, harmonics)
-        return wrap_rad(theta)
+        return _angle_of_columns(column, orders, np.asarray(d, float).ravel(), np.asarray(q, float).ravel())
 
     def radius(self, d, q, temp_c=None) -> np.ndarray:
         """|u| of the corrected point: 1 everywhere when the gains, offsets and phase are right."""

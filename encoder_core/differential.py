@@ -27,7 +27,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from .correction import Correction
+from .correction import Correction, angles_of
+from .physics import circular_mean
 from .samples import InputError
 from .stats import N_BINS, WindowStats, plausible_mask
 
@@ -320,7 +321,7 @@ def fit_drifts_each(
     pts: list = [None] * len(fields)
     dtemps: list = [None] * len(fields)
     weights: list = [None] * len(fields)
-    info, resid = {}, {}
+    info, resid, jacs = {}, {}, {}
     live = list(range(len(fields)))
     for _ in range(2):  # the bin points' outward shift depends on the centre: settle it once
         batch = []
@@ -349,18 +350,13 @@ def fit_drifts_each(
             if isinstance(result, InputError):
                 out[i] = result
                 continue
-            x[i], info[i], resid[i] = result
+            x[i], info[i], resid[i], jacs[i] = result
             live.append(i)
     spreads = (
-        _jackknife(
-            [curves[i] for i in live],
-            [pts[i] for i in live],
-            [weights[i] for i in live],
-            [dtemps[i] for i in live],
-            x[live],
-            radii[live],
-            min_bins // 2,
-        )
+        [
+            _jackknife(pts[i].index, weights[i], x[i], resid[i], jacs[i], curves[i].center, radii[i], min_bins // 2)
+            for i in live
+        ]
         if jackknife
         else [None] * len(live)
     )
@@ -497,9 +493,11 @@ def _solve(
         x[rows] += np.where(bad[:, None], 0.0, step)
         done = bad | (np.all(np.abs(step[:, :5]) < steps[rows] * 1e-3, axis=1) & (np.abs(step[:, 5]) < GAIN_SLOPE_STEP))
         active[rows[done]] = False
-    final = residuals(x, np.arange(len(points)))[0]
+    final, final_jac = residuals(x, np.arange(len(points)))
     return [
-        InputError("drift fit: the bins do not constrain the drift") if failed[k] else (x[k], info[k], final[k, :n])
+        InputError("drift fit: the bins do not constrain the drift")
+        if failed[k]
+        else (x[k], info[k], final[k, :n], final_jac[k, :n])
         for k, n in enumerate(sizes)
     ]
 
@@ -519,34 +517,36 @@ def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 def _jackknife(
-    curves: list[PolarLocus], pts_list, weights_list, dtemps_list, xs, radii: np.ndarray, min_bins: int
-) -> list[np.ndarray]:
-    """Standard error of each term (TERMS' order), per problem, from the four fits that each leave one quarter of
-    the circle out (all problems' quarters in one batch)."""
-    out = [np.full(len(TERMS), np.inf) for _ in pts_list]
-    owners, points, weights, dtemps, starts, fitted_on = [], [], [], [], [], []
-    for i, (pts, w, dt) in enumerate(zip(pts_list, weights_list, dtemps_list)):
-        quarter = pts.index * 4 // N_BINS
-        keeps = [quarter != k for k in range(4)]
-        if any(keep.sum() < max(min_bins, 6) for keep in keeps):
-            continue  # a quarter left out leaves too little of the circle: the spread is unknown
-        for keep in keeps:
-            owners.append(i)
-            points.append(pts.points[keep])
-            weights.append(w[keep])
-            dtemps.append(None if dt is None else dt[keep])
-            starts.append(xs[i])
-            fitted_on.append(curves[i])
-    solved = _solve(fitted_on, points, weights, np.array(starts).reshape(-1, 6), 4, dtemps)
-    for first in range(0, len(owners), 4):  # each problem's four quarters, in turn
-        i, mine = owners[first], solved[first : first + 4]
-        if any(isinstance(m, InputError) for m in mine):
-            continue
-        values = _terms_of(np.array([m[0] for m in mine]), curves[i].center, radii[i])
-        if not np.all(np.isfinite(values)):  # a quarter left out and the fit ran away: the circle does not pin it
-            continue
-        out[i] = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
-    return out
+    index: np.ndarray,
+    weights: np.ndarray,
+    x: np.ndarray,
+    resid: np.ndarray,
+    jac: np.ndarray,
+    bench_center: np.ndarray,
+    radius: float,
+    min_bins: int,
+) -> np.ndarray:
+    """Standard error of each term (TERMS' order) from the four fits that each leave one quarter of the circle
+    out (index: each point's angle bin). Each is one Gauss-Newton step from the whole circle's fit, taken with
+    the residuals and Jacobian that fit already has (the one-step jackknife): near the optimum a second step
+    moves a leave-out fit by the square of the first, and four refits took a third of a device's refit. Inf
+    where a quarter left out leaves too little of the circle, or the step runs away (the circle does not pin
+    the terms without it)."""
+    quarter = index * 4 // N_BINS
+    keeps = np.array([quarter != k for k in range(4)])  # (4, points)
+    if np.any(keeps.sum(axis=1) < max(min_bins, 6)):
+        return np.full(len(TERMS), np.inf)
+    kept_weights = keeps * weights
+    with np.errstate(invalid="ignore", over="ignore"):
+        jw = jac[None] * kept_weights[:, :, None]  # (4, points, 6)
+        info = np.swapaxes(jw, 1, 2) @ jac
+        info[:, 5, 5] += 1.0 / GAIN_SLOPE_PRIOR**2
+        grad = np.einsum("qnk,n->qk", jw, resid)
+        grad[:, 5] += x[5] / GAIN_SLOPE_PRIOR**2
+    values = _terms_of(x + _solve_each(info, -grad), bench_center, radius)
+    if not np.all(np.isfinite(values)):
+        return np.full(len(TERMS), np.inf)
+    return np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
 
 
 def _terms_of(xs: np.ndarray, bench_center: np.ndarray, radius: float) -> np.ndarray:
@@ -631,12 +631,28 @@ def anchor_zero(candidate: Correction, factory: Correction, locus: BenchLocus, d
     The field cannot see a rotation of both axes together; whatever part of it the drift map carries is a
     convention (S lower triangular keeps the d axis). Anchored, the candidate's mean angle error is the
     factory's at the same temperature, whatever the axes did."""
-    design = _whole_degrees(locus.order)
-    d, q = drift.inverse(design @ locus.d, design @ locus.q)
-    diff = factory.angle(d, q) - candidate.angle(d, q)
-    out = Correction(**{**candidate.__dict__, "harmonics": dict(candidate.harmonics)})
-    shift = np.angle(np.mean(np.exp(1j * diff)))
-    out.zero_offset_rad = float(np.angle(np.exp(1j * (candidate.zero_offset_rad + shift))))
+    return anchor_zeros([candidate], [factory], [locus], [drift])[0]
+
+
+def anchor_zeros(
+    candidates: list[Correction], factories: list[Correction], loci: list[BenchLocus], drifts: list[Drift]
+) -> list[Correction]:
+    """anchor_zero of several candidates (a refit's bands), their angles in one array pass."""
+    if not candidates:
+        return []
+    # each band's bench locus at every whole degree, taken back through its drift: the field's locus
+    points = [
+        drift.inverse(_whole_degrees(locus.order) @ locus.d, _whole_degrees(locus.order) @ locus.q)
+        for locus, drift in zip(loci, drifts)
+    ]
+    d, q = np.array([p[0] for p in points]), np.array([p[1] for p in points])
+    diff = angles_of(factories, d, q) - angles_of(candidates, d, q)
+    shifts = circular_mean(diff, axis=1)
+    out = []
+    for candidate, shift in zip(candidates, shifts):
+        anchored = Correction(**{**candidate.__dict__, "harmonics": dict(candidate.harmonics)})
+        anchored.zero_offset_rad = float(np.angle(np.exp(1j * (candidate.zero_offset_rad + shift))))
+        out.append(anchored)
     return out
 
 
@@ -706,8 +722,9 @@ class DriftModel:
         degree = min(MODEL_DEGREE, max(len(temps) - 2, 1))  # a degree of freedom left to see misfit
         design = np.vander(temps, degree + 1)
         models = {}
+        fitted = [f.drift.terms(radius) for _, f in fits]
         for name in TERMS:
-            values = np.array([f.drift.terms(radius)[name] for _, f in fits] + ([0.0] if bench else []))
+            values = np.array([terms[name] for terms in fitted] + ([0.0] if bench else []))
             errors = np.array([f.errors[name] for _, f in fits] + ([BENCH_PRIOR] if bench else []))
             ok = np.isfinite(errors) & (errors > 0) & np.isfinite(values)
             rows, values, errors = design[ok], values[ok], errors[ok]

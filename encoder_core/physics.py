@@ -38,9 +38,10 @@ def wrap_rad(x) -> np.ndarray:
     return (np.asarray(x, dtype=float) + np.pi) % (2 * np.pi) - np.pi
 
 
-def circular_mean(angles) -> float:
-    """Mean direction of angles in radians (immune to the wrap at ±π)."""
-    return float(np.angle(np.mean(np.exp(1j * np.asarray(angles, dtype=float)))))
+def circular_mean(angles, axis: int | None = None):
+    """Mean direction of angles in radians (immune to the wrap at ±π): a number, or along `axis` an array."""
+    mean = np.angle(np.mean(np.exp(1j * np.asarray(angles, dtype=float)), axis=axis))
+    return float(mean) if axis is None else mean
 
 
 def angle_error_deg(theta_est, theta_ref) -> np.ndarray:

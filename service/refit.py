@@ -22,14 +22,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from encoder_core.correction import BandedCorrection, Correction, zero_shift
+from encoder_core.correction import BandedCorrection, Correction, angles_of, zero_shift
 from encoder_core.differential import (
     TERMS,
     BenchLocus,
     Drift,
     DriftFit,
     DriftModel,
-    anchor_zero,
+    anchor_zeros,
     compose,
     fit_drifts_each,
     gate,
@@ -80,10 +80,18 @@ class RefitResult:
 def difference_deg(running: Correction, candidate: Correction) -> float:
     """RMS angle difference between two corrections around the candidate's circle, zero aside:
     the error of the running set if the candidate is right."""
-    d, q = candidate.locus()
-    diff = wrap_rad(running.angle(d, q) - candidate.angle(d, q))
-    diff = wrap_rad(diff - circular_mean(diff))
-    return float(np.degrees(np.sqrt(np.mean(diff**2))))
+    return float(differences_deg([running], [candidate])[0])
+
+
+def differences_deg(runnings: list[Correction], candidates: list[Correction]) -> np.ndarray:
+    """difference_deg of pairs (a refit's bands), in one array pass."""
+    if not candidates:
+        return np.zeros(0)
+    loci = [c.locus() for c in candidates]
+    d, q = np.array([d for d, _ in loci]), np.array([q for _, q in loci])
+    diff = wrap_rad(angles_of(runnings, d, q) - angles_of(candidates, d, q))
+    diff = wrap_rad(diff - circular_mean(diff, axis=1)[:, None])
+    return np.degrees(np.sqrt(np.mean(diff**2, axis=1)))
 
 
 def uncertainty_deg(estimate: HarmonicEstimate, kept: dict, stats: WindowStats, residual_rms: float) -> float:
@@ -193,6 +201,8 @@ def refit_from_bench(
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
+    candidates = []  # per band the refit speaks for: (band, statistics, candidate, quality, its error, locus, errors)
+    to_anchor = []  # (place in candidates, ruler, drift) of the candidates that take the ruler's zero
     spoken = model_bands(fits, model)
     running_at = {band_index(c): c.temp_c for c in running.bands}  # each running entry's temperature, by band
     for band, temp_c, stats in spoken:
@@ -215,18 +225,28 @@ def refit_from_bench(
         else:
             fit = fits[band][0]
             terms, errors, chi2 = fit.drift.terms(locus.radius), fit.errors, fit.chi2_dof
-        ruler = factory.axes_moved(axis_turn) if axis_turn else factory
         if held is not None:
             corr, quality, err_new = held_candidate(held, terms, errors, temp_c, factory, locus)
         else:
-            corr, quality, err_new = drift_candidate(terms, errors, temp_c, factory, locus, ruler)
+            corr, quality, err_new, drift = drift_candidate(terms, errors, temp_c, factory, locus)
+            # its zero the ruler's: the factory, moved by the axis turns named since the bench
+            to_anchor.append((len(candidates), factory.axes_moved(axis_turn) if axis_turn else factory, drift))
         quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
-        now = running.at(corr.temp_c)
+        candidates.append((band, stats, corr, quality, err_new, locus, errors))
+    # every band's candidate anchored and checked against the running set around its circle, in one array pass each
+    if to_anchor:
+        places, rulers, drifts = zip(*to_anchor)
+        unanchored = [candidates[k][2] for k in places]
+        for k, corr in zip(places, anchor_zeros(unanchored, rulers, [candidates[k][5] for k in places], drifts)):
+            candidates[k] = (*candidates[k][:2], corr, *candidates[k][3:])
+    nows = [running.at(corr.temp_c) for _, _, corr, *_ in candidates]
+    errs_now = differences_deg(nows, [corr for _, _, corr, *_ in candidates])
+    for (band, stats, corr, quality, err_new, locus, errors), now, err_now in zip(candidates, nows, errs_now):
+        err_now = float(err_now)
         if stats is not None:
             moves.append(
                 (centre(corr) - centre(now), locus.radius * np.array([errors["offset_d"], errors["offset_q"]]))
             )
-        err_now = difference_deg(now, corr)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         if held is not None and not held.drift.covers(corr.temp_c):
             adopt = False  # a position the drive holds was not seen near this temperature: its angle is a guess
@@ -463,14 +483,14 @@ def drift_candidate(
     temp_c: float,
     factory: Correction,
     locus: BenchLocus,
-    ruler: Correction,
-) -> tuple[Correction, dict, float]:
-    """The factory's correction after the supported drift terms, with its quality and uncertainty (deg); its zero
-    the ruler's (the factory, moved by the axis turns named since the bench: refit_device's axis_turn)."""
+) -> tuple[Correction, dict, float, Drift]:
+    """The factory's correction after the supported drift terms, with its quality, uncertainty (deg) and the
+    drift applied; its zero is still the factory's own (refit_from_bench anchors every band's to its ruler at
+    once: anchor_zeros)."""
     radius = locus.radius
     kept = gate(terms, errors)
     drift = Drift.from_terms(kept, np.array([locus.d[0], locus.q[0]]), radius)
-    corr = anchor_zero(compose(factory, drift), ruler, locus, drift)
+    corr = compose(factory, drift)
     corr.temp_c = float(temp_c)
     # the uncertainty of the whole drift the band's data measured, not only of the terms that passed the gate: a
     # term held at the factory's value is as uncertain as its estimate, and a fit that cannot pin one term (an arc,
@@ -482,7 +502,7 @@ def drift_candidate(
         "drift_terms": {t: kept[t] for t in TERMS},
         "drift_errors": {t: errors[t] if np.isfinite(errors[t]) else None for t in TERMS},
     }
-    return corr, quality, err
+    return corr, quality, err, drift
 
 
 def held_candidate(
@@ -494,7 +514,7 @@ def held_candidate(
     loosely each term alone is."""
     radius = locus.radius
     drift = Drift.from_terms({t: terms[t] for t in TERMS}, np.array([locus.d[0], locus.q[0]]), radius)
-    # not anchored to the factory's zero (drift_candidate's anchor_zero): the held positions measured the turn
+    # not anchored to the factory's zero (drift_candidate's, anchor_zeros): the held positions measured the turn
     # along the circle, the lower-triangular map's share of it included
     corr = compose(factory, drift)
     corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad - terms["zero"]))
