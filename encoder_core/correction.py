@@ -234,9 +234,14 @@ class BandedCorrection:
 
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
-        orders, column = self._columns(np.array([float(temp_c)]))
-        params = [float(np.ravel(column(k))[0]) for k in range(6 + 2 * len(orders))]
-        return Correction.from_params(params, orders, float(temp_c))
+        return self.at_each([temp_c])[0]
+
+    def at_each(self, temps) -> list[Correction]:
+        """The correction interpolated to each of several temperatures (one table for all: a refit's bands)."""
+        temps = np.asarray(temps, float).reshape(-1)
+        orders, column = self._columns(temps)
+        params = np.column_stack([np.broadcast_to(column(k), temps.shape) for k in range(6 + 2 * len(orders))])
+        return [Correction.from_params([float(v) for v in row], orders, float(t)) for row, t in zip(params, temps)]
 
     def angle(self, d, q, temp_c=None) -> np.ndarray:
         orders, column = self._columns(self._temps_for(d, temp_c))

@@ -353,10 +353,16 @@ def fit_drifts_each(
             x[i], info[i], resid[i], jacs[i] = result
             live.append(i)
     spreads = (
-        [
-            _jackknife(pts[i].index, weights[i], x[i], resid[i], jacs[i], curves[i].center, radii[i], min_bins // 2)
-            for i in live
-        ]
+        _jackknife(
+            [pts[i].index for i in live],
+            [weights[i] for i in live],
+            x[live],
+            [resid[i] for i in live],
+            [jacs[i] for i in live],
+            np.array([curves[i].center for i in live]).reshape(-1, 2),
+            radii[live],
+            min_bins // 2,
+        )
         if jackknife
         else [None] * len(live)
     )
@@ -517,36 +523,43 @@ def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 def _jackknife(
-    index: np.ndarray,
-    weights: np.ndarray,
-    x: np.ndarray,
-    resid: np.ndarray,
-    jac: np.ndarray,
-    bench_center: np.ndarray,
-    radius: float,
+    indices: list[np.ndarray],
+    weights: list[np.ndarray],
+    xs: np.ndarray,
+    resids: list[np.ndarray],
+    jacs: list[np.ndarray],
+    bench_centers: np.ndarray,
+    radii: np.ndarray,
     min_bins: int,
 ) -> np.ndarray:
-    """Standard error of each term (TERMS' order) from the four fits that each leave one quarter of the circle
-    out (index: each point's angle bin). Each is one Gauss-Newton step from the whole circle's fit, taken with
-    the residuals and Jacobian that fit already has (the one-step jackknife): near the optimum a second step
-    moves a leave-out fit by the square of the first, and four refits took a third of a device's refit. Inf
-    where a quarter left out leaves too little of the circle, or the step runs away (the circle does not pin
-    the terms without it)."""
-    quarter = index * 4 // N_BINS
-    keeps = np.array([quarter != k for k in range(4)])  # (4, points)
-    if np.any(keeps.sum(axis=1) < max(min_bins, 6)):
-        return np.full(len(TERMS), np.inf)
-    kept_weights = keeps * weights
+    """Standard error of each term (TERMS' order), per problem, from the four fits that each leave one quarter of
+    the circle out (indices: each point's angle bin). Each is one Gauss-Newton step from the whole circle's fit,
+    taken with the residuals and Jacobian that fit already has (the one-step jackknife): near the optimum a second
+    step moves a leave-out fit by the square of the first, and four refits took a third of a device's refit. Inf
+    where a quarter left out leaves too little of the circle, or the step runs away (the circle does not pin the
+    terms without it). All problems' quarters in one batch, padded with points of weight zero."""
+    if not indices:
+        return np.zeros((0, len(TERMS)))
+    longest = max(len(i) for i in indices)
+    quarter = np.full((len(indices), longest), -1)
+    w, r, jac = np.zeros(quarter.shape), np.zeros(quarter.shape), np.zeros((*quarter.shape, 6))
+    for k, (index, wk, rk, jk) in enumerate(zip(indices, weights, resids, jacs)):
+        n = len(index)
+        quarter[k, :n], w[k, :n], r[k, :n], jac[k, :n] = index * 4 // N_BINS, wk, rk, jk
+    keeps = (quarter[:, None, :] != np.arange(4)[None, :, None]) & (quarter[:, None, :] >= 0)  # (problems, 4, points)
+    enough = np.all(keeps.sum(axis=2) >= max(min_bins, 6), axis=1)
     with np.errstate(invalid="ignore", over="ignore"):
-        jw = jac[None] * kept_weights[:, :, None]  # (4, points, 6)
-        info = np.swapaxes(jw, 1, 2) @ jac
-        info[:, 5, 5] += 1.0 / GAIN_SLOPE_PRIOR**2
-        grad = np.einsum("qnk,n->qk", jw, resid)
-        grad[:, 5] += x[5] / GAIN_SLOPE_PRIOR**2
-    values = _terms_of(x + _solve_each(info, -grad), bench_center, radius)
-    if not np.all(np.isfinite(values)):
-        return np.full(len(TERMS), np.inf)
-    return np.sqrt(3 / 4 * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
+        jw = jac[:, None] * (keeps * w[:, None, :])[..., None]  # (problems, 4, points, 6)
+        info = np.swapaxes(jw, 2, 3) @ jac[:, None]
+        info[..., 5, 5] += 1.0 / GAIN_SLOPE_PRIOR**2
+        grad = np.einsum("bqnk,bn->bqk", jw, r)
+        grad[..., 5] += xs[:, None, 5] / GAIN_SLOPE_PRIOR**2
+    steps = _solve_each(info.reshape(-1, 6, 6), -grad.reshape(-1, 6))
+    values = _terms_of(
+        np.repeat(xs, 4, axis=0) + steps, np.repeat(bench_centers, 4, axis=0), np.repeat(radii, 4)[:, None]
+    ).reshape(len(indices), 4, len(TERMS))
+    spread = np.sqrt(3 / 4 * np.sum((values - values.mean(axis=1, keepdims=True)) ** 2, axis=1))
+    return np.where((enough & np.all(np.isfinite(values), axis=(1, 2)))[:, None], spread, np.inf)
 
 
 def _terms_of(xs: np.ndarray, bench_center: np.ndarray, radius: float) -> np.ndarray:

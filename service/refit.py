@@ -239,7 +239,7 @@ def refit_from_bench(
         unanchored = [candidates[k][2] for k in places]
         for k, corr in zip(places, anchor_zeros(unanchored, rulers, [candidates[k][5] for k in places], drifts)):
             candidates[k] = (*candidates[k][:2], corr, *candidates[k][3:])
-    nows = [running.at(corr.temp_c) for _, _, corr, *_ in candidates]
+    nows = running.at_each([corr.temp_c for _, _, corr, *_ in candidates])
     errs_now = differences_deg(nows, [corr for _, _, corr, *_ in candidates])
     for (band, stats, corr, quality, err_new, locus, errors), now, err_now in zip(candidates, nows, errs_now):
         err_now = float(err_now)
