@@ -179,7 +179,7 @@ class Features:
     sigma: np.ndarray | None = None  # their uncertainties
     held: list | None = None  # [x, y, sd] of each position the window held (normalised)
     gap_bins: int = 0  # the longest run of angle bins the window left empty
-    # the shape of the ellipse fitted per angle bin (_ellipse_per_bin): the gain ratio log(d/q amplitude), the skew
+    # the shape of the ellipse fitted per angle bin (ellipse_fits): the gain ratio log(d/q amplitude), the skew
     # q01 / sqrt(q00·q11) (the sine of the axes' departure from 90°), and the standard error of either
     ratio_skew: tuple[float, float, float] | None = None
     # for the die's lag (encoder_core/thermal.py): the window's start, its temperature rate, and the lag its
@@ -197,54 +197,88 @@ _C1_INV = np.array([[0.0, 0.0, 0.5], [0.0, -1.0, 0.0], [0.5, 0.0, 0.0]])
 _CYCLES = np.array(HARMONIC_CYCLES)
 
 
-def _ellipse(stats: WindowStats) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """(center, qform, residual rms) of the direct ellipse fit (Fitzgibbon, Halir & Flusser) from the moment
-    sums: encoder_core.ellipse.fit_ellipse's algorithm with its checks, lean enough for every window."""
-    if int(np.count_nonzero(stats.bins[:, 0])) < N_BINS // 2:
-        return None
-    return _conic_fit(stats.moments[_SCATTER], stats.moments[0])
+EllipseFit = tuple[np.ndarray, np.ndarray, float]  # (center, qform, residual rms) of a window's conic fit
 
 
-def _ellipse_per_bin(b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """The same fit with every angle bin the window saw weighted alike, whatever its count: each bin's mean of the
-    conic's monomials (its first and second moments) is one row. The field's harmonics bend the locus away from an
+def ellipse_fits(windows: list[WindowStats]) -> list[tuple[EllipseFit | None, EllipseFit | None]]:
+    """window_features' two ellipse fits of each window, the conic fits of all of them in one array pass (the
+    monitor feeds a device's stored windows a page at a time): the direct fit (Fitzgibbon, Halir & Flusser) from
+    the moment sums, encoder_core.ellipse.fit_ellipse's algorithm with its checks, and the same fit with every
+    angle bin the window saw weighted alike, whatever its count. Each bin's mean of the conic's monomials (its
+    first and second moments) is one row of the second. The field's harmonics bend the locus away from an
     ellipse, so a fit weighted by the samples tilts with where along the circle they fall; a drive that reverses
     lingers at its turns and moves them from window to window, and its skew and gain ratio moved with them (false
     axis and gain steps). Weighted per bin, the fit sees the same locus whatever the shaft's pace along it (capping
-    each bin's weight at twice the typical count instead brought two of the eight false steps back).
-    b: the bins the window saw (count > 0), at least half of them, as _ellipse requires of the window."""
-    rows = np.column_stack([b[:, 3], b[:, 4], b[:, 5], b[:, 1], b[:, 2], b[:, 0]]) / b[:, :1]
-    return _conic_fit(rows.T @ rows, float(len(b)))
+    each bin's weight at twice the typical count instead brought two of the eight false steps back). Neither is
+    fitted (None) when the window saw fewer than half of the angle bins."""
+    fitted = [k for k, stats in enumerate(windows) if int(np.count_nonzero(stats.bins[:, 0])) >= N_BINS // 2]
+    scatters, counts = [windows[k].moments[_SCATTER] for k in fitted], [windows[k].moments[0] for k in fitted]
+    for k in fitted:
+        b = windows[k].bins[windows[k].bins[:, 0] > 0]
+        rows = np.column_stack([b[:, 3], b[:, 4], b[:, 5], b[:, 1], b[:, 2], b[:, 0]]) / b[:, :1]
+        scatters.append(rows.T @ rows)
+        counts.append(float(len(b)))
+    fits = _conic_fits(np.array(scatters).reshape(-1, 6, 6), np.array(counts, float))
+    out: list[tuple[EllipseFit | None, EllipseFit | None]] = [(None, None)] * len(windows)
+    for j, k in enumerate(fitted):
+        out[k] = (fits[j], fits[len(fitted) + j])
+    return out
 
 
-def _conic_fit(sm: np.ndarray, count: float) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """(center, qform, rms of the conic's residual) from the 6×6 scatter of the rows [x², xy, y², x, y, 1] and the
-    sum of the rows' weights (`count`)."""
-    s2, s3 = sm[:3, 3:], sm[3:, 3:]
+def _conic_fits(sms: np.ndarray, counts: np.ndarray) -> list[EllipseFit | None]:
+    """(center, qform, rms of the conic's residual) of each 6×6 scatter of the rows [x², xy, y², x, y, 1], given
+    the sum of its rows' weights (`counts`); None where the scatter holds no ellipse."""
+    s1, s2, s3 = sms[:, :3, :3], sms[:, :3, 3:], sms[:, 3:, 3:]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        t = -_solve_stack(s3, np.swapaxes(s2, 1, 2))
+        eigval, eigvec = _eig_stack(_C1_INV @ (s1 + s2 @ t))
+        eigvec = np.real(eigvec)
+        cond = 4 * eigvec[:, 0] * eigvec[:, 2] - eigvec[:, 1] ** 2  # per eigenvector: an ellipse's
+        good = cond > 0
+        # among the ellipse eigenvectors, the one of the least eigenvalue
+        pick = np.argmin(np.where(good, np.abs(np.real(eigval)), np.inf), axis=1)
+        a1 = np.take_along_axis(eigvec, pick[:, None, None], axis=2)  # (k, 3, 1)
+        conic = np.concatenate([a1, t @ a1], axis=1)[..., 0]
+        a, b, c, d, e, f = conic.T
+        det2 = 4 * a * c - b * b
+        cx, cy = (b * e - 2 * c * d) / det2, (b * d - 2 * a * e) / det2
+        f_center = f + 0.5 * (d * cx + e * cy)
+        qforms = np.stack([np.stack([a, b / 2], -1), np.stack([b / 2, c], -1)], -2) / -f_center[:, None, None]
+        conic = conic / -f_center[:, None]
+        mean_sq = (conic[:, None, :] @ sms @ conic[:, :, None])[:, 0, 0] / counts
+    valid = np.any(good, axis=1) & (det2 != 0) & (f_center != 0) & np.all(np.isfinite(t), axis=(1, 2))
+    return [
+        (np.array([cx[k], cy[k]]), qforms[k], 0.5 * math.sqrt(max(float(mean_sq[k]), 0.0))) if valid[k] else None
+        for k in range(len(sms))
+    ]
+
+
+def _solve_stack(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.linalg.solve of stacked systems, NaN for the singular ones (where numpy raises for the whole stack)."""
     try:
-        t = -np.linalg.solve(s3, s2.T)
-        eigval, eigvec = np.linalg.eig(_C1_INV @ (sm[:3, :3] + s2 @ t))
+        return np.linalg.solve(a, b)
     except np.linalg.LinAlgError:
-        return None
-    eigvec = np.real(eigvec)
-    cond = 4 * eigvec[0] * eigvec[2] - eigvec[1] ** 2
-    good = np.flatnonzero(cond > 0)
-    if good.size == 0:
-        return None
-    a1 = eigvec[:, good[np.argmin(np.abs(np.real(eigval[good])))]]
-    conic = np.concatenate([a1, t @ a1])
-    a, b, c, d, e, f = conic
-    det2 = 4 * a * c - b * b
-    if det2 == 0:
-        return None
-    cx, cy = (b * e - 2 * c * d) / det2, (b * d - 2 * a * e) / det2
-    f_center = f + 0.5 * (d * cx + e * cy)
-    if f_center == 0:
-        return None
-    qform = np.array([[a, b / 2], [b / 2, c]]) / -f_center
-    conic = conic / -f_center
-    mean_sq = float(conic @ sm @ conic) / count
-    return np.array([cx, cy]), qform, 0.5 * math.sqrt(max(mean_sq, 0.0))
+        out = np.full(b.shape, np.nan)
+        for k in range(len(a)):
+            try:
+                out[k] = np.linalg.solve(a[k], b[k])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def _eig_stack(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.linalg.eig of stacked matrices, NaN for those it cannot take (non-finite, or no convergence)."""
+    try:
+        return np.linalg.eig(m)
+    except np.linalg.LinAlgError:
+        values, vectors = np.full(m.shape[:2], np.nan, complex), np.full(m.shape, np.nan, complex)
+        for k in range(len(m)):
+            try:
+                values[k], vectors[k] = np.linalg.eig(m[k])
+            except np.linalg.LinAlgError:
+                pass
+        return values, vectors
 
 
 def _equal_weight_size(counts: np.ndarray) -> float:
@@ -371,9 +405,11 @@ def window_features(
     start: float | None = None,
     temp_rate: float = 0.0,
     lag_used_s: float = 0.0,
+    fits: tuple[EllipseFit | None, EllipseFit | None] | None = None,
 ) -> Features:
-    """What the monitor reads from one window (cheap: one ellipse fit and 64 bins). start, temp_rate and
-    lag_used_s (see Features) let it measure the die's lag."""
+    """What the monitor reads from one window (cheap: two ellipse fits and 64 bins). start, temp_rate and
+    lag_used_s (see Features) let it measure the die's lag; fits: the window's ellipse_fits, when a page of
+    windows had them made at once."""
     rejected = {"non_finite": 0, "clipped": 0, "outlier": 0}
     if rejected_by_reason:
         rejected.update({k: int(v) for k, v in rejected_by_reason.items() if k in rejected})
@@ -392,7 +428,7 @@ def window_features(
         f.stats = stats
     if n < MIN_FIT_SAMPLES or f.gap_bins > MAX_GAP_BINS:
         return f
-    fit = _ellipse(stats)
+    fit, per_bin = ellipse_fits([stats])[0] if fits is None else fits
     if fit is None:
         return f
     c, qf, residual = fit
@@ -427,7 +463,6 @@ def window_features(
     # the centre (the offsets) from the fit weighted per angle bin, as the shape (ratio_skew): weighted by the
     # samples it moved with where a reversing drive lingered, against the field's harmonics (s5-20hz-11, a 1.1 %
     # third harmonic: false offset steps, each moved for, the drive worse than its factory set for an hour)
-    per_bin = _ellipse_per_bin(b)
     centre = per_bin[0] if per_bin is not None else c
     s_center = resid * math.sqrt(2.0 / _equal_weight_size(cnt))
     y = np.empty(N_FEATURES)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from encoder_core.monitor import DeviceMonitor, Features, FleetRates, Settings, window_features
+from encoder_core.monitor import DeviceMonitor, Features, FleetRates, Settings, ellipse_fits, window_features
 from encoder_core.physics import band_of
 from encoder_core.stats import block_statistics, normalisation_scale
 
@@ -41,9 +41,9 @@ def drive_windows(spec: DriveSpec, *, window_s: float, sample_hz: float) -> list
     return out
 
 
-def features_of(stats, counts, t_end) -> Features:
+def features_of(stats, counts, t_end, fits=None) -> Features:
     temp = stats.temp_mean
-    return window_features(stats, t=t_end, temp_c=temp, band=band_of(temp), rejected_by_reason=counts)
+    return window_features(stats, t=t_end, temp_c=temp, band=band_of(temp), rejected_by_reason=counts, fits=fits)
 
 
 def run_offline(
@@ -66,10 +66,15 @@ def run_offline(
     )
     alarms: dict[str, list[dict]] = {name: [] for name in per_drive}
     feature_s = update_s = 0.0
+    fits = {}
+    for name, windows in per_drive.items():  # as the service does a page of stored windows: fitted at once
+        t0 = time.perf_counter()
+        fits[name] = ellipse_fits([w[0] for w in windows])
+        feature_s += time.perf_counter() - t0
     for _, name, i in timeline:
         stats, counts, t_end = per_drive[name][i]
         t0 = time.perf_counter()
-        f = features_of(stats, counts, t_end)
+        f = features_of(stats, counts, t_end, fits[name][i])
         t1 = time.perf_counter()
         events = monitors[name].update(f, fleet)
         t2 = time.perf_counter()

@@ -14,7 +14,7 @@ import logging
 import threading
 from collections.abc import Callable
 
-from encoder_core.monitor import DeviceMonitor, FleetRates, Settings, window_features
+from encoder_core.monitor import DeviceMonitor, FleetRates, Settings, ellipse_fits, window_features
 from fleet_wire import alarms as alarm_wire
 
 from .refit import STEP_CAUSES
@@ -90,12 +90,11 @@ class Monitor:
                 if not rows:
                     break
                 events = []
-                for row in rows:
-                    stats = row["stats"]
-                    if stats is None:
-                        continue  # stored windows were checked on the way in; never let one stop the monitor
+                # stored windows were checked on the way in; never let one stop the monitor
+                rows_fed = [row for row in rows if row["stats"] is not None]
+                for row, fits in zip(rows_fed, ellipse_fits([row["stats"] for row in rows_fed])):
                     f = window_features(
-                        stats,
+                        row["stats"],
                         t=row["window_end"],
                         temp_c=row["temp_mean_c"],
                         band=row["band"],
@@ -103,6 +102,7 @@ class Monitor:
                         start=row["window_start"],
                         temp_rate=row["temp_rate_c_per_s"],
                         lag_used_s=self._lag_of(device, row["coefficients_version"]),
+                        fits=fits,
                     )
                     events += mon.update(f, self.fleet)
                 events += self._refit_clears(device, mon)

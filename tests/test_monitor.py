@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from encoder_core.monitor import Cusum, DeviceMonitor, FleetRates, Settings, window_features
+from encoder_core.monitor import Cusum, DeviceMonitor, FleetRates, Settings, ellipse_fits, window_features
 from encoder_core.monitor_causes import CAUSES
 from encoder_core.physics import band_of
 from encoder_core.samples import Samples
@@ -123,6 +123,33 @@ def test_temperature_cycle_and_first_hours_never_alarm():
         states.append(mon.state())
     assert states[0] == "unknown" and states[-1] == "ok"
     assert len(mon.bands) >= 12  # every band of the cycle has its own baseline
+
+
+def test_a_page_of_windows_is_fitted_as_each_window_alone():
+    """The service fits the ellipses of a page of stored windows at once (ellipse_fits, one array pass): every
+    window's features are the ones it gets alone, to the bit; a scatter no conic fits (singular, or not finite)
+    in the batch is refused by itself and leaves the others as they are."""
+    from encoder_core.monitor import _SCATTER, _conic_fits
+
+    spec = draw_drive(5, 0.5, "harmonic_growth", onset_range_s=(6 * 3600, 6 * 3600))
+    windows = drive_windows(spec, window_s=300, sample_hz=2.0)
+    stats = [w[0] for w in windows]
+    fits = ellipse_fits(stats)
+    assert sum(fit is not None for fit, _ in fits) > 100
+    for window, page_fits in zip(windows, fits):
+        alone, in_page = features_of(*window), features_of(*window, page_fits)
+        for name in ("y", "sigma", "ratio_skew"):
+            a, b = getattr(alone, name), getattr(in_page, name)
+            assert (a is None and b is None) or np.array_equal(np.asarray(a), np.asarray(b)), name
+    # the stack's fallbacks: numpy refuses a whole stack for one singular or non-finite matrix
+    good = stats[len(stats) // 2]
+    sm, count = good.moments[_SCATTER], good.moments[0]
+    bad = [np.zeros((6, 6)), np.full((6, 6), np.nan)]
+    batch = _conic_fits(np.array([sm, *bad, sm]), np.array([count, 1.0, 1.0, count]))
+    (alone,) = _conic_fits(sm[None], np.array([count]))
+    assert batch[1] is None and batch[2] is None
+    for fit in (batch[0], batch[3]):
+        assert all(np.array_equal(x, y) for x, y in zip(fit, alone))
 
 
 def _step_monitor():
