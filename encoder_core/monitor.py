@@ -229,24 +229,22 @@ def _conic_fits(sms: np.ndarray, counts: np.ndarray) -> list[EllipseFit | None]:
     """(center, qform, rms of the conic's residual) of each 6×6 scatter of the rows [x², xy, y², x, y, 1], given
     the sum of its rows' weights (`counts`); None where the scatter holds no ellipse."""
     s1, s2, s3 = sms[:, :3, :3], sms[:, :3, 3:], sms[:, 3:, 3:]
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        t = -_solve_stack(s3, np.swapaxes(s2, 1, 2))
+    with np.errstate(all="ignore"):  # a scatter that holds no ellipse: refused by `valid`, not by a warning
+        t = -_solve_stack(s3, s2.transpose(0, 2, 1))
         eigval, eigvec = _eig_stack(_C1_INV @ (s1 + s2 @ t))
-        eigvec = np.real(eigvec)
-        cond = 4 * eigvec[:, 0] * eigvec[:, 2] - eigvec[:, 1] ** 2  # per eigenvector: an ellipse's
-        good = cond > 0
-        # among the ellipse eigenvectors, the one of the least eigenvalue
-        pick = np.argmin(np.where(good, np.abs(np.real(eigval)), np.inf), axis=1)
-        a1 = np.take_along_axis(eigvec, pick[:, None, None], axis=2)  # (k, 3, 1)
-        conic = np.concatenate([a1, t @ a1], axis=1)[..., 0]
+        v = eigvec.real
+        good = 4 * v[:, 0] * v[:, 2] - v[:, 1] ** 2 > 0  # per eigenvector: an ellipse's
+        pick = np.where(good, np.abs(eigval.real), np.inf).argmin(axis=1)  # of those, the least eigenvalue's
+        a1 = v[np.arange(len(sms)), :, pick]
+        conic = np.concatenate([a1, (t @ a1[:, :, None])[:, :, 0]], axis=1)
         a, b, c, d, e, f = conic.T
         det2 = 4 * a * c - b * b
         cx, cy = (b * e - 2 * c * d) / det2, (b * d - 2 * a * e) / det2
         f_center = f + 0.5 * (d * cx + e * cy)
-        qforms = np.stack([np.stack([a, b / 2], -1), np.stack([b / 2, c], -1)], -2) / -f_center[:, None, None]
+        qforms = np.array([[a, b / 2], [b / 2, c]]).transpose(2, 0, 1) / -f_center[:, None, None]
         conic = conic / -f_center[:, None]
         mean_sq = (conic[:, None, :] @ sms @ conic[:, :, None])[:, 0, 0] / counts
-    valid = np.any(good, axis=1) & (det2 != 0) & (f_center != 0) & np.all(np.isfinite(t), axis=(1, 2))
+        valid = good.any(axis=1) & (det2 != 0) & (f_center != 0) & np.isfinite(t).all(axis=(1, 2))
     return [
         (np.array([cx[k], cy[k]]), qforms[k], 0.5 * math.sqrt(max(float(mean_sq[k]), 0.0))) if valid[k] else None
         for k in range(len(sms))
