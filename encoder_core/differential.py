@@ -30,6 +30,7 @@ import numpy as np
 from .correction import Correction, angles_of
 from .physics import circular_mean
 from .samples import InputError
+from .stacked import solve_stack
 from .stats import N_BINS, WindowStats, plausible_mask
 
 LOCUS_ORDER = 12  # Fourier orders of the bench locus: field harmonics to 7 in either sense, with room
@@ -510,16 +511,7 @@ def _solve(
 
 def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """np.linalg.solve of a stack, with NaN rows for the singular matrices instead of one error for all."""
-    try:
-        return np.linalg.solve(matrices, rhs[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        out = np.full(rhs.shape, np.nan)
-        for k in range(len(matrices)):
-            try:
-                out[k] = np.linalg.solve(matrices[k], rhs[k])
-            except np.linalg.LinAlgError:
-                pass
-        return out
+    return solve_stack(matrices, rhs[..., None])[..., 0]
 
 
 def _jackknife(

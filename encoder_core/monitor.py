@@ -34,6 +34,7 @@ from .held import held_points
 from .monitor_causes import cause as cause_of
 from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C, band_of
+from .stacked import eig_stack, solve_stack
 from .stats import MONOMIALS, N_BINS, WindowStats
 from .thermal import LagEstimate
 
@@ -230,8 +231,8 @@ def _conic_fits(sms: np.ndarray, counts: np.ndarray) -> list[EllipseFit | None]:
     the sum of its rows' weights (`counts`); None where the scatter holds no ellipse."""
     s1, s2, s3 = sms[:, :3, :3], sms[:, :3, 3:], sms[:, 3:, 3:]
     with np.errstate(all="ignore"):  # a scatter that holds no ellipse: refused by `valid`, not by a warning
-        t = -_solve_stack(s3, s2.transpose(0, 2, 1))
-        eigval, eigvec = _eig_stack(_C1_INV @ (s1 + s2 @ t))
+        t = -solve_stack(s3, s2.transpose(0, 2, 1))
+        eigval, eigvec = eig_stack(_C1_INV @ (s1 + s2 @ t))
         v = eigvec.real
         good = 4 * v[:, 0] * v[:, 2] - v[:, 1] ** 2 > 0  # per eigenvector: an ellipse's
         pick = np.where(good, np.abs(eigval.real), np.inf).argmin(axis=1)  # of those, the least eigenvalue's
@@ -249,34 +250,6 @@ def _conic_fits(sms: np.ndarray, counts: np.ndarray) -> list[EllipseFit | None]:
         (np.array([cx[k], cy[k]]), qforms[k], 0.5 * math.sqrt(max(float(mean_sq[k]), 0.0))) if valid[k] else None
         for k in range(len(sms))
     ]
-
-
-def _solve_stack(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """np.linalg.solve of stacked systems, NaN for the singular ones (where numpy raises for the whole stack)."""
-    try:
-        return np.linalg.solve(a, b)
-    except np.linalg.LinAlgError:
-        out = np.full(b.shape, np.nan)
-        for k in range(len(a)):
-            try:
-                out[k] = np.linalg.solve(a[k], b[k])
-            except np.linalg.LinAlgError:
-                pass
-        return out
-
-
-def _eig_stack(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """np.linalg.eig of stacked matrices, NaN for those it cannot take (non-finite, or no convergence)."""
-    try:
-        return np.linalg.eig(m)
-    except np.linalg.LinAlgError:
-        values, vectors = np.full(m.shape[:2], np.nan, complex), np.full(m.shape, np.nan, complex)
-        for k in range(len(m)):
-            try:
-                values[k], vectors[k] = np.linalg.eig(m[k])
-            except np.linalg.LinAlgError:
-                pass
-        return values, vectors
 
 
 def _equal_weight_size(counts: np.ndarray) -> float:
