@@ -234,7 +234,7 @@ class BandedCorrection:
 
     def at(self, temp_c: float) -> Correction:
         """The correction interpolated to one temperature."""
-        return self.at_each([temp_c])[0]
+        return self.at_each([float(temp_c)])[0]
 
     def at_each(self, temps) -> list[Correction]:
         """The correction interpolated to each of several temperatures (one table for all: a refit's bands)."""

@@ -236,7 +236,9 @@ def _conic_fits(sms: np.ndarray, counts: np.ndarray) -> list[EllipseFit | None]:
         v = eigvec.real
         good = 4 * v[:, 0] * v[:, 2] - v[:, 1] ** 2 > 0  # per eigenvector: an ellipse's
         pick = np.where(good, np.abs(eigval.real), np.inf).argmin(axis=1)  # of those, the least eigenvalue's
-        a1 = v[np.arange(len(sms)), :, pick]
+        rows = np.arange(len(sms))
+        pick = np.where(good[rows, pick], pick, good.argmax(axis=1))  # (every good one infinite: the first of them)
+        a1 = v[rows, :, pick]
         conic = np.concatenate([a1, (t @ a1[:, :, None])[:, :, 0]], axis=1)
         a, b, c, d, e, f = conic.T
         det2 = 4 * a * c - b * b
