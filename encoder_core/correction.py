@@ -135,17 +135,14 @@ def angles_of(corrections: list[Correction], d: np.ndarray, q: np.ndarray) -> np
 def _angle_of_columns(column, orders: list[int], d: np.ndarray, q: np.ndarray) -> np.ndarray:
     """The correction form's angle with its parameters given as columns that broadcast against d and q: column(k)
     is parameter k of params(orders), per sample (BandedCorrection) or per row (angles_of)."""
-    u1 = column(0) * d + column(1)
-    u2 = column(2) * q + column(3) + column(4) * u1
+    u1, u2 = _affine(column, d, q)
     theta0 = np.arctan2(u2, u1)
     harmonics = {m: (column(6 + 2 * i), column(7 + 2 * i)) for i, m in enumerate(orders)}
     return wrap_rad(theta0 + column(5) + harmonic_sum(theta0, harmonics))
 
 
-def _affine(column, d, q) -> tuple[np.ndarray, np.ndarray]:
-    """u1, u2 of the correction form with per-sample parameters: column(k) is w1..w5 for k = 0..4 (BandedCorrection)."""
-    d = np.asarray(d, dtype=float).ravel()
-    q = np.asarray(q, dtype=float).ravel()
+def _affine(column, d: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """u1, u2 of the correction form with its parameters as columns: column(k) is w1..w5 for k = 0..4."""
     u1 = column(0) * d + column(1)
     return u1, column(2) * q + column(3) + column(4) * u1
 
@@ -250,7 +247,7 @@ class BandedCorrection:
     def radius(self, d, q, temp_c=None) -> np.ndarray:
         """|u| of the corrected point: 1 everywhere when the gains, offsets and phase are right."""
         _, column = self._columns(self._temps_for(d, temp_c))
-        return np.hypot(*_affine(column, d, q))
+        return np.hypot(*_affine(column, np.asarray(d, float).ravel(), np.asarray(q, float).ravel()))
 
     def _temps_for(self, d, temp_c) -> np.ndarray:
         n = np.asarray(d).size

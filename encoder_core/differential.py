@@ -649,10 +649,8 @@ def anchor_zeros(
     if not candidates:
         return []
     # each band's bench locus at every whole degree, taken back through its drift: the field's locus
-    points = [
-        drift.inverse(_whole_degrees(locus.order) @ locus.d, _whole_degrees(locus.order) @ locus.q)
-        for locus, drift in zip(loci, drifts)
-    ]
+    designs = [_whole_degrees(locus.order) for locus in loci]
+    points = [drift.inverse(m @ locus.d, m @ locus.q) for m, locus, drift in zip(designs, loci, drifts)]
     d, q = np.array([p[0] for p in points]), np.array([p[1] for p in points])
     diff = angles_of(factories, d, q) - angles_of(candidates, d, q)
     shifts = circular_mean(diff, axis=1)

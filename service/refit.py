@@ -201,8 +201,9 @@ def refit_from_bench(
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
-    candidates = []  # per band the refit speaks for: (band, statistics, candidate, quality, its error, locus, errors)
-    to_anchor = []  # (place in candidates, ruler, drift) of the candidates that take the ruler's zero
+    candidates = []  # per band the refit speaks for: (band, statistics, quality, the candidate's error, locus, errors)
+    corrs = []  # and its candidate correction
+    to_anchor = []  # (place, ruler, drift) of the candidates that take the ruler's zero
     spoken = model_bands(fits, model)
     running_at = {band_index(c): c.temp_c for c in running.bands}  # each running entry's temperature, by band
     for band, temp_c, stats in spoken:
@@ -230,18 +231,19 @@ def refit_from_bench(
         else:
             corr, quality, err_new, drift = drift_candidate(terms, errors, temp_c, factory, locus)
             # its zero the ruler's: the factory, moved by the axis turns named since the bench
-            to_anchor.append((len(candidates), factory.axes_moved(axis_turn) if axis_turn else factory, drift))
+            to_anchor.append((len(corrs), factory.axes_moved(axis_turn) if axis_turn else factory, drift))
         quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
-        candidates.append((band, stats, corr, quality, err_new, locus, errors))
+        candidates.append((band, stats, quality, err_new, locus, errors))
+        corrs.append(corr)
     # every band's candidate anchored and checked against the running set around its circle, in one array pass each
     if to_anchor:
         places, rulers, drifts = zip(*to_anchor)
-        unanchored = [candidates[k][2] for k in places]
-        for k, corr in zip(places, anchor_zeros(unanchored, rulers, [candidates[k][5] for k in places], drifts)):
-            candidates[k] = (*candidates[k][:2], corr, *candidates[k][3:])
-    nows = running.at_each([corr.temp_c for _, _, corr, *_ in candidates])
-    errs_now = differences_deg(nows, [corr for _, _, corr, *_ in candidates])
-    for (band, stats, corr, quality, err_new, locus, errors), now, err_now in zip(candidates, nows, errs_now):
+        loci = [candidates[k][4] for k in places]
+        for k, corr in zip(places, anchor_zeros([corrs[k] for k in places], rulers, loci, drifts)):
+            corrs[k] = corr
+    nows = running.at_each([corr.temp_c for corr in corrs])
+    errs_now = differences_deg(nows, corrs)
+    for (band, stats, quality, err_new, locus, errors), corr, now, err_now in zip(candidates, corrs, nows, errs_now):
         err_now = float(err_now)
         if stats is not None:
             moves.append(
