@@ -19,6 +19,7 @@ from tqdm import tqdm
 from edge_agent.sources import SimulatedDrive, drive_model, evaluation_set, factory_calibration
 from encoder_core.correction import BandedCorrection
 from encoder_core.physics import angle_error_deg, rms
+from encoder_fleet.logs import to_file
 from fleet_wire.session import free_port, loopback_endpoint
 from service.auth import TokenAuth
 from service.guard import service_security
@@ -140,6 +141,12 @@ def run_demo(
     if out_dir.exists():
         shutil.rmtree(out_dir)
     (out_dir / "outbox").mkdir(parents=True)
+    with to_file(out_dir / "service.log"):  # the service's events in a file: stderr shows progress and the summary
+        return _serve(devices=devices, sim_hours=sim_hours, out_dir=out_dir, json_path=json_path, insecure=insecure)
+
+
+def _serve(*, devices: int, sim_hours: float, out_dir: Path, json_path: Path | None, insecure: bool) -> int:
+    """The demo's fleet: service, agents, summary."""
     db = out_dir / "fleet.sqlite"
     endpoint = loopback_endpoint()
     http_port = free_port()
@@ -244,6 +251,8 @@ def run_demo(
         service.stop()
         session.close()
         store.close()
+    log_path = out_dir / "service.log"
+    summary["service_log"] = {"path": str(log_path), "events": log_path.read_text(encoding="utf-8").count("\n")}
     print(format_summary(summary))
     if json_path is not None:
         json_path.write_text(json.dumps(summary, indent=1) + "\n")
@@ -291,6 +300,11 @@ def format_summary(summary: dict) -> str:
         f"database: {summary['database']}",
         f"MCAP exports (open in Foxglove): {', '.join(summary['mcap'])}",
         f"plot: {summary['plot']}",
+        *(
+            [f"service log: {summary['service_log']['path']} ({summary['service_log']['events']} events, JSON lines)"]
+            if "service_log" in summary
+            else []
+        ),
         f"rejected messages: {summary['rejections'] or 'none'}",
         f"security: {summary.get('security', '?')}",
         "",

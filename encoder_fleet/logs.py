@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from contextlib import contextmanager
+from pathlib import Path
 
 LEVELS = ("debug", "info", "warning", "error")
 # attributes every LogRecord has; anything else was passed as `extra=` and becomes a field of the event
@@ -47,6 +49,22 @@ def configure(level: str = "warning") -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
+
+
+@contextmanager
+def to_file(path: Path):
+    """Log events go to `path` (JSON lines, appended) instead of stderr while the block runs: a command whose
+    stderr shows progress and a summary keeps the events in a file beside its other outputs."""
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setFormatter(JsonLines())
+    root = logging.getLogger()
+    kept = root.handlers[:]
+    root.handlers[:] = [handler]
+    try:
+        yield handler
+    finally:
+        root.handlers[:] = kept
+        handler.close()
 
 
 def add_level_option(parser) -> None:

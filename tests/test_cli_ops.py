@@ -49,6 +49,24 @@ def test_service_logs_one_json_event_per_line_at_the_level_asked(tmp_path):
     assert "service started" not in err
 
 
+def test_log_events_go_to_a_file_while_a_command_shows_progress_and_back_to_stderr_after(tmp_path, capsys):
+    """The demo keeps the service's events in DIR/service.log: its stderr is the progress bar and the summary."""
+    import logging
+
+    from encoder_fleet.logs import configure, to_file
+
+    configure("warning")
+    log = logging.getLogger("service.monitor")
+    with to_file(tmp_path / "service.log"):
+        log.warning("alarm raised", extra={"device": "drive-000", "cause": "offset_step"})
+        log.info("below the level asked")
+    log.warning("after the block")
+    (event,) = [json.loads(line) for line in (tmp_path / "service.log").read_text().splitlines()]
+    assert (event["event"], event["device"], event["cause"]) == ("alarm raised", "drive-000", "offset_step")
+    err = capsys.readouterr().err
+    assert "alarm raised" not in err and json.loads(err.splitlines()[-1])["event"] == "after the block"
+
+
 def _options(parser):
     import argparse
 
