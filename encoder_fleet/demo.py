@@ -141,12 +141,22 @@ def run_demo(
     if out_dir.exists():
         shutil.rmtree(out_dir)
     (out_dir / "outbox").mkdir(parents=True)
-    with to_file(out_dir / "service.log"):  # the service's events in a file: stderr shows progress and the summary
-        return _serve(devices=devices, sim_hours=sim_hours, out_dir=out_dir, json_path=json_path, insecure=insecure)
+    log_path = out_dir / "service.log"
+    with to_file(log_path):  # the service's events in a file: stderr shows progress and the summary
+        return _serve(
+            devices=devices,
+            sim_hours=sim_hours,
+            out_dir=out_dir,
+            log_path=log_path,
+            json_path=json_path,
+            insecure=insecure,
+        )
 
 
-def _serve(*, devices: int, sim_hours: float, out_dir: Path, json_path: Path | None, insecure: bool) -> int:
-    """The demo's fleet: service, agents, summary."""
+def _serve(
+    *, devices: int, sim_hours: float, out_dir: Path, log_path: Path, json_path: Path | None, insecure: bool
+) -> int:
+    """The demo's fleet: service, agents, summary (the service's log events go to log_path)."""
     db = out_dir / "fleet.sqlite"
     endpoint = loopback_endpoint()
     http_port = free_port()
@@ -251,7 +261,6 @@ def _serve(*, devices: int, sim_hours: float, out_dir: Path, json_path: Path | N
         service.stop()
         session.close()
         store.close()
-    log_path = out_dir / "service.log"
     summary["service_log"] = {"path": str(log_path), "events": log_path.read_text(encoding="utf-8").count("\n")}
     print(format_summary(summary))
     if json_path is not None:
@@ -300,11 +309,7 @@ def format_summary(summary: dict) -> str:
         f"database: {summary['database']}",
         f"MCAP exports (open in Foxglove): {', '.join(summary['mcap'])}",
         f"plot: {summary['plot']}",
-        *(
-            [f"service log: {summary['service_log']['path']} ({summary['service_log']['events']} events, JSON lines)"]
-            if "service_log" in summary
-            else []
-        ),
+        f"service log: {summary['service_log']['path']} ({summary['service_log']['events']} events, JSON lines)",
         f"rejected messages: {summary['rejections'] or 'none'}",
         f"security: {summary.get('security', '?')}",
         "",

@@ -61,7 +61,7 @@ def to_file(path: Path):
     kept = root.handlers[:]
     root.handlers[:] = [handler]
     try:
-        yield handler
+        yield
     finally:
         root.handlers[:] = kept
         handler.close()
