@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 
 # every device a secured test starts; the registry (and so the router's ACL) is these certificates
@@ -17,6 +19,17 @@ def make_pki(path, devices):
     for device in devices:
         issue(path, device)
     return path
+
+
+@pytest.fixture(autouse=True)
+def root_logger_restored():
+    """A test that runs a command in-process (`cli.main` calls `logs.configure`) leaves the root logger as it found
+    it: otherwise the worker's later tests print their service warnings as JSON lines into pytest's output."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
 
 
 @pytest.fixture(scope="session")

@@ -55,18 +55,12 @@ def test_log_events_go_to_a_file_while_a_command_shows_progress_and_back_to_stde
 
     from encoder_fleet.logs import configure, to_file
 
-    root = logging.getLogger()
-    kept_handlers, kept_level = root.handlers[:], root.level
-    configure("warning")
+    configure("warning")  # the root logger is restored after the test (conftest.root_logger_restored)
     log = logging.getLogger("service.monitor")
-    try:
-        with to_file(tmp_path / "service.log"):
-            log.warning("alarm raised", extra={"device": "drive-000", "cause": "offset_step"})
-            log.info("below the level asked")
-        log.warning("after the block")
-    finally:  # the worker's later tests keep the logging they had
-        root.handlers[:] = kept_handlers
-        root.setLevel(kept_level)
+    with to_file(tmp_path / "service.log"):
+        log.warning("alarm raised", extra={"device": "drive-000", "cause": "offset_step"})
+        log.info("below the level asked")
+    log.warning("after the block")
     (event,) = [json.loads(line) for line in (tmp_path / "service.log").read_text().splitlines()]
     assert (event["event"], event["device"], event["cause"]) == ("alarm raised", "drive-000", "offset_step")
     err = capsys.readouterr().err
