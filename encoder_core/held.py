@@ -133,11 +133,15 @@ AT_BENCH_PRIOR = 1e-6
 # +41 °C, with the square as loose as the slope, was extrapolated to 0.95° at -20 °C (s6-20hz-06; its truth 0.04°)
 SQUARE_PRIOR = 0.1
 SLOPE_PRIOR = {"offset_d": 1e-3, "offset_q": 1e-3, "imbalance": 5e-3, "axis": 1e-3, "common": 3e-2, "zero": 1e-3}
-# after an offset step the offsets at the bench are the step's: held loosely (fraction of the radius; the monitor names
-# steps of 0.2-1 %), so the held points' radial parts measure them and their angles along the circle still tie each
-# θ_k to the factory's (a shift of the circle is no turn of it)
-STEPPED_OFFSET_PRIOR = 0.05
-STEPPED_TERMS = ("offset_d", "offset_q")
+# after a step the terms it moved are the step's at the bench: held loosely (fraction of the radius, or log gain; the
+# monitor names steps of 0.2-1 %), so the held points' radial parts measure them and their angles along the circle
+# still tie each θ_k to the factory's (a shift or a stretch of the circle is no turn of it). A step the held test could
+# not judge (no position held before it was left to compare with) is named an offset step, and may have been one
+# channel's gain: both are fitted and the one the points sit closer to across the circle is taken (s4-20hz-22, a q
+# gain step: 60-80 times the points' errors squared as an offset step, 11-15 as a gain step; s1-20hz-02, an offset
+# step: 0.7-8 as one, no fit at all as a gain step)
+STEP_PRIOR = 0.05
+STEP_KINDS = {"offset": ("offset_d", "offset_q"), "gain": ("common", "imbalance")}  # the terms each kind moves
 
 
 @dataclass
@@ -157,6 +161,13 @@ class HeldDrift:
     _params: np.ndarray | None = None
     _cov: np.ndarray | None = None
     _step_share: np.ndarray | None = None  # which parameters are a step's, not drift (offsets_stepped)
+    step: str | None = None  # the kind of step fitted (STEP_KINDS), None when the bench holds
+
+    @property
+    def across_misfit(self) -> float:
+        """Mean square of the kept points' misfit across the circle, in their own errors."""
+        across = self.misfit[:, 0]
+        return float(np.mean(across[np.isfinite(across)] ** 2))
 
     def covers(self, temp_c: float) -> bool:
         """Every position was held within POSITION_REACH_C of this temperature: the positions' angles there are
@@ -207,8 +218,17 @@ def held_drift_model(
     are scaled by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more.
     The bench's zero drift is what ties the θ_k to the factory's angles, so only while the bench holds, or after
     offset steps alone (offsets_stepped: the band sums hold only windows since the last step, and the offsets'
-    values at the bench, the steps', are fitted too, STEPPED_OFFSET_PRIOR; a gain or axis step's rotation half
-    would turn every θ_k alike, which no held point tells from the factory's zero)."""
+    values at the bench, the steps', are fitted too, STEP_PRIOR; a gain or axis step's rotation half
+    would turn every θ_k alike, which no held point tells from the factory's zero). A step named an offset step may
+    have been one channel's gain (STEP_KINDS): both are fitted, and the one closer to the points across is taken."""
+    if not offsets_stepped:
+        return _held_drift(bands, locus, None, iterations)
+    fits = [_held_drift(bands, locus, kind, iterations) for kind in STEP_KINDS]
+    return min((f for f in fits if f is not None), key=lambda f: f.across_misfit, default=None)
+
+
+def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, iterations: int) -> HeldDrift | None:
+    """held_drift_model's fit, the terms of a step of this kind (STEP_KINDS) fitted at the bench too."""
     obs = [h for stats in bands for h in held_runs(stats, split=True)]
     if obs:
         # a held position scatters along the circle with the channels' noise, the same at every position of a drive;
@@ -237,8 +257,8 @@ def held_drift_model(
     sd = np.sqrt(np.array([h.var for h in obs]) + (HELD_FLOOR * radius) ** 2)
     outward = (points - c) / np.hypot(*(points - c).T)[:, None]  # each point's radial direction
     n_coef = 3  # square, slope, value at the bench (np.vander's order)
-    stepped = STEPPED_TERMS if offsets_stepped else ()
-    at_bench = [STEPPED_OFFSET_PRIOR if t in stepped else AT_BENCH_PRIOR for t in HELD_TERMS]
+    stepped = STEP_KINDS[step] if step else ()
+    at_bench = [STEP_PRIOR if t in stepped else AT_BENCH_PRIOR for t in HELD_TERMS]
     prior = np.concatenate([[SQUARE_PRIOR * SLOPE_PRIOR[t], SLOPE_PRIOR[t], b] for t, b in zip(HELD_TERMS, at_bench)])
     # the step's share of the parameters (the stepped offsets at the bench): the drift since the bench leaves it out
     step_share = np.zeros(k_pos + prior.size, bool)
@@ -347,6 +367,7 @@ def held_drift_model(
         _along=along,
         _params=params,
         _step_share=step_share,
+        step=step,
         _cov=cov,
     )
 

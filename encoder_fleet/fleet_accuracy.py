@@ -357,7 +357,17 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     step_at = event.at
                     axis_turn += event.parameters["delta_skew"] if event.cause == "axis_step" else 0.0
                     offsets_stepped_only &= event.cause == "offset_step"
-                    if trial is not None and trial[0]["created_at"] >= event.at:
+                    if not watch.step_measured(event.at):  # service.runtime.back_to_factory: not moved for
+                        pending = {
+                            "bands": factory_msg["bands"],
+                            "basis": "rollback",
+                            "version": len(timeline),
+                            "created_at": end_s,
+                            "bands_from": -math.inf,  # the factory's bands: from the bench
+                        }
+                        confirmed, trial, deferred = pending, None, None
+                        next_refit = end_s + refit_every_s
+                    elif trial is not None and trial[0]["created_at"] >= event.at:
                         deferred = None  # the set on trial was fitted after the step (service.runtime.refit)
                     elif pending is not None or trial is not None:  # the move waits for them
                         deferred = (event.cause, event.parameters, event.at)

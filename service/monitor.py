@@ -144,6 +144,13 @@ class Monitor:
             mon = self.devices.get(device)
             return mon is not None and mon.watches_held_positions()
 
+    def step_measured(self, device: str, at: float) -> bool:
+        """Whether the step the device's monitor raised at `at` was measured as its alarm names it
+        (DeviceMonitor.step_measured): only then is the running set moved by the alarm's parameters."""
+        with self._lock:
+            mon = self.devices.get(device)
+            return mon is None or mon.step_measured(at)
+
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
         """A step (offset, gain or axes) is cleared once the fleet has re-corrected the drive: a coefficient set
         created after the step has been applied by the agent (the refit history)."""

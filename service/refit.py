@@ -129,7 +129,8 @@ def refit_device(
     is then no point of the drift curve (no drift at its temperature would undo the step there).
 
     offsets_stepped_only: every step named since the bench was an offset step. The positions a drive holds then
-    still measure its drift, the steps' offsets with it (held_model).
+    still measure its drift, the steps' offsets with it, or one channel's gain where the step was that (held_model;
+    the held test names a step offset_step when it cannot tell them apart: DeviceMonitor.step_measured).
 
     axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
     is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a

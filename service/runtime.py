@@ -871,6 +871,13 @@ class FleetService:
                     self._step_moves.pop(device, None)
         if held:
             return None
+        if step is not None and not self.monitor.step_measured(device, step[2]):
+            with self._lock:  # the factory set now, whatever is on trial (one whose fit mixed the step's two sides)
+                if self._step_moves.get(device) is step:
+                    self._step_moves.pop(device, None)
+            version = self.back_to_factory(device, step)
+            self._refitted(device)
+            return version
         if trial is not None:
             return self._judge_trial(device, trial)
         if step is not None and (version := self.publish_step_move(device, *step[:2])) is not None:
@@ -902,6 +909,27 @@ class FleetService:
         bands = step_moved_bands(running["bands"], cause, step, scale)
         reason = f"{cause.replace('_', ' ')}: v{running_version} moved for it ({cause_of(cause).state(**step)})"
         return self._issue_set(device, "fit", bands, state="trial", reason=reason)
+
+    def back_to_factory(self, device: str, step: tuple) -> int | None:
+        """A step the drift monitor could not measure (DeviceMonitor.step_measured: the positions held across it moved
+        as an offset step and as one channel's gain alike): the factory set again (basis rollback, restores v0,
+        confirmed), a set on trial rolled back with it. Moved the wrong way, the running set would leave twice the
+        step's error around the circle; unmoved, its drift correction and the step's error may add where the
+        factory set's cancel (s2-20hz-22: 0.13-0.16° for six hours against 0.05-0.14°). Band memory restarted with
+        the alarm, and the refit measures which step it was from the positions held since (held_drift_model).
+        Returns the version published, None when the factory set already runs."""
+        running_version = self.store.published_version(device)
+        if not running_version:
+            return None
+        cause, parameters, _ = step
+        trial = self.store.set_on_trial(device)
+        reason = (
+            f"{cause.replace('_', ' ')} ({cause_of(cause).state(**parameters)}) not told from one channel's gain by "
+            "the positions the drive holds: the reference-measured set until the refit measures which"
+        )
+        return self.roll_back(
+            device, trial["version"] if trial is not None else None, self.store.coefficient_set(device, 0), reason
+        )
 
     def publish_lag(self, device: str) -> int | None:
         """Where the windows measure the die's lag clear of the one the drive runs (encoder_core/thermal.py): the

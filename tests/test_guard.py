@@ -379,6 +379,35 @@ def test_a_step_moves_the_running_set_at_once(fleet, cause, parameters):
     assert store.published_version(DEVICE) == 1
 
 
+def test_a_step_the_monitor_could_not_measure_returns_the_drive_to_its_factory_set(fleet):
+    """An offset step the held test named with no position held before it left to compare with may have been one
+    channel's gain (DeviceMonitor.step_measured is False for it): moved as an offset step, a gain step's error grows
+    around the circle, and unmoved, the running set's drift correction may add to it. The next pass publishes the
+    factory set again (basis rollback, restores v0, confirmed), rolls back the set on trial, and moves nothing; the
+    refit after it measures which step it was (held_drift_model). A step the monitor measured is moved for (above)."""
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_msg = factory_set(store)
+    run_on(store, 0, hours=1.0)
+    publish_trial(store, service, [dict(b) for b in factory_msg["bands"]])  # a refit's set, as good as the factory's
+    step = {"id": 1, "device": DEVICE, "cause": "offset_step", "parameters": {"delta_d": 0.0, "delta_q": -0.005}}
+    step |= {"evidence": "a test step", "raised_at": 5400.0, "cleared_at": None}
+    with service.monitor._lock:  # the monitor's verdict on this step, as DeviceMonitor._held_judge leaves it
+        service.monitor._device(DEVICE).undecided_step_at = 5400.0
+    assert not service.monitor.step_measured(DEVICE, 5400.0) and service.monitor.step_measured(DEVICE, 5460.0)
+    service._publish_alarm(*alarms.encode(step))
+    assert service.refit_all() == [2]
+    history = {h["version"]: h for h in store.coefficient_history(DEVICE)}
+    assert history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
+    assert history[2]["state"] == "confirmed" and "one channel's gain" in history[2]["state_reason"]
+    assert history[1]["state"] == "rolled_back"
+    assert store.coefficient_set(DEVICE, 2)["bands"] == factory_msg["bands"]
+    assert DEVICE not in service._step_moves
+    service.refit_all()  # nothing moved for the step later either
+    assert store.published_version(DEVICE) == 2
+
+
 def test_a_step_raised_while_a_pass_refits_the_device_is_moved_for_by_the_next_pass(fleet):
     """The monitor's thread raised a step while the refit thread was inside refit() for the device, after it had
     read the pending steps: the refit's clean-up dropped the new step unread and the drive was never moved for it.
