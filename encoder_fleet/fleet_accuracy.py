@@ -358,13 +358,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     axis_turn += event.parameters["delta_skew"] if event.cause == "axis_step" else 0.0
                     offsets_stepped_only &= event.cause == "offset_step"
                     if not watch.step_measured(event.at):  # service.runtime.back_to_factory: not moved for
-                        pending = {
-                            "bands": factory_msg["bands"],
-                            "basis": "rollback",
-                            "version": len(timeline),
-                            "created_at": end_s,
-                            "bands_from": -math.inf,  # the factory's bands: from the bench
-                        }
+                        pending = factory_again(factory_msg, len(timeline), end_s)
                         confirmed, trial, deferred = pending, None, None
                         next_refit = end_s + refit_every_s
                     elif trial is not None and trial[0]["created_at"] >= event.at:
@@ -381,13 +375,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             if watch_against_factory(sums.recent(since), running, factory):
                 # the first rule: the running set is worse than the factory's: the factory's again, and the drive
                 # learnt from what it is now
-                pending = {
-                    "bands": factory_msg["bands"],
-                    "basis": "rollback",
-                    "version": len(timeline),
-                    "created_at": end_s,
-                    "bands_from": -math.inf,  # the factory's bands: from the bench
-                }
+                pending = factory_again(factory_msg, len(timeline), end_s)
                 confirmed, trial = pending, None
                 sums.restart(after_s=end_s - WATCH_S)
                 next_refit = end_s + refit_every_s
@@ -436,6 +424,18 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 continue  # the agent refuses it and keeps running what it has
             pending = {"bands": result.bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
     return timeline
+
+
+def factory_again(factory_msg: dict, version: int, at: float) -> dict:
+    """The factory set sent again (service.runtime._factory_again: basis rollback, confirmed as it is sent)."""
+    bands_from = -math.inf  # the factory's bands: from the bench
+    return {
+        "bands": factory_msg["bands"],
+        "basis": "rollback",
+        "version": version,
+        "created_at": at,
+        "bands_from": bands_from,
+    }
 
 
 def bands_from(msg: dict) -> float:

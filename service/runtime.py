@@ -751,10 +751,7 @@ class FleetService:
         found = watch_against_factory(self.store.stats_since(device, since), running, factory)
         if not found:
             return None
-        reason = "worse than the factory set: " + "; ".join(f.reason for f in found)
-        trial = self.store.set_on_trial(device)
-        factory_msg = self.store.coefficient_set(device, 0)
-        version = self.roll_back(device, trial["version"] if trial is not None else None, factory_msg, reason)
+        version = self._factory_again(device, "worse than the factory set: " + "; ".join(f.reason for f in found))
         self.store.restart_band_memory(device, after=drive_now - WATCH_S)
         self._fitted_at[device] = drive_now  # the next refit an hour on, from what the drive is now
         return version
@@ -862,19 +859,18 @@ class FleetService:
             step = self._step_moves.get(device)
         held = self.rollouts.holds(device)
         trial = None if held else self.store.set_on_trial(device)
-        if trial is None or (step is not None and trial["message"]["created_at"] >= step[2]):
+        unmeasured = step is not None and not self.monitor.step_measured(device, step[2])
+        if trial is None or unmeasured or (step is not None and trial["message"]["created_at"] >= step[2]):
             # a rollout goes first (the refit after it sees the step); a set on trial fitted after the step has
             # nothing to move; otherwise the move waits for the trial's verdict, then moves what runs (s4-20hz-08:
-            # an axis step during a trial was dropped, and the drive ran 0.13-0.22° for a day against 0.02-0.04°)
+            # an axis step during a trial was dropped, and the drive ran 0.13-0.22° for a day against 0.02-0.04°);
+            # a step the monitor could not measure brings the factory set now, whatever is on trial
             with self._lock:  # only the step read above: one the monitor raised since waits for the next pass
                 if self._step_moves.get(device) is step:
                     self._step_moves.pop(device, None)
         if held:
             return None
-        if step is not None and not self.monitor.step_measured(device, step[2]):
-            with self._lock:  # the factory set now, whatever is on trial (one whose fit mixed the step's two sides)
-                if self._step_moves.get(device) is step:
-                    self._step_moves.pop(device, None)
+        if unmeasured:
             version = self.back_to_factory(device, step)
             self._refitted(device)
             return version
@@ -922,11 +918,15 @@ class FleetService:
         if not running_version:
             return None
         cause, parameters, _ = step
-        trial = self.store.set_on_trial(device)
         reason = (
             f"{cause.replace('_', ' ')} ({cause_of(cause).state(**parameters)}) not told from one channel's gain by "
             "the positions the drive holds: the reference-measured set until the refit measures which"
         )
+        return self._factory_again(device, reason)
+
+    def _factory_again(self, device: str, reason: str) -> int:
+        """The factory set published again (basis rollback, restores v0, confirmed), a set on trial rolled back."""
+        trial = self.store.set_on_trial(device)
         return self.roll_back(
             device, trial["version"] if trial is not None else None, self.store.coefficient_set(device, 0), reason
         )
