@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from encoder_core.correction import BandedCorrection
-from encoder_core.held import held_points
+from encoder_core.held import held_drift_model, held_points
 from encoder_core.monitor import DeviceMonitor, Settings, window_features
 from encoder_core.physics import band_of
 from encoder_core.samples import Samples
@@ -18,7 +18,7 @@ from encoder_core.stats import WindowStats, normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
 from encoder_fleet.fleet_accuracy import drive_of, fleet_specs, windows_of, worse_than
-from service.refit import difference_deg, refit_device, step_moved_bands
+from service.refit import bench_anchors, difference_deg, refit_device, step_moved_bands
 from service.trial import MIN_SOAK_SAMPLES, TrialEvidence, judge
 from tests.monitor_runs import offset_step_alarms, step_alarms
 
@@ -570,9 +570,6 @@ def test_after_a_step_the_held_test_could_not_judge_the_held_positions_tell_a_ga
     temperature; on each, the other kind's fit failed its checks), and after a gain step the refit's set leaves at
     least five times less true angle error than the factory set (which runs then: the service returns to it for
     such a step) on the half day after: 59x, 17x, 51x."""
-    from encoder_core.held import held_drift_model
-    from service.refit import bench_anchors
-
     kinds, gains = [], []
     for seed in range(8):
         for planted in ("gain", "offset"):
