@@ -24,6 +24,7 @@ import numpy as np
 
 from encoder_core.correction import BandedCorrection, Correction, angles_of, zero_shift
 from encoder_core.differential import (
+    MODEL_REACH_C,
     TERMS,
     BenchLocus,
     Drift,
@@ -202,6 +203,7 @@ def refit_from_bench(
     result = RefitResult(bands=[])
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
+    move_temps = []  # and the temperature it was measured at
     candidates = []  # per band the refit speaks for: (band, statistics, quality, the candidate's error, locus, errors)
     corrs = []  # and its candidate correction
     to_anchor = []  # (place, ruler, drift) of the candidates that take the ruler's zero
@@ -250,6 +252,7 @@ def refit_from_bench(
             moves.append(
                 (centre(corr) - centre(now), locus.radius * np.array([errors["offset_d"], errors["offset_q"]]))
             )
+            move_temps.append(corr.temp_c)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         if held is not None and not held.drift.covers(corr.temp_c):
             adopt = False  # a position the drive holds was not seen near this temperature: its angle is a guess
@@ -284,14 +287,14 @@ def refit_from_bench(
     # agrees on (a step the monitor saw restarts band memory: the first band fitted after it moves the rest)
     moved = offset_move(moves, anchors[0][1].radius) if after_step else None
     if moved is not None:
-        result.moved_bands = sorted({band_index(c) for c in running.bands} - set(chosen))
+        running, result.moved_bands = moved_near(running, moved, move_temps, set(chosen))
     # without a drift curve (one band fitted) nothing measured the drift between that band and its neighbours
     # (with one, the curve through the bench says it, and reaches MODEL_REACH_C past the fitted bands: holding the
     # running set a band away from every adopted band there cost evenly turning drives 5-25 % of their gain)
     # and only where the drive dwelt: a reversing drive's arc spreads its samples over the circle and its lone
     # band's reach cost three reversing drives an hour each after axis steps
     adopted = {d.band for d in result.decisions if d.adopted and dwelt(fits[d.band][1])} if model is None else set()
-    result.bands = with_running_bands(chosen, running if moved is None else running.offsets_moved(*moved), adopted)
+    result.bands = with_running_bands(chosen, running, adopted)
     return result
 
 
@@ -343,6 +346,29 @@ def step_moved_bands(bands: list[dict], cause: str, step: dict, scale: float) ->
 def centre(corr: Correction) -> np.ndarray:
     """The raw (d, q) point a correction takes to the circle's centre."""
     return np.array([-corr.w2 / corr.w1, -corr.w4 / corr.w3])
+
+
+def moved_near(
+    running: BandedCorrection, move: tuple[float, float], temps: list[float], spoken: set[int]
+) -> tuple[BandedCorrection, list[int]]:
+    """The running set moved by an offset change (offset_move), and the bands the refit said nothing about that it
+    moved (the others are the refit's). A move is measured against the running set at the fitted bands'
+    temperatures (`temps`), so it is the step plus the drift there that the running set does not correct. Where
+    the running set has an entry within MODEL_REACH_C of each of them, that is its fit's error, small beside a step,
+    and the move reaches every band. Where it runs an entry from farther away (the factory set again: one entry,
+    flat in temperature), the move carries that entry's drift out to the fitted bands, and it reaches only the
+    bands within MODEL_REACH_C of them: a move measured at -16..-6 °C took the offsets' cold drift to the +20 °C
+    entry, which the drive then ran up to +63 °C (s8-20hz-10-dwell, six hours worse than the factory set;
+    s10-20hz-10-dwell, from +35..+45 °C down to -20 °C, two)."""
+
+    def reach(temp_c: float | None, others) -> bool:
+        return temp_c is None or min(abs(temp_c - t) for t in others) <= MODEL_REACH_C
+
+    fitted_there = all(reach(t, [c.temp_c for c in running.bands if c.temp_c is not None] or [t]) for t in temps)
+    near = [fitted_there or reach(corr.temp_c, temps) for corr in running.bands]
+    moved = [corr.offsets_moved(*move) if n else corr for corr, n in zip(running.bands, near)]
+    bands = sorted(band_index(c) for c, n in zip(running.bands, near) if n and band_index(c) not in spoken)
+    return BandedCorrection(moved, running.thermal_lag_s), bands
 
 
 def offset_move(moves: list[tuple[np.ndarray, np.ndarray]], radius: float) -> tuple[float, float] | None:
@@ -575,13 +601,14 @@ def refit_legacy(
             corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad + shift))
     result = RefitResult(bands=[])
     kept: dict[int, dict] = {}
-    moves = []
+    moves, move_temps = [], []
     for band, (corr, quality, stats) in candidates.items():
         now = running.at(corr.temp_c)
         err_now = difference_deg(now, corr)
         err_new = uncertainty_deg(pooled, harmonics, stats, quality["residual_rms_rad"])
         radius = 1.0 / abs(corr.w1)
         moves.append((centre(corr) - centre(now), np.full(2, radius * max(np.radians(err_new), 1e-6))))
+        move_temps.append(corr.temp_c)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         chosen = corr if adopt else now
         candidate = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
@@ -601,8 +628,8 @@ def refit_legacy(
         )
     moved = offset_move(moves, 1.0 / abs(running.bands[0].w1)) if after_step and moves else None
     if moved is not None:
-        result.moved_bands = sorted({band_index(c) for c in running.bands} - set(kept))
-    result.bands = with_running_bands(kept, running if moved is None else running.offsets_moved(*moved))
+        running, result.moved_bands = moved_near(running, moved, move_temps, set(kept))
+    result.bands = with_running_bands(kept, running)
     return result
 
 
