@@ -364,7 +364,8 @@ def moved_near(
     def reach(temp_c: float | None, others) -> bool:
         return temp_c is None or min(abs(temp_c - t) for t in others) <= MODEL_REACH_C
 
-    fitted_there = all(reach(t, [c.temp_c for c in running.bands if c.temp_c is not None] or [t]) for t in temps)
+    entries = [c.temp_c for c in running.bands if c.temp_c is not None]
+    fitted_there = not entries or all(reach(t, entries) for t in temps)
     near = [fitted_there or reach(corr.temp_c, temps) for corr in running.bands]
     moved = [corr.offsets_moved(*move) if n else corr for corr, n in zip(running.bands, near)]
     bands = sorted(band_index(c) for c, n in zip(running.bands, near) if n and band_index(c) not in spoken)
