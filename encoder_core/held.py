@@ -162,6 +162,7 @@ class HeldDrift:
     _cov: np.ndarray | None = None
     _step_share: np.ndarray | None = None  # which parameters are a step's, not drift (offsets_stepped)
     step: str | None = None  # the kind of step fitted (STEP_KINDS), None when the bench holds
+    failed: str = ""  # the check the curve failed ("a gap" between positions, the misfit "along" the circle), or ""
 
     @property
     def across_misfit(self) -> float:
@@ -220,11 +221,18 @@ def held_drift_model(
     offset steps alone (offsets_stepped: the band sums hold only windows since the last step, and the offsets'
     values at the bench, the steps', are fitted too, STEP_PRIOR; a gain or axis step's rotation half
     would turn every θ_k alike, which no held point tells from the factory's zero). A step named an offset step may
-    have been one channel's gain (STEP_KINDS): both are fitted, and the one closer to the points across is taken."""
+    have been one channel's gain (STEP_KINDS): both are fitted, and the one closer to the points across is taken
+    if it passes its checks (none otherwise)."""
     if not offsets_stepped:
-        return _held_drift(bands, locus, None, iterations)
-    fits = [_held_drift(bands, locus, kind, iterations) for kind in STEP_KINDS]
-    return min((f for f in fits if f is not None), key=lambda f: f.across_misfit, default=None)
+        fit = _held_drift(bands, locus, None, iterations)
+        return fit if fit is not None and not fit.failed else None
+    # the kind is chosen before its checks: a kind that fails them leaves the step unmeasured, not the other kind's
+    # (s10-20hz-14, a gain step: as one, 16 times the points' errors squared across and 3.4 along, past
+    # MAX_ALONG_SCALE; as an offset step 58 across and 2.2 along, which passed, and its set was 0.3° wrong where the
+    # factory set left 0.1°)
+    fits = [f for f in (_held_drift(bands, locus, kind, iterations) for kind in STEP_KINDS) if f is not None]
+    best = min(fits, key=lambda f: f.across_misfit, default=None)
+    return best if best is not None and not best.failed else None
 
 
 def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, iterations: int) -> HeldDrift | None:
@@ -326,8 +334,9 @@ def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, i
     used = [
         k for k in range(k_pos) if np.sum(keep & (position == k)) >= 2 and np.ptp(temps[keep & (position == k)]) > 0
     ]
-    if len(used) < MIN_POSITIONS or _largest_gap(params[used]) > MAX_GAP_RAD or scale[1] > MAX_ALONG_SCALE:
+    if len(used) < MIN_POSITIONS:
         return None
+    failed = "a gap" if _largest_gap(params[used]) > MAX_GAP_RAD else "along" if scale[1] > MAX_ALONG_SCALE else ""
     seen = len(used)
     r = residuals(params)
     jac = jacobian(params, r)
@@ -369,6 +378,7 @@ def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, i
         _step_share=step_share,
         step=step,
         _cov=cov,
+        failed=failed,
     )
 
 
