@@ -218,9 +218,9 @@ def held_drift_model(
     lag behind the temperature the windows report, along it with the angle's drift alone: each direction's errors
     are scaled by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more.
     The bench's zero drift is what ties the θ_k to the factory's angles, so only while the bench holds, or after
-    offset steps alone (offsets_stepped: the band sums hold only windows since the last step, and the offsets'
-    values at the bench, the steps', are fitted too, STEP_PRIOR; a gain or axis step's rotation half
-    would turn every θ_k alike, which no held point tells from the factory's zero). A step named an offset step may
+    offset or gain steps alone (offsets_stepped: the band sums hold only windows since the last step, and the step's
+    values at the bench are fitted too, STEP_PRIOR; an axis step's rotation half would turn every θ_k alike, which
+    no held point tells from the factory's zero). A step named an offset step may
     have been one channel's gain (STEP_KINDS): both are fitted, and the one closer to the points across is taken
     if it passes its checks (none otherwise)."""
     if not offsets_stepped:

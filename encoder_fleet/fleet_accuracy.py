@@ -309,7 +309,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     pending: dict | None = None  # a set message sent, applied by the agent from its next window
     step_at = None
     axis_turn = 0.0  # the axis steps named so far, summed (service.runtime.fit)
-    offsets_stepped_only = True  # every step named so far was an offset step (service.runtime.fit)
+    no_axis_step = True  # no step named so far was an axis step (service.runtime.fit)
     deferred = None  # a step's move waiting for a trial's verdict: (cause, parameters, at)
     die = DieTemperature()  # the agent's
     for start, end in windows_of(samples.t, window_s):
@@ -356,7 +356,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     sums.restart(after_s=event.at)
                     step_at = event.at
                     axis_turn += event.parameters["delta_skew"] if event.cause == "axis_step" else 0.0
-                    offsets_stepped_only &= event.cause == "offset_step"
+                    no_axis_step &= event.cause != "axis_step"
                     if not watch.step_measured(event.at):  # service.runtime.back_to_factory: not moved for
                         pending = factory_again(factory_msg, len(timeline), end_s)
                         confirmed, trial, deferred = pending, None, None
@@ -412,7 +412,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             bin_temps=bin_temps,
             after_step=after_step,
             stepped_since_bench=step_at is not None,
-            offsets_stepped_only=offsets_stepped_only,
+            no_axis_step=no_axis_step,
             axis_turn=axis_turn,
             held_watched=watch is not None and watch.watches_held_positions(),  # as service.runtime passes it
         )

@@ -111,7 +111,7 @@ def refit_device(
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
     stepped_since_bench: bool = False,
-    offsets_stepped_only: bool = False,
+    no_axis_step: bool = False,
     axis_turn: float = 0.0,
     held_watched: bool = False,
 ) -> RefitResult:
@@ -129,9 +129,11 @@ def refit_device(
     stepped_since_bench: the monitor has named a step (offsets, gain or axes) since the factory's bench: the bench
     is then no point of the drift curve (no drift at its temperature would undo the step there).
 
-    offsets_stepped_only: every step named since the bench was an offset step. The positions a drive holds then
-    still measure its drift, the steps' offsets with it, or one channel's gain where the step was that (held_model;
-    the held test names a step offset_step when it cannot tell them apart: DeviceMonitor.step_measured).
+    no_axis_step: no step named since the bench turned the sensor's axes (the steps were offset or gain steps). The
+    positions a drive holds then still measure its drift, and the step with it, as an offset step or as one channel's
+    gain, whichever the points fit (held_model; the held test names a step offset_step when it cannot tell them
+    apart: DeviceMonitor.step_measured). An axis step's rotation half turns every held position alike, which no held
+    point tells from the factory's zero.
 
     axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
     is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a
@@ -152,7 +154,7 @@ def refit_device(
             bin_temps=bin_temps,
             after_step=after_step,
             stepped_since_bench=stepped_since_bench,
-            offsets_stepped_only=offsets_stepped_only,
+            no_axis_step=no_axis_step,
             axis_turn=axis_turn,
             held_watched=held_watched,
         )
@@ -182,7 +184,7 @@ def refit_from_bench(
     bin_temps: dict[int, np.ndarray] | None = None,
     after_step: bool = False,
     stepped_since_bench: bool = False,
-    offsets_stepped_only: bool = False,
+    no_axis_step: bool = False,
     axis_turn: float = 0.0,
     held_watched: bool = False,
 ) -> RefitResult:
@@ -191,9 +193,9 @@ def refit_from_bench(
     fits = band_fits(band_stats, anchors, min_samples, bin_temps)
     model = drift_model(fits, bench_holds=not stepped_since_bench)
     held = None
-    if held_watched and (not stepped_since_bench or offsets_stepped_only):
-        # after offset steps the band sums hold the drive since the last one (restart_band_memory), and a shift of
-        # the circle is no turn of it: the held positions' angles still tie to the bench's
+    if held_watched and (not stepped_since_bench or no_axis_step):
+        # after offset or gain steps the band sums hold the drive since the last one (restart_band_memory), and a
+        # shift or a stretch of the circle is no turn of it: the held positions' angles still tie to the bench's
         held = held_model(band_stats, anchors, min_samples, offsets_stepped=stepped_since_bench)
     if held is not None:
         # a drive that holds positions: the held points see the drift along the circle, where the bands' few

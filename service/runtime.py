@@ -976,7 +976,6 @@ class FleetService:
             # (refit: a set fitted after the step has nothing to move). The publication asks for the refit at once.
             return None
         axis_steps = self.store.alarms(device, cause="axis_step")
-        shape_stepped = bool(axis_steps) or bool(self.store.alarms(device, cause="gain_step", limit=1))
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
         band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
@@ -990,7 +989,7 @@ class FleetService:
             after_step=self._stepped_recently(device, step_at)
             and self._bands_made_at(device, running_version) < step_at,
             stepped_since_bench=step_at is not None,
-            offsets_stepped_only=not shape_stepped,
+            no_axis_step=not axis_steps,
             axis_turn=sum(a["parameters"]["delta_skew"] for a in axis_steps),
             held_watched=self.monitor.watches_held_positions(device),
         )
