@@ -220,9 +220,9 @@ def held_drift_model(
     The bench's zero drift is what ties the θ_k to the factory's angles, so only while the bench holds, or after
     offset or gain steps alone (offsets_stepped: the band sums hold only windows since the last step, and the step's
     values at the bench are fitted too, STEP_PRIOR; an axis step's rotation half would turn every θ_k alike, which
-    no held point tells from the factory's zero). A step named an offset step may
-    have been one channel's gain (STEP_KINDS): both are fitted, and the one closer to the points across is taken
-    if it passes its checks (none otherwise)."""
+    no held point tells from the factory's zero). The step may have been an offset step or one channel's gain
+    (STEP_KINDS): both are fitted, and the one closer to the points across is taken if it passes its checks (none
+    otherwise)."""
     if not offsets_stepped:
         fit = _held_drift(bands, locus, None, iterations)
         return fit if fit is not None and not fit.failed else None
