@@ -223,14 +223,12 @@ def held_drift_model(
     no held point tells from the factory's zero). The step may have been an offset step or one channel's gain
     (STEP_KINDS): both are fitted, and the one closer to the points across is taken if it passes its checks (none
     otherwise)."""
-    if not offsets_stepped:
-        fit = _held_drift(bands, locus, None, iterations)
-        return fit if fit is not None and not fit.failed else None
+    kinds = STEP_KINDS if offsets_stepped else [None]
     # the kind is chosen before its checks: a kind that fails them leaves the step unmeasured, not the other kind's
     # (s10-20hz-14, a gain step: as one, 16 times the points' errors squared across and 3.4 along, past
     # MAX_ALONG_SCALE; as an offset step 58 across and 2.2 along, which passed, and its set was 0.3° wrong where the
     # factory set left 0.1°)
-    fits = [f for f in (_held_drift(bands, locus, kind, iterations) for kind in STEP_KINDS) if f is not None]
+    fits = [f for f in (_held_drift(bands, locus, kind, iterations) for kind in kinds) if f is not None]
     best = min(fits, key=lambda f: f.across_misfit, default=None)
     return best if best is not None and not best.failed else None
 

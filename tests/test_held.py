@@ -638,25 +638,16 @@ def test_after_a_named_gain_step_the_held_positions_still_measure_the_drift():
     fifty-fifth session a gain step turned the held fit off, as an axis step does, and nothing was adopted."""
     spec = fleet_specs(7, 24, 3.0, 20.0, 60.0)[14]
     _, factory, run = drive_of(spec)
-    scale, monitor, t = normalisation_scale(factory), DeviceMonitor("servo"), run.samples.t
-    alarm = None
-    for start, end in windows_of(t, 60.0):
-        stats = window_stats(run.samples.subset(slice(start, end)), scale)
-        if stats.temp_n:
-            features = window_features(
-                stats, t=float(t[end - 1]), temp_c=stats.temp_mean, band=band_of(stats.temp_mean)
-            )
-            alarm = next((e for e in monitor.update(features) if e.kind == "raise"), None)
-            if alarm is not None:
-                break
-    assert alarm is not None and alarm.cause == "gain_step" and monitor.step_measured(alarm.at), alarm
-    entries = step_moved_bands(factory_message("servo", factory)["bands"], "gain_step", alarm.parameters, scale)
+    scale, t = normalisation_scale(factory), run.samples.t
+    (raised_at, parameters), *_ = step_alarms(run, factory, 60.0, "gain_step")[0]
+    assert offset_step_alarms(run, factory)[0] == []  # named a gain step, and no offset step
+    entries = step_moved_bands(factory_message("servo", factory)["bands"], "gain_step", parameters, scale)
     moved = BandedCorrection.from_dict({"bands": entries})
-    since = np.flatnonzero((t > alarm.at) & (t <= alarm.at + fieldsim.DAY_S))
+    since = np.flatnonzero((t > raised_at) & (t <= raised_at + fieldsim.DAY_S))
     bands = band_sums(run.samples.subset(since), scale, DeviceMonitor("servo"))
     result = refit_device(bands, moved, factory, stepped_since_bench=True, no_axis_step=True, held_watched=True)
     assert result.changed, [(d.band, d.running_error_deg, d.candidate_error_deg) for d in result.decisions]
     fitted = BandedCorrection.from_dict({"bands": result.bands})
-    later = np.flatnonzero((t > alarm.at + fieldsim.DAY_S) & (t <= alarm.at + 1.5 * fieldsim.DAY_S))[::10]
+    later = np.flatnonzero((t > raised_at + fieldsim.DAY_S) & (t <= raised_at + 1.5 * fieldsim.DAY_S))[::10]
     before, after = (float(np.sqrt(np.mean(fieldsim.true_error_deg(c, run, later) ** 2))) for c in (moved, fitted))
     assert after < 0.5 * before, (before, after)
