@@ -61,6 +61,15 @@ _JUMP_PENDING_S = 1800.0  # a jump of the held positions waits this long to be s
 MAX_GAP_BINS = N_BINS // 4
 
 
+def _settled(visit: list) -> bool:
+    """Whether a held position's visit was still against the visit before it (a held_last entry's last field; state
+    kept before it was has none): a visit in the window the drive arrived in, or the step came in, is no baseline for
+    a jump under held_step_min (s4-5hz-22: a 0.44 % gain step in the window the servo arrived at a position; the
+    part of it seen in the next window became the candidate, and the position held before it, moved by the whole
+    step, read as moved otherwise)."""
+    return len(visit) > 7 and bool(visit[7])
+
+
 @dataclass
 class Settings:
     """Every threshold the monitor uses, in the units a user reads."""
@@ -108,6 +117,14 @@ class Settings:
     held_step_min: float = 0.003  # a jump of the held positions worth an alarm, fraction of amplitude (they move
     # ~0.0004 per °C, and up to 0.002 in minutes with the die's lag: a jump is judged against a visit within
     # held_match_c and held_match_s; at 0.0015, clean 0.5 Hz drives raised an alarm every few hours)
+    held_step_min_calm: float = 0.002  # ... or this, against a visit minutes before, once the temperature has moved
+    # steadily for held_far_settle_s, and off the circle by held_along_calm of it (a step of one channel's gain moves a
+    # position by the step times its sine or cosine: s7-20hz-22's 0.63 % step of q moved the position it held by
+    # 0.27 %, 0.41 of it off the circle; unnamed, the drive ran its old set 8 hours worse than its factory set. The
+    # false steps seen at this bar came a minute or two after a load bump, while the die caught up with it, and
+    # where a servo switched between two positions 0.3° apart inside a window: 0.21-0.29 of the part seen off the
+    # circle)
+    held_along_calm: float = 0.35  # (held_step_min_calm)
     held_step_z: float = 8.0  # ... and this many standard deviations at every position that shows it
     held_step_max: float = 0.012  # ... and no larger (the planted steps: 0.003-0.01): two positions a few degrees
     # apart can share an angle bin, and a drive switching between them moves the bin's point by 0.01-0.07
@@ -1487,6 +1504,7 @@ class DeviceMonitor:
             near = [p for p in self.held_last if abs(math.remainder(math.atan2(p[1], p[0]) - angle, math.tau)) < _SAME]
             last = max(near, key=lambda p: p[4]) if near else None
             matched = last is not None and self._held_match(f, last)
+            still = False
             if last is not None and self.held_candidate is not None and last[4] < self.held_candidate[2]:
                 check = self._held_check(f, x, y, sd, last, matched)  # a position last held before the step
                 if check is not None:
@@ -1495,22 +1513,24 @@ class DeviceMonitor:
             elif matched:
                 move = np.array([x - last[0], y - last[1]])
                 moved = float(np.hypot(*move))
+                still = moved < s.held_step_min_calm / 2
                 if moved <= s.held_step_max:
-                    moves.append((move, math.hypot(sd, last[2]), last[4], (x, y)))
+                    moves.append((move, math.hypot(sd, last[2]), last[4], (x, y), _settled(last)))
                 if moved < s.held_step_min / 2:  # still: how the position moves with temperature
                     self.held_map.learn(f.t, f.temp_c - last[3], (last[0], last[1]), move, _HELD_MEMORY_S)
                 before = last[5] if len(last) > 5 else None  # the visit before the last (older state: none kept)
                 if before is not None and self._held_match(f, before):
                     span = np.array([x - before[0], y - before[1]])
                     if float(np.hypot(*span)) <= s.held_step_max:
-                        spans.append((span, math.hypot(sd, before[2]), before[4], (x, y)))
+                        spans.append((span, math.hypot(sd, before[2]), before[4], (x, y), _settled(before)))
             elif last is not None:
                 got = self._held_far(f, x, y, sd, last)
                 if got is not None:
                     far.append((*got, (x, y)))
             for p in near:
                 self.held_last.remove(p)
-            self.held_last.append([x, y, sd, f.temp_c, f.t, last[:5] if matched else None, f.temp_rate])
+            previous = [*last[:5], None, *last[6:]] if matched else None  # the last visit, less its own before
+            self.held_last.append([x, y, sd, f.temp_c, f.t, previous, f.temp_rate, matched and still])
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
         if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
             self.held_jump = None  # never seen held again: no evidence either way
@@ -1518,10 +1538,11 @@ class DeviceMonitor:
             self._held_judge(f, checks, events)
             return
         jumped, compared = False, moves
+        calm = self.calm_since is not None and f.t - self.calm_since >= s.held_far_settle_s
         if moves:
-            delta, size, jumped = self._held_jump_of(moves)
+            delta, size, jumped = self._held_jump_of(moves, calm)
             if self.held_jump is None and len(spans) == len(moves):  # the step fell inside the last window?
-                span_delta, span_size, span_jumped = self._held_jump_of(spans)
+                span_delta, span_size, span_jumped = self._held_jump_of(spans, calm)
                 if span_jumped and span_size > size:  # then the span holds all of it (a jump of the part in this
                     # window alone named s8-20hz-02's 0.75 % step 0.46 %)
                     delta, size, jumped, compared = span_delta, span_size, True, spans
@@ -1536,16 +1557,27 @@ class DeviceMonitor:
         if jumped:
             # a jump; a step is one (or two, when it fell inside a window), a shaft creeping along keeps jumping
             after = max(m[2] for m in compared)
-            dx, dy, since, count, *rest = self.held_jump or [0.0, 0.0, f.t, 0, after, False]
+            small = size < s.held_step_min  # a jump only at the calm bar
+            dx, dy, since, count, *rest = self.held_jump or [0.0, 0.0, f.t, 0, after, False, small]
             grown = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1, *rest]
             self.held_jump = grown if count < 2 else None
             return
-        if self.held_jump is None or size >= s.held_step_min / 2:
+        if self.held_jump is None:
+            return
+        if len(self.held_jump) > 6 and self.held_jump[6] and len(moves) == len(f.held):
+            # a move after a jump under held_step_min is the rest of a step that fell inside the jump's window: the
+            # step is where the positions are once still again against their visit before the jump (a 0.4 % step in
+            # the middle of a window, 0.22 % of it seen in that window, was named at that part alone). Not in a window
+            # the drive held another position in too (it left or arrived inside it, and a part of the hold made the
+            # point)
+            self.held_jump[0] += float(delta[0])
+            self.held_jump[1] += float(delta[1])
+        if size >= s.held_step_min / 2:
             return
         dx, dy, since, _, *rest = self.held_jump  # the positions are still again: it was a step
-        after, far_jump = rest if rest else (since, False)  # (state kept before these were: a jump as the window's)
+        after, far_jump = rest[:2] if rest else (since, False)  # (state kept before these were: as the window's)
         self.held_jump = None
-        at = np.mean([p for *_, p in moves], axis=0)  # where the positions seen still again are
+        at = np.mean([m[3] for m in moves], axis=0)  # where the positions seen still again are
         self.held_candidate = [dx, dy, since, after, far_jump, float(at[0]), float(at[1])]
         kept = []
         for last in self.held_last:  # positions not seen since the jump: where they sit after an offset step
@@ -1717,21 +1749,26 @@ class DeviceMonitor:
         s = self.settings
         return abs(f.temp_c - visit[3]) <= s.held_match_c and f.t - visit[4] <= s.held_match_s
 
-    def _held_jump_of(self, moves: list) -> tuple[np.ndarray, float, bool]:
+    def _held_jump_of(self, moves: list, calm: bool = False) -> tuple[np.ndarray, float, bool]:
         """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, all
         moved alike (an offset step moves every position by the same vector), and not all along the circle (moves
-        hold (move, its standard error, the visit's time, the position now))."""
+        hold (move, its standard error, the visit's time, the position now, whether that visit was settled)). Calm
+        (held_step_min_calm): a smaller jump is one too, against visits settled, where it stands further off the
+        circle."""
         s = self.settings
         jumps = np.array([m[0] for m in moves])
         delta = jumps.mean(axis=0)
         size = float(np.hypot(*delta))
         clear = all(float(np.hypot(*m[0])) > s.held_step_z * m[1] for m in moves)
         alike = bool(np.all(np.hypot(*(jumps - delta).T) < size / 2))
-        # along the circle at every position: the shaft moved to a position beside it, not the offsets
-        along = all(
-            abs(float(np.dot(m[0], m[3]))) / math.hypot(*m[3]) <= max(s.held_along * size, 2 * m[1]) for m in moves
+
+        def along(share: float) -> bool:  # along the circle at every position: the shaft moved, not the offsets
+            return all(abs(float(np.dot(m[0], m[3]))) / math.hypot(*m[3]) <= max(share * size, 2 * m[1]) for m in moves)
+
+        over = (size >= s.held_step_min and not along(s.held_along)) or (
+            calm and all(m[4] for m in moves) and size >= s.held_step_min_calm and not along(s.held_along_calm)
         )
-        return delta, size, size >= s.held_step_min and clear and alike and not along
+        return delta, size, over and clear and alike
 
     def _rates(self, f: Features, e: np.ndarray, fleet: FleetRates | None, events) -> None:
         s = self.settings
