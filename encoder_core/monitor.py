@@ -1504,7 +1504,7 @@ class DeviceMonitor:
             near = [p for p in self.held_last if abs(math.remainder(math.atan2(p[1], p[0]) - angle, math.tau)) < _SAME]
             last = max(near, key=lambda p: p[4]) if near else None
             matched = last is not None and self._held_match(f, last)
-            still = False
+            still = False  # this visit against the last, under held_step_min_calm / 2: a settled baseline
             if last is not None and self.held_candidate is not None and last[4] < self.held_candidate[2]:
                 check = self._held_check(f, x, y, sd, last, matched)  # a position last held before the step
                 if check is not None:
@@ -1530,7 +1530,7 @@ class DeviceMonitor:
             for p in near:
                 self.held_last.remove(p)
             previous = [*last[:5], None, *last[6:]] if matched else None  # the last visit, less its own before
-            self.held_last.append([x, y, sd, f.temp_c, f.t, previous, f.temp_rate, matched and still])
+            self.held_last.append([x, y, sd, f.temp_c, f.t, previous, f.temp_rate, still])
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
         if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
             self.held_jump = None  # never seen held again: no evidence either way
@@ -1538,7 +1538,7 @@ class DeviceMonitor:
             self._held_judge(f, checks, events)
             return
         jumped, compared = False, moves
-        calm = self.calm_since is not None and f.t - self.calm_since >= s.held_far_settle_s
+        calm = self._calm_at(f.t)
         if moves:
             delta, size, jumped = self._held_jump_of(moves, calm)
             if self.held_jump is None and len(spans) == len(moves):  # the step fell inside the last window?
@@ -1720,7 +1720,7 @@ class DeviceMonitor:
             return None  # (state kept before the rate was: not judged)
         if abs(f.temp_rate - last[6]) > s.held_far_rate_change:
             return None  # the die's lag not alike at both visits
-        if self.calm_since is None or last[4] < self.calm_since + s.held_far_settle_s:
+        if not self._calm_at(last[4]):
             return None  # a load bump between them, or the die still catching up with one before
         got = self.held_map.predict(d_temp, (last[0], last[1]), s.held_map_min_c2)
         if got is None:
@@ -1743,6 +1743,10 @@ class DeviceMonitor:
         steady = last is not None and abs(f.temp_rate - last) <= s.held_far_rate_change and dt <= s.held_match_s
         if not steady or abs(f.temp_rate) > s.held_far_rate:
             self.calm_since = f.t
+
+    def _calm_at(self, t: float) -> bool:
+        """Whether the temperature had moved steadily (calm_since) for held_far_settle_s by drive time t."""
+        return self.calm_since is not None and t >= self.calm_since + self.settings.held_far_settle_s
 
     def _held_match(self, f: Features, visit: list) -> bool:
         """A visit close enough in temperature and time to compare a held position with (held_match_c, _s)."""
