@@ -1638,6 +1638,24 @@ class DeviceMonitor:
             if off > s.held_step_max:
                 continue  # past what one position moves (_held_far lets a check reach twice it): only a gain step
                 # explains that (above); two positions sharing an angle bin, or the map over hours, may too
+            if (
+                off > tolerance
+                and best is not None
+                and unlike[best] <= tolerance
+                and others[best][0] == (others[best][1] == 0)
+            ):
+                # it moved as that channel's gain moves it, but not clear of the offset step or of another such step:
+                # a step it was, of a kind the refit measures (forgotten, s6-5hz-22's 0.58 % q gain step, 7 standard
+                # errors off the offset step and 0.6 off the gain step, was named nothing: 18 hours worse than factory)
+                self._held_name(
+                    f,
+                    events,
+                    f"a position held before it, {apart:.0f}° along the circle, moved as the {'dq'[others[best][1]]} "
+                    "channel's gain would have moved it, not clear of an offset step",
+                    decided=False,
+                )
+                self.held_last = [p for p in self.held_last if p[4] >= since]  # each moved its own way, as undone
+                return
             if off > 2 * tolerance or (off > tolerance and min(unlike, default=math.inf) <= tolerance):
                 self._held_undo()  # it moved otherwise, or as one of those steps would have moved it
                 return

@@ -21,19 +21,39 @@ def step_alarms(
     run, factory, window_s: float, cause: str, settings: Settings | None = None
 ) -> tuple[list[tuple[float, dict]], int]:
     """offset_step_alarms for any cause."""
-    scale = normalisation_scale(factory)
     monitor, raised = DeviceMonitor("under-test", settings=settings or Settings()), []
+    for end_s, event in monitored(run, factory, window_s, monitor):
+        if event.kind == "raise" and event.cause == cause:
+            raised.append((end_s, event.parameters))
+            monitor.clear(cause, end_s, "counted")
+    return raised, monitor.judged
+
+
+def moved_for_offset_steps(run, factory, window_s: float = 60.0) -> list[tuple[float, dict]]:
+    """offset_step_alarms, less those the held test named undecided (DeviceMonitor.step_measured): the service moves
+    the running set for these alone."""
+    monitor, raised = DeviceMonitor("under-test"), []
+    for end_s, event in monitored(run, factory, window_s, monitor):
+        if event.kind == "raise" and event.cause == "offset_step":
+            if monitor.step_measured(end_s):
+                raised.append((end_s, event.parameters))
+            monitor.clear("offset_step", end_s, "counted")
+    return raised
+
+
+def monitored(run, factory, window_s: float, monitor: DeviceMonitor, until_s: float = float("inf")):
+    """(window end, event) of every event the monitor gives over the drive's windows (those ending by until_s)."""
+    scale = normalisation_scale(factory)
     for start, end in windows_of(run.samples.t, window_s):
         block = run.samples.subset(slice(start, end))
         stats = window_stats(block, scale)
         if not stats.temp_n:
             continue
         end_s = float(run.samples.t[end - 1])
+        if end_s > until_s:
+            return
         features = window_features(  # as the agent reports it: with how fast the temperature moved
             stats, t=end_s, temp_c=stats.temp_mean, band=band_of(stats.temp_mean), temp_rate=temp_rate(block)
         )
         for event in monitor.update(features):
-            if event.kind == "raise" and event.cause == cause:
-                raised.append((end_s, event.parameters))
-                monitor.clear(cause, end_s, "counted")
-    return raised, monitor.judged
+            yield end_s, event

@@ -21,7 +21,7 @@ from encoder_fleet.calibrate import calibrate
 from encoder_fleet.fleet_accuracy import drive_of, fleet_loop, fleet_specs, score, windows_of, worse_than
 from service.refit import bench_anchors, difference_deg, refit_device, step_moved_bands
 from service.trial import MIN_SOAK_SAMPLES, TrialEvidence, judge
-from tests.monitor_runs import offset_step_alarms, step_alarms
+from tests.monitor_runs import monitored, moved_for_offset_steps, offset_step_alarms, step_alarms
 
 SEEDS = range(4)
 
@@ -319,14 +319,15 @@ def test_a_gain_step_is_not_named_an_offset_step_where_a_position_held_before_it
     of the amplitude or more; the next position held, with q 0.5 of the amplitude or more away, was last held 10-60
     min before. Where that position moved as q's gain moves it and as no other one-channel step would, the step is
     named a gain step at its size. An offset step that moves the first position alike, at the same second, is named
-    at its size; the monitor sees window statistics."""
+    at its size; the monitor sees window statistics. Where it moved as q's gain does but not clear of the offset step,
+    a step is named that the held test could not decide, which the service does not move the offsets for: not an
+    offset step here."""
     tried, refused, named, named_gain = 0, 0, 0, 0
     for rng, phys, factory, run, t_step, angle in holds_before_a_return(407, 8, q_at_least=0.4, q_apart=0.5):
         tried += 1
         gain = rng.uniform(0.005, 0.01) * rng.choice([-1.0, 1.0])
         stepped = stepped_by(phys, run, rng, fieldsim.Event(t_step, "gain_step", q_gain=gain))
-        raised = offset_step_alarms(stepped, factory)[0]
-        refused += not [at for at, _ in raised if at >= t_step]
+        refused += not [at for at, _ in moved_for_offset_steps(stepped, factory) if at >= t_step]
         named_gain += gain_step_named(stepped, factory, t_step, gain)
         size = gain * np.sin(angle) * amplitude_of(phys, 1)  # the gain step's move at the position held across it
         raised = offset_step_alarms(
@@ -347,14 +348,14 @@ def test_a_gain_step_is_named_where_the_position_held_before_it_sits_across_the_
     sign drawn from the seed) in a hold at a position whose q is 0.6 of the amplitude or more, the next position held
     across the q axis, 1.4 of the amplitude or more away in q (the check sits 1.1-2 % off the offset step's), last
     held 10-60 min before: named a gain step at its size on 7 of the 8 drives the seeds give, and an offset step on
-    none (the code before: 3 and 2)."""
+    none (the code before: 3 and 2; an offset step the service moves for: a step named undecided is not one)."""
     tried, named_gain, as_offset = 0, 0, 0
     for rng, phys, factory, run, t_step, _ in holds_before_a_return(408, 16, 0.6, 1.4):
         tried += 1
         gain = rng.uniform(0.008, 0.01) * rng.choice([-1.0, 1.0])
         stepped = stepped_by(phys, run, rng, fieldsim.Event(t_step, "gain_step", q_gain=gain))
         named_gain += gain_step_named(stepped, factory, t_step, gain)
-        as_offset += bool([at for at, _ in offset_step_alarms(stepped, factory)[0] if at >= t_step])
+        as_offset += bool([at for at, _ in moved_for_offset_steps(stepped, factory) if at >= t_step])
     assert tried >= 6, tried
     assert named_gain >= tried - 1 and as_offset == 0, (tried, named_gain, as_offset)
 
@@ -671,3 +672,26 @@ def test_a_smaller_jump_of_the_held_positions_is_a_step_once_the_temperature_has
     assert phys.events == []
     for cause in ("offset_step", "gain_step"):
         assert step_alarms(run, factory, 60.0, cause)[0] == [], cause
+
+
+def test_a_position_held_before_the_step_that_moved_as_one_channels_gain_would_names_a_step_the_refit_measures():
+    """s6-5hz-22-dwell (a drive of bench-fleet-accuracy's 24-drive fleets; the step of q's gain, its size, sign and
+    time drawn from the seed): the positions held across the step jumped, and the one position held before it that
+    tells a gain step from an offset step, 7 °C away through the drive's temperature map, sat 7 standard errors off
+    the offset step and under one off the q gain step. That is short of the twice-the-tolerance a gain step is named
+    at, and the candidate was forgotten: no alarm, and the drive ran its old set 18 hours worse than its factory set.
+    Now a step is named within an hour, as one the held test could not decide (the refit measures which it was), and
+    nothing before it."""
+    spec = fleet_specs(6, 24, 3.0, 5.0, 60.0)[22]
+    phys, factory, run = drive_of(spec)
+    (step,) = phys.events  # the truth, the test's only
+    monitor = DeviceMonitor("under-test")
+    raised = [
+        (at, event.cause, monitor.step_measured(at))
+        for at, event in monitored(run, factory, 60.0, monitor, until_s=step.t_s + 2 * 3600.0)
+        if event.kind == "raise" and event.cause in ("offset_step", "gain_step", "axis_step")
+    ]
+    assert raised, "no step named"
+    at, cause, measured = raised[0]
+    assert step.t_s <= at <= step.t_s + 3600.0, (step.t_s, raised)
+    assert cause == "offset_step" and not measured, raised  # named, not moved for: the refit measures it
