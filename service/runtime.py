@@ -41,7 +41,8 @@ log = logging.getLogger("service")
 MAX_BATCH = 500  # messages per ingest transaction
 MIN_PASS_S = 0.05  # the least wall time between two refit (or monitor) passes: at 3,600x, 3 drive-minutes
 MAX_QUEUED = 20_000  # messages waiting for the writer (~80 MB of windows at most)
-QUEUE_WAIT_S = 2.0  # how long Zenoh's callback waits for room before the message is dropped
+QUEUE_WAIT_S = 2.0  # how long a message's hand-off (the pump's, or Zenoh's callback's) waits for room, then dropped
+PUMP_CAPACITY = 1_000  # windows waiting in Zenoh's channel for the thread that queues them (PumpedSubscriber)
 # storing comes first: while more than a batch waits for the writer, the monitor and refit passes wait between
 # devices, up to STORE_FIRST_MAX_WAIT_S each (analysis catches up; a flood never starves it)
 STORE_FIRST_BACKLOG = MAX_BATCH
@@ -146,6 +147,31 @@ class KeyRateLimit:
                 return False
             self._buckets[key] = (tokens - 1.0, now)
             return True
+
+
+class PumpedSubscriber:
+    """A subscriber whose samples wait in Zenoh's FIFO channel (up to PUMP_CAPACITY, then Zenoh waits: the senders'
+    congestion control) and are handed to `handler` by a thread of ours, as fast as it takes them. A callback runs on
+    Zenoh's thread, which takes the interpreter lock for every sample: at a few thousand windows a second the writer
+    then waits for the lock at every one of them (bench-fleet, 1,000 devices: the first second's batches of 500
+    stored at 100-320 ms each instead of ~40, and 7,300-8,600 windows/s end to end against 9,800-10,200 pumped)."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str, handler: Callable[[zenoh.Sample], None]):
+        self._subscriber = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(PUMP_CAPACITY))
+        self._thread = threading.Thread(target=self._pump, args=(handler,), name=f"pump {key_expr}", daemon=True)
+        self._thread.start()
+
+    def _pump(self, handler: Callable[[zenoh.Sample], None]) -> None:
+        for sample in self._subscriber:  # ends when the subscriber is undeclared
+            try:
+                handler(sample)
+            except Exception:  # the pump must outlive one sample, as Zenoh's callback thread does
+                log.exception("handling a sample failed")
+
+    def undeclare(self) -> None:
+        """Undeclare the subscriber, then wait until what its channel held has been handed on."""
+        self._subscriber.undeclare()
+        self._thread.join()
 
 
 class FleetService:
@@ -265,15 +291,16 @@ class FleetService:
     # --- partitions (service/cluster.py) -----------------------------------------------------------
 
     def _declare_partition(self, part: int | None) -> list:
-        """The Zenoh entities that serve one partition's devices (None: every partition). Callbacks run on Zenoh's
-        thread (no thread each): windows and acks go to the writer's queue, the rest to the control thread."""
+        """The Zenoh entities that serve one partition's devices (None: every partition). Windows wait in Zenoh's
+        channel for a thread of ours that hands them to the writer's queue (PumpedSubscriber); the other callbacks run
+        on Zenoh's thread (no thread each): acks go to the writer's queue, the rest to the control thread."""
         s = self.session
 
         def direct(fn):
             return zenoh.handlers.Callback(fn, indirect=False)
 
         return [
-            s.declare_subscriber(keys.every(keys.STATS, part), direct(self._enqueue)),
+            PumpedSubscriber(s, keys.every(keys.STATS, part), self._enqueue),
             s.declare_subscriber(keys.every(keys.ACK, part), direct(self._enqueue)),
             s.declare_subscriber(keys.every(keys.FACTORY, part), self._handed(self._on_factory)),
             s.declare_queryable(keys.every(keys.RECEIVED, part), self._handed(self._on_received_query)),

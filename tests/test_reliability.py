@@ -17,7 +17,7 @@ from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import agent_session_config, loopback_endpoint, session_config
-from service.runtime import FleetService, open_session
+from service.runtime import PUMP_CAPACITY, FleetService, PumpedSubscriber, open_session
 from service.store import Store
 
 DEVICE, SEED = "drive-t", 4
@@ -358,3 +358,28 @@ def test_analysis_waits_while_a_backlog_is_stored_but_is_never_starved(tmp_path)
     finally:
         session.close()
         store.close()
+
+
+def test_the_window_pump_hands_on_every_sample_in_order_past_its_channel_and_past_a_failing_one():
+    """Windows wait in Zenoh's channel for the pump's thread (PumpedSubscriber): twice the channel's capacity put
+    while the handler is slow all come through, in order (a full channel makes Zenoh wait, it drops nothing); a
+    sample whose handling fails is logged and the pump goes on; undeclaring waits until the channel is handed on."""
+    session = open_session(listen=[loopback_endpoint()])
+    handed, count = [], 2 * PUMP_CAPACITY
+
+    def handler(sample: zenoh.Sample) -> None:
+        value = int(sample.payload.to_bytes())
+        if value == 7:
+            raise ValueError("a window the handler refuses")
+        if value < 50:
+            time.sleep(0.002)  # slow at first: the channel fills
+        handed.append(value)
+
+    pump = PumpedSubscriber(session, "pumped/**", handler)
+    try:
+        for value in range(count):
+            session.put("pumped/drive-001", str(value))
+    finally:
+        pump.undeclare()
+        session.close()
+    assert handed == [v for v in range(count) if v != 7]
