@@ -61,6 +61,12 @@ def every(suffix: str, part: int | None = None) -> str:
     return f"{PREFIX}/*/{suffix}/{'*' if part is None else partition_chunk(part)}"
 
 
+def every_to_service(part: int | None = None) -> str:
+    """The key expression matching every agent-to-service key (TO_SERVICE, any suffix) of every device in partition
+    `part` (None: of all partitions): one subscriber then sees a device's windows and acks in the order sent."""
+    return f"{PREFIX}/*/*/{'*' if part is None else partition_chunk(part)}"
+
+
 def split(key_expr) -> tuple[str, str] | None:
     """A fleet key -> (device, suffix) for a well-formed device id whose agent-to-service keys carry its own
     partition (and only those); None otherwise."""

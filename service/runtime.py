@@ -43,6 +43,7 @@ MIN_PASS_S = 0.05  # the least wall time between two refit (or monitor) passes: 
 MAX_QUEUED = 20_000  # messages waiting for the writer (~80 MB of windows at most)
 QUEUE_WAIT_S = 2.0  # how long a message's hand-off (the pump's, or Zenoh's callback's) waits for room, then dropped
 PUMP_CAPACITY = 1_000  # windows waiting in Zenoh's channel for the thread that queues them (PumpedSubscriber)
+PUMP_DRAIN_S = 5.0  # how long undeclaring waits for that thread to hand on what the channel still holds
 # storing comes first: while more than a batch waits for the writer, the monitor and refit passes wait between
 # devices, up to STORE_FIRST_MAX_WAIT_S each (analysis catches up; a flood never starves it)
 STORE_FIRST_BACKLOG = MAX_BATCH
@@ -169,9 +170,17 @@ class PumpedSubscriber:
                 log.exception("handling a sample failed")
 
     def undeclare(self) -> None:
-        """Undeclare the subscriber, then wait until what its channel held has been handed on."""
+        """Undeclare the subscriber, then wait until what its channel held has been handed on (a healthy writer
+        takes a full channel in well under a second), PUMP_DRAIN_S at most: a writer that has stopped taking windows
+        would hold a stop or a partition's hand-over for QUEUE_WAIT_S a window. What is left the agents send again."""
         self._subscriber.undeclare()
-        self._thread.join()
+        self._thread.join(PUMP_DRAIN_S)
+        if self._thread.is_alive():
+            log.warning(
+                "%s: windows still waiting after %.0f s are left to their agents to send again",
+                self._thread.name,
+                PUMP_DRAIN_S,
+            )
 
 
 class FleetService:
@@ -211,7 +220,7 @@ class FleetService:
         self._wake_refit, self._wake_monitor = threading.Event(), threading.Event()
         self._thread: threading.Thread | None = None
         self._watermarks: dict[str, int] = {}
-        # bounded: when the writer falls behind, Zenoh's callback waits (back-pressure to the router and to agents
+        # bounded: when the writer falls behind, the pump waits (back-pressure to the router and to agents
         # that put with CongestionControl.BLOCK) rather than memory growing; past QUEUE_WAIT_S it drops and counts
         self._inbox: queue.Queue = queue.Queue(maxsize=max_queued)
         self._rate = KeyRateLimit(rate_per_key, burst_per_key)
@@ -291,17 +300,12 @@ class FleetService:
     # --- partitions (service/cluster.py) -----------------------------------------------------------
 
     def _declare_partition(self, part: int | None) -> list:
-        """The Zenoh entities that serve one partition's devices (None: every partition). Windows wait in Zenoh's
-        channel for a thread of ours that hands them to the writer's queue (PumpedSubscriber); the other callbacks run
-        on Zenoh's thread (no thread each): acks go to the writer's queue, the rest to the control thread."""
+        """The Zenoh entities that serve one partition's devices (None: every partition). Windows and acks wait in
+        one Zenoh channel for a thread of ours that hands them to the writer's queue in the order they came
+        (PumpedSubscriber); the other callbacks run on Zenoh's thread and hand their work to the control thread."""
         s = self.session
-
-        def direct(fn):
-            return zenoh.handlers.Callback(fn, indirect=False)
-
         return [
-            PumpedSubscriber(s, keys.every(keys.STATS, part), self._enqueue),
-            s.declare_subscriber(keys.every(keys.ACK, part), direct(self._enqueue)),
+            PumpedSubscriber(s, keys.every_to_service(part), self._enqueue_in_order),
             s.declare_subscriber(keys.every(keys.FACTORY, part), self._handed(self._on_factory)),
             s.declare_queryable(keys.every(keys.RECEIVED, part), self._handed(self._on_received_query)),
             s.liveliness().declare_subscriber(keys.every(keys.ALIVE, part), self._handed(self._on_alive), history=True),
@@ -402,6 +406,14 @@ class FleetService:
         }
 
     # --- ingest ------------------------------------------------------------------------------------
+
+    def _enqueue_in_order(self, sample: zenoh.Sample) -> None:
+        """Windows and acks to the writer's queue, from the one channel that keeps them in the order they came (the
+        store sets a device's current version from an ack and the windows before it in that order). The other
+        agent-to-service keys that channel matches have handlers of their own (factory sets, the received query)."""
+        parts = str(sample.key_expr).split("/")
+        if len(parts) == 4 and parts[2] in (keys.STATS, keys.ACK):
+            self._enqueue(sample)
 
     def _enqueue(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

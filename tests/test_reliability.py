@@ -360,12 +360,17 @@ def test_analysis_waits_while_a_backlog_is_stored_but_is_never_starved(tmp_path)
         store.close()
 
 
-def test_the_window_pump_hands_on_every_sample_in_order_past_its_channel_and_past_a_failing_one():
-    """Windows wait in Zenoh's channel for the pump's thread (PumpedSubscriber): twice the channel's capacity put
-    while the handler is slow all come through, in order (a full channel makes Zenoh wait, it drops nothing); a
-    sample whose handling fails is logged and the pump goes on; undeclaring waits until the channel is handed on."""
+def test_the_window_pump_hands_on_windows_and_acks_in_the_order_sent_past_its_channel_and_a_failing_one():
+    """Windows and acks wait in one Zenoh channel for the pump's thread (PumpedSubscriber on every agent-to-service
+    key): twice the channel's capacity put while the handler is slow all come through, windows and acks in the
+    order sent (the store sets a device's current version from an ack and the windows before it in that order; with
+    acks on a callback of their own, an ack put after 200 windows was handed on before the last two of them); a full
+    channel makes Zenoh wait, it drops nothing; a sample whose handling fails is logged and the pump goes on;
+    undeclaring waits until the channel is handed on. The service's own windows and acks come through one such pump
+    (FleetService._declare_partition)."""
     session = open_session(listen=[loopback_endpoint()])
     handed, count = [], 2 * PUMP_CAPACITY
+    sent = [(keys.ACK if value % 50 == 49 else keys.STATS, value) for value in range(count)]
 
     def handler(sample: zenoh.Sample) -> None:
         value = int(sample.payload.to_bytes())
@@ -373,13 +378,13 @@ def test_the_window_pump_hands_on_every_sample_in_order_past_its_channel_and_pas
             raise ValueError("a window the handler refuses")
         if value < 50:
             time.sleep(0.002)  # slow at first: the channel fills
-        handed.append(value)
+        handed.append((keys.split(sample.key_expr)[1], value))
 
-    pump = PumpedSubscriber(session, "pumped/**", handler)
+    pump = PumpedSubscriber(session, keys.every_to_service(), handler)
     try:
-        for value in range(count):
-            session.put("pumped/drive-001", str(value))
+        for suffix, value in sent:
+            session.put(keys.key("drive-001", suffix), str(value))
     finally:
         pump.undeclare()
         session.close()
-    assert handed == [v for v in range(count) if v != 7]
+    assert handed == [(suffix, value) for suffix, value in sent if value != 7]
