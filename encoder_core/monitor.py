@@ -1713,6 +1713,7 @@ class DeviceMonitor:
             if far_jump
             else "their last visit at the same temperature"
         )
+        raised = "offset_step" not in self.open  # one open already: its own step_measured stands
         self._raise(
             events,
             "offset_step",
@@ -1724,7 +1725,8 @@ class DeviceMonitor:
             + ("" if decided else "; it may have been one channel's gain, which those positions would show alike")
             + ".",
         )
-        self.undecided_step_at = None if decided else f.t
+        if raised:
+            self.undecided_step_at = None if decided else f.t
         self._forget_offset_pairs("held")
 
     def _held_far(self, f: Features, x: float, y: float, sd: float, last: list, check: bool = False) -> tuple | None:
