@@ -1626,24 +1626,15 @@ class DeviceMonitor:
                 predicted = np.array([there, 0.0] if moved_d else [0.0, there]) - step
                 unlike.append(float(np.hypot(*predicted - rest)))
             best = int(np.argmin(unlike)) if unlike else None
-            if (
-                best is not None
-                and off > 2 * tolerance
-                and unlike[best] <= tolerance
-                and all(u > 2 * tolerance for k, u in enumerate(unlike) if k != best)
-                and others[best][0] == (others[best][1] == 0)  # a channel moved in proportion to itself: its gain
-            ):
+            # moved as one channel's gain moves it (a channel moved in proportion to itself), within the tolerance
+            gain_like = best is not None and unlike[best] <= tolerance and others[best][0] == (others[best][1] == 0)
+            if gain_like and off > 2 * tolerance and all(u > 2 * tolerance for k, u in enumerate(unlike) if k != best):
                 self._held_gain_step(f, events, others[best][1], apart)
                 return
             if off > s.held_step_max:
                 continue  # past what one position moves (_held_far lets a check reach twice it): only a gain step
                 # explains that (above); two positions sharing an angle bin, or the map over hours, may too
-            if (
-                off > tolerance
-                and best is not None
-                and unlike[best] <= tolerance
-                and others[best][0] == (others[best][1] == 0)
-            ):
+            if gain_like and off > tolerance:
                 # it moved as that channel's gain moves it, but not clear of the offset step or of another such step:
                 # a step it was, of a kind the refit measures (forgotten, s6-5hz-22's 0.58 % q gain step, 7 standard
                 # errors off the offset step and 0.6 off the gain step, was named nothing: 18 hours worse than factory)
@@ -1654,7 +1645,7 @@ class DeviceMonitor:
                     "channel's gain would have moved it, not clear of an offset step",
                     decided=False,
                 )
-                self.held_last = [p for p in self.held_last if p[4] >= since]  # each moved its own way, as undone
+                self._forget_held_before(since)  # each moved its own way, as for an undone step
                 return
             if off > 2 * tolerance or (off > tolerance and min(unlike, default=math.inf) <= tolerance):
                 self._held_undo()  # it moved otherwise, or as one of those steps would have moved it
@@ -1700,6 +1691,10 @@ class DeviceMonitor:
         """Not an offset step: the positions held before it are forgotten (the step moved each its own way)."""
         since = self.held_candidate[2]
         self.held_candidate = None
+        self._forget_held_before(since)
+
+    def _forget_held_before(self, since: float) -> None:
+        """Forget the positions last held before a step (drive time `since`): the step moved each its own way."""
         self.held_last = [p for p in self.held_last if p[4] >= since]
 
     def _held_name(self, f: Features, events, confirmed: str, decided: bool = True) -> None:

@@ -411,6 +411,8 @@ class FleetService:
         """Windows and acks to the writer's queue, from the one channel that keeps them in the order they came (the
         store sets a device's current version from an ack and the windows before it in that order). The other
         agent-to-service keys that channel matches have handlers of their own (factory sets, the received query)."""
+        # the suffix alone, not keys.split: a window whose key is malformed in another way still goes on, to be
+        # dead-lettered and counted as bad_key by the store
         parts = str(sample.key_expr).split("/")
         if len(parts) == 4 and parts[2] in (keys.STATS, keys.ACK):
             self._enqueue(sample)

@@ -18,27 +18,22 @@ def offset_step_alarms(
 
 
 def step_alarms(
-    run, factory, window_s: float, cause: str, settings: Settings | None = None
+    run, factory, window_s: float, cause: str, settings: Settings | None = None, *, moved_for: bool = False
 ) -> tuple[list[tuple[float, dict]], int]:
-    """offset_step_alarms for any cause."""
+    """offset_step_alarms for any cause. moved_for: only those the service moves the running set for, not the ones
+    the held test named undecided (DeviceMonitor.step_measured)."""
     monitor, raised = DeviceMonitor("under-test", settings=settings or Settings()), []
     for end_s, event in monitored(run, factory, window_s, monitor):
         if event.kind == "raise" and event.cause == cause:
-            raised.append((end_s, event.parameters))
+            if not moved_for or monitor.step_measured(event.at):
+                raised.append((end_s, event.parameters))
             monitor.clear(cause, end_s, "counted")
     return raised, monitor.judged
 
 
 def moved_for_offset_steps(run, factory, window_s: float = 60.0) -> list[tuple[float, dict]]:
-    """offset_step_alarms, less those the held test named undecided (DeviceMonitor.step_measured): the service moves
-    the running set for these alone."""
-    monitor, raised = DeviceMonitor("under-test"), []
-    for end_s, event in monitored(run, factory, window_s, monitor):
-        if event.kind == "raise" and event.cause == "offset_step":
-            if monitor.step_measured(end_s):
-                raised.append((end_s, event.parameters))
-            monitor.clear("offset_step", end_s, "counted")
-    return raised
+    """The offset steps raised that the service moves the running set for (step_alarms' moved_for)."""
+    return step_alarms(run, factory, window_s, "offset_step", moved_for=True)[0]
 
 
 def monitored(run, factory, window_s: float, monitor: DeviceMonitor, until_s: float = float("inf")):
