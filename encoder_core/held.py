@@ -105,7 +105,12 @@ def _held_of(stats: WindowStats, sums: np.ndarray, temp_sums: np.ndarray) -> lis
 
 # --- drift from held positions ----------------------------------------------------------------------------------
 
-MIN_POSITIONS = 4  # held positions seen in two bands or more (three within 18° left the rest of the circle a guess)
+MIN_POSITIONS = 3  # held positions seen in two bands or more, while the bench holds (the gap check below refuses
+# three bunched together: three within 18° left the rest of the circle a guess). A servo holds 3-6 positions; at four,
+# a quarter of the dwelling drive-runs (three positions) never got a drift curve and ran their factory set for 3 days
+MIN_POSITIONS_STEPPED = 4  # ... and after a step, whose terms at the bench are fitted too: two more unknowns the
+# positions near the bench must pin beside their own angles (three positions: s2-5hz-10's curve after its offset step
+# stated 0.03-0.05° and was 0.10-0.15° wrong, ten hours worse than the factory set; s3-5hz-22 after a gain step, five)
 # ... spread around the circle: no gap between them wider than this (225°: the set's error is the largest around the
 # whole circle, gap included; at 180° s12-20hz-02, s3-20hz-02, s5-20hz-10 and s7-20hz-06 kept sets 1.2-3.5x worse)
 MAX_GAP_RAD = 1.25 * np.pi
@@ -216,7 +221,8 @@ def held_drift_model(
     square to SLOPE_PRIOR and SQUARE_PRIOR); least squares over every band's held points at their own
     temperatures. Across the circle a held point moves with the channels' common gain (0.1 %/K) times the die's
     lag behind the temperature the windows report, along it with the angle's drift alone: each direction's errors
-    are scaled by its own misfit. None when fewer than MIN_POSITIONS positions were held in two bands or more.
+    are scaled by its own misfit. None when fewer than MIN_POSITIONS positions (MIN_POSITIONS_STEPPED after a step)
+    were held in two bands or more.
     The bench's zero drift is what ties the θ_k to the factory's angles, so only while the bench holds, or after
     offset or gain steps alone (offsets_stepped: the band sums hold only windows since the last step, and the step's
     values at the bench are fitted too, STEP_PRIOR; an axis step's rotation half would turn every θ_k alike, which
@@ -242,7 +248,8 @@ def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, i
         # in one angle bin, mixed in another proportion in each band, read as 0.6° of drift)
         typical = float(np.median([h.spread for h in obs]))
         obs = [h for h in obs if h.spread <= SPREAD_EXCESS * typical]
-    if len(obs) < 2 * MIN_POSITIONS:
+    need = MIN_POSITIONS if step is None else MIN_POSITIONS_STEPPED
+    if len(obs) < 2 * need:
         return None
     c = np.array([locus.d[0], locus.q[0]])
     radius = locus.radius
@@ -257,7 +264,7 @@ def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, i
     obs, first, temps = [h for h, t in zip(obs, tied) if t], first[tied], temps[tied]
     _, position = np.unique(position[tied], return_inverse=True)
     k_pos = int(position.max()) + 1 if position.size else 0
-    if sum(np.sum(position == k) >= 2 for k in range(k_pos)) < MIN_POSITIONS:
+    if sum(np.sum(position == k) >= 2 for k in range(k_pos)) < need:
         return None
     points = np.array([h.point for h in obs])
     sd = np.sqrt(np.array([h.var for h in obs]) + (HELD_FLOOR * radius) ** 2)
@@ -332,7 +339,7 @@ def _held_drift(bands: list[WindowStats], locus: BenchLocus, step: str | None, i
     used = [
         k for k in range(k_pos) if np.sum(keep & (position == k)) >= 2 and np.ptp(temps[keep & (position == k)]) > 0
     ]
-    if len(used) < MIN_POSITIONS:
+    if len(used) < need:
         return None
     failed = "a gap" if _largest_gap(params[used]) > MAX_GAP_RAD else "along" if scale[1] > MAX_ALONG_SCALE else ""
     seen = len(used)
