@@ -414,16 +414,17 @@ def test_the_held_positions_measure_the_drift_a_dwelling_drive_shows_no_circle_f
 
 
 def three_position_servo(t: np.ndarray, rng) -> np.ndarray:
-    """A servo holding one of three positions around the circle (no gap between them over 200°) for 2-10 minutes
-    at a time, moving between them in a sample."""
+    """A servo holding one of three positions around the circle (20° apart at least, no gap between them over 200°)
+    for 2-10 minutes at a time, then another of them, moving between them in a sample."""
     while True:
         positions = rng.uniform(0, 2 * np.pi, 3)
         ordered = np.sort(positions)
-        if np.max(np.diff(ordered, append=ordered[0] + 2 * np.pi)) < np.radians(200):
+        gaps = np.diff(ordered, append=ordered[0] + 2 * np.pi)
+        if gaps.max() < np.radians(200) and gaps.min() > np.radians(20):
             break
     starts = t[0] + np.cumsum(rng.uniform(120.0, 600.0, int((t[-1] - t[0]) / 120.0) + 2))
-    held = positions[rng.integers(3, size=starts.size + 1)][np.searchsorted(starts, t)]
-    return held + rng.normal(0, np.radians(0.02), t.size)
+    which = np.cumsum(rng.integers(1, 3, starts.size + 1)) % 3  # each hold another position than the one before
+    return positions[which][np.searchsorted(starts, t)] + rng.normal(0, np.radians(0.02), t.size)
 
 
 def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth():
@@ -431,10 +432,10 @@ def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth()
     and three pin the drift's terms while the bench holds (with four needed, such a drive, a quarter of the
     independent simulator's dwelling drives, ran its factory set for three days). Hidden from the refit: the drive's
     drift, die lag and positions, drawn from the seed. The set made from a day's band sums, run on the next day,
-    leaves no hour worse than the factory set by more than the refit's stated uncertainty, and two drives of four at
-    most half the factory set's error. After a step the step's terms at the bench are unknowns too, and three
-    positions do not pin them (s2-5hz-10's curve after its offset step stated 0.03-0.05° and was 0.10-0.15° wrong):
-    no curve from the same sums then."""
+    leaves no hour worse than the factory set by more than the refit's stated uncertainty, and three drives of four
+    at most half the factory set's error (seeds 0-3: 67x, 18x, 12x, 1.1x; with four positions needed, 1.0x each).
+    After a step the step's terms at the bench are unknowns too, and three positions do not pin them (s2-5hz-10's
+    curve after its offset step stated 0.03-0.05° and was 0.10-0.15° wrong): no curve from the same sums then."""
     gains = []
     for seed in range(4):
         rng = np.random.default_rng([408, seed])
@@ -446,14 +447,16 @@ def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth()
         samples = measured_shaft(phys, t, theta, temp, rng)
         run = fieldsim.FieldRun(samples, theta, fieldsim.lagged_fast(temp, t, phys.die_lag_s), phys, "dwell", 20.0)
         first_day = t < t[0] + 86400.0
-        bands = band_sums(samples.subset(first_day), normalisation_scale(factory), DeviceMonitor("servo"))
+        monitor = DeviceMonitor("servo")
+        bands = band_sums(samples.subset(first_day), normalisation_scale(factory), monitor)
+        assert monitor.watches_held_positions(), seed  # one-minute windows: a step of the positions would be named
         locus = bench_anchors(factory)[0][1]
         assert held_drift_model(list(bands.values()), locus, offsets_stepped=True) is None, seed
         result = refit_device(bands, factory, factory, held_watched=True)
         fitted = BandedCorrection.from_dict({"bands": result.bands}) if result.changed else factory
         stated = {d.band: d.candidate_error_deg for d in result.decisions if d.adopted}
         gains.append(gain_with_no_hour_worse(run, np.flatnonzero(~first_day), factory, fitted, stated, seed))
-    assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains
+    assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 3, gains
 
 
 def test_a_trial_is_confirmed_unmeasured_only_where_the_drive_held_positions():
