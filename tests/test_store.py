@@ -245,12 +245,14 @@ def test_coefficients_fits_acks_and_devices(store):
 
 def test_windows_time_range_and_catch_up_order(store):
     for seq in (3, 1, 2, 5, 4):
-        store.insert_window(window(seq=seq, version=seq // 3))
+        store.insert_window(window(seq=seq, version={1: 0, 2: 0, 3: 1, 4: 1, 5: 2}[seq]))
+        if seq == 2:
+            assert store.device("drive-001")["current_version"] == 1  # from seq 3, not the late seqs 1 and 2
     assert [w["seq"] for w in store.windows("drive-001", 60.0, 180.0)] == [2, 3, 4]
     assert "stats" not in store.windows("drive-001")[0]
     assert [w["seq"] for w in store.iter_windows("drive-001", page=2)] == [1, 2, 3, 4, 5]
     assert store.max_seq("drive-001") == 5
-    assert store.device("drive-001")["current_version"] == 1  # from seq 5, not the late seq 4
+    assert store.device("drive-001")["current_version"] == 2  # from seq 5, not the late seq 4
     summary = store.window_summary("drive-001", recent=2)
     assert summary["windows"] == 5 and [w["seq"] for w in summary["recent"]] == [5, 4]
 
