@@ -413,18 +413,30 @@ def test_the_held_positions_measure_the_drift_a_dwelling_drive_shows_no_circle_f
     assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains  # seeds 0-3: 1.0, 12.1, 7.0, 1.2
 
 
-def three_position_servo(t: np.ndarray, rng) -> np.ndarray:
-    """A servo holding one of three positions around the circle (20° apart at least, no gap between them over 200°)
-    for 2-10 minutes at a time, then another of them, moving between them in a sample."""
+def three_position_servo(t: np.ndarray, rng, widest_gap_deg=(0.0, 200.0)) -> np.ndarray:
+    """A servo holding one of three positions around the circle (20° apart at least, the widest gap between them in
+    widest_gap_deg) for 2-10 minutes at a time, then another of them, moving between them in a sample."""
     while True:
         positions = rng.uniform(0, 2 * np.pi, 3)
         ordered = np.sort(positions)
         gaps = np.diff(ordered, append=ordered[0] + 2 * np.pi)
-        if gaps.max() < np.radians(200) and gaps.min() > np.radians(20):
+        if np.radians(widest_gap_deg[0]) < gaps.max() < np.radians(widest_gap_deg[1]) and gaps.min() > np.radians(20):
             break
     starts = t[0] + np.cumsum(rng.uniform(120.0, 600.0, int((t[-1] - t[0]) / 120.0) + 2))
     which = np.cumsum(rng.integers(1, 3, starts.size + 1)) % 3  # each hold another position than the one before
     return positions[which][np.searchsorted(starts, t)] + rng.normal(0, np.radians(0.02), t.size)
+
+
+def three_position_drive(rng, widest_gap_deg=(0.0, 200.0)):
+    """(physics, factory set, samples, run) of a drive two days at 20 Hz whose servo holds three positions."""
+    phys = fieldsim.draw_drive(rng, event=None, days=2.0)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    t = fieldsim.sample_times(2.0, 20.0, rng)
+    temp = fieldsim.reported_temperature(t, rng, low=-20.0, high=75.0)
+    theta = three_position_servo(t, rng, widest_gap_deg) % (2 * np.pi)
+    samples = measured_shaft(phys, t, theta, temp, rng)
+    run = fieldsim.FieldRun(samples, theta, fieldsim.lagged_fast(temp, t, phys.die_lag_s), phys, "dwell", 20.0)
+    return phys, factory, samples, run
 
 
 def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth():
@@ -438,25 +450,37 @@ def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth()
     curve after its offset step stated 0.03-0.05° and was 0.10-0.15° wrong): no curve from the same sums then."""
     gains = []
     for seed in range(4):
-        rng = np.random.default_rng([408, seed])
-        phys = fieldsim.draw_drive(rng, event=None, days=2.0)
-        factory = calibrate(fieldsim.bench_sweep(phys, rng))
-        t = fieldsim.sample_times(2.0, 20.0, rng)
-        temp = fieldsim.reported_temperature(t, rng, low=-20.0, high=75.0)
-        theta = three_position_servo(t, rng) % (2 * np.pi)
-        samples = measured_shaft(phys, t, theta, temp, rng)
-        run = fieldsim.FieldRun(samples, theta, fieldsim.lagged_fast(temp, t, phys.die_lag_s), phys, "dwell", 20.0)
-        first_day = t < t[0] + 86400.0
-        monitor = DeviceMonitor("servo")
-        bands = band_sums(samples.subset(first_day), normalisation_scale(factory), monitor)
-        assert monitor.watches_held_positions(), seed  # one-minute windows: a step of the positions would be named
+        factory, bands, gain = three_positions_next_day(np.random.default_rng([408, seed]), (0.0, 200.0), seed)
         locus = bench_anchors(factory)[0][1]
         assert held_drift_model(list(bands.values()), locus, offsets_stepped=True) is None, seed
-        result = refit_device(bands, factory, factory, held_watched=True)
-        fitted = BandedCorrection.from_dict({"bands": result.bands}) if result.changed else factory
-        stated = {d.band: d.candidate_error_deg for d in result.decisions if d.adopted}
-        gains.append(gain_with_no_hour_worse(run, np.flatnonzero(~first_day), factory, fitted, stated, seed))
+        gains.append(gain)
     assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 3, gains
+
+
+def test_three_held_positions_within_a_third_of_the_circle_still_measure_the_drift():
+    """Three positions bunched within 110-130° of the circle (the widest gap between them 230-250°): the curve they
+    give is checked around the whole circle, gap included (HeldDrift.angle_error), so it is adopted only where that
+    error is small beside the factory set's. Until the fifty-eighth session a gap over 225° gave no curve at all:
+    s6-5hz-14 ran its factory set, moved for its gain step, 15 hours worse than the factory set itself. Hidden as
+    above; the set from a day's sums, run on the next day, leaves no hour worse than the factory set by more than
+    its stated uncertainty, and two drives of four at most half its error (seeds 0-3: 9.7x, 1.0x, 1.0x, 27x; at 225°,
+    1.0x each)."""
+    gains = [three_positions_next_day(np.random.default_rng([409, seed]), (230.0, 250.0), seed)[2] for seed in range(4)]
+    assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains
+
+
+def three_positions_next_day(rng, widest_gap_deg, seed) -> tuple:
+    """(factory set, a day's band sums, the gain over the factory set the next day of the set refit from them) of a
+    three-position servo drive (three_position_drive), checked hour by hour (gain_with_no_hour_worse)."""
+    phys, factory, samples, run = three_position_drive(rng, widest_gap_deg)
+    first_day = samples.t < samples.t[0] + 86400.0
+    monitor = DeviceMonitor("servo")
+    bands = band_sums(samples.subset(first_day), normalisation_scale(factory), monitor)
+    assert monitor.watches_held_positions(), seed  # one-minute windows: a step of the positions would be named
+    result = refit_device(bands, factory, factory, held_watched=True)
+    fitted = BandedCorrection.from_dict({"bands": result.bands}) if result.changed else factory
+    stated = {d.band: d.candidate_error_deg for d in result.decisions if d.adopted}
+    return factory, bands, gain_with_no_hour_worse(run, np.flatnonzero(~first_day), factory, fitted, stated, seed)
 
 
 def test_a_trial_is_confirmed_unmeasured_only_where_the_drive_held_positions():
