@@ -637,21 +637,21 @@ class Store:
         """Write what is staged: devices, windows (executemany), current versions; with bands, the changed sums."""
         c = self._conn
         if batch.rows:
+            # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
+            # (their seq is under the highest stored, which _max_seq holds: no max(seq) query per device)
             c.executemany(
-                "INSERT INTO devices (id, first_seen, last_seen) VALUES (?, ?, ?) ON CONFLICT(id) DO "
-                "UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen)",
-                [(device, batch.now, batch.now) for device in batch.newest],
+                "INSERT INTO devices (id, first_seen, last_seen, current_version) VALUES (?, ?, ?, ?) ON CONFLICT(id) "
+                "DO UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen), "
+                "current_version = coalesce(excluded.current_version, devices.current_version)",
+                [
+                    (device, batch.now, batch.now, version if seq >= self._max_seq[device] else None)
+                    for device, (seq, version) in batch.newest.items()
+                ],
             )
             c.executemany(
                 f"INSERT INTO windows ({', '.join(WINDOW_FIELDS)}, stats_json, stats, received_at,"
                 f" rejected_by_reason_json) VALUES ({', '.join('?' * len(WINDOW_FIELDS))}, '', ?, ?, ?)",
                 batch.rows,
-            )
-            # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
-            c.executemany(
-                "UPDATE devices SET current_version = ? WHERE id = ? AND "
-                "? >= (SELECT max(seq) FROM windows WHERE device = ?)",
-                [(version, device, seq, device) for device, (seq, version) in batch.newest.items()],
             )
             batch.rows, batch.newest = [], {}
         if bands:
