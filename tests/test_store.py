@@ -596,3 +596,18 @@ def test_windows_lost_with_a_session_and_sent_again_after_their_band_was_rebuilt
         service.store.BANDS_WRITE_EVERY_S = kept
     bands = sorted({m["band"] for m in sent + late})
     assert counts == {bands[0]: 3, bands[1]: 6}
+
+
+def test_a_batch_with_an_ack_and_a_late_window_keeps_the_newest_windows_version(store):
+    """A device's current version is the newest window's or a later applied ack's, in arrival order; a late window
+    (a catch-up, its seq under the highest stored) in the same batch or a later one does not roll it back."""
+
+    def item(msg: dict, kind: str = "window") -> tuple[str, bytes]:
+        return keys.key(msg["device"], keys.STATS if kind == "window" else keys.ACK), wire.encode(kind, msg)
+
+    batch = [item(window(seq=2, version=0)), item(ack(version=1, at=125.0), "ack"), item(window(seq=3, version=1))]
+    assert store.ingest_many([*batch, item(window(seq=1, version=0))]) == ["stored"] * 4
+    assert store.device("drive-001")["current_version"] == 1
+    assert store.ingest_many([item(window(seq=6, version=3))]) == ["stored"]
+    assert store.ingest_many([item(window(seq=5, version=2)), item(window(seq=4, version=2))]) == ["stored"] * 2
+    assert store.device("drive-001")["current_version"] == 3
