@@ -428,15 +428,16 @@ def three_position_servo(t: np.ndarray, rng, widest_gap_deg=(0.0, 200.0)) -> np.
 
 
 def three_position_drive(rng, widest_gap_deg=(0.0, 200.0)):
-    """(physics, factory set, samples, run) of a drive two days at 20 Hz whose servo holds three positions."""
+    """(factory set, run) of a drive two days at 20 Hz whose servo holds three positions."""
     phys = fieldsim.draw_drive(rng, event=None, days=2.0)
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
     t = fieldsim.sample_times(2.0, 20.0, rng)
     temp = fieldsim.reported_temperature(t, rng, low=-20.0, high=75.0)
     theta = three_position_servo(t, rng, widest_gap_deg) % (2 * np.pi)
     samples = measured_shaft(phys, t, theta, temp, rng)
-    run = fieldsim.FieldRun(samples, theta, fieldsim.lagged_fast(temp, t, phys.die_lag_s), phys, "dwell", 20.0)
-    return phys, factory, samples, run
+    return factory, fieldsim.FieldRun(
+        samples, theta, fieldsim.lagged_fast(temp, t, phys.die_lag_s), phys, "dwell", 20.0
+    )
 
 
 def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth():
@@ -450,7 +451,7 @@ def test_three_held_positions_measure_the_drift_until_a_step_asks_for_a_fourth()
     curve after its offset step stated 0.03-0.05° and was 0.10-0.15° wrong): no curve from the same sums then."""
     gains = []
     for seed in range(4):
-        factory, bands, gain = three_positions_next_day(np.random.default_rng([408, seed]), (0.0, 200.0), seed)
+        factory, bands, gain = three_positions_next_day(np.random.default_rng([408, seed]), seed)
         locus = bench_anchors(factory)[0][1]
         assert held_drift_model(list(bands.values()), locus, offsets_stepped=True) is None, seed
         gains.append(gain)
@@ -465,17 +466,17 @@ def test_three_held_positions_within_a_third_of_the_circle_still_measure_the_dri
     above; the set from a day's sums, run on the next day, leaves no hour worse than the factory set by more than
     its stated uncertainty, and two drives of four at most half its error (seeds 0-3: 9.7x, 1.0x, 1.0x, 27x; at 225°,
     1.0x each)."""
-    gains = [three_positions_next_day(np.random.default_rng([409, seed]), (230.0, 250.0), seed)[2] for seed in range(4)]
+    gains = [three_positions_next_day(np.random.default_rng([409, seed]), seed, (230.0, 250.0))[2] for seed in range(4)]
     assert min(gains) >= 0.99 and sum(g >= 2.0 for g in gains) >= 2, gains
 
 
-def three_positions_next_day(rng, widest_gap_deg, seed) -> tuple:
+def three_positions_next_day(rng, seed: int, widest_gap_deg=(0.0, 200.0)) -> tuple:
     """(factory set, a day's band sums, the gain over the factory set the next day of the set refit from them) of a
     three-position servo drive (three_position_drive), checked hour by hour (gain_with_no_hour_worse)."""
-    phys, factory, samples, run = three_position_drive(rng, widest_gap_deg)
-    first_day = samples.t < samples.t[0] + 86400.0
+    factory, run = three_position_drive(rng, widest_gap_deg)
+    first_day = run.samples.t < run.samples.t[0] + 86400.0
     monitor = DeviceMonitor("servo")
-    bands = band_sums(samples.subset(first_day), normalisation_scale(factory), monitor)
+    bands = band_sums(run.samples.subset(first_day), normalisation_scale(factory), monitor)
     assert monitor.watches_held_positions(), seed  # one-minute windows: a step of the positions would be named
     result = refit_device(bands, factory, factory, held_watched=True)
     fitted = BandedCorrection.from_dict({"bands": result.bands}) if result.changed else factory
