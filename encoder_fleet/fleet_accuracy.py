@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import re
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -253,6 +255,124 @@ def run_drive(spec: DriveSpec) -> DriveResult:
     return scored(spec, factory, run, fleet_loop(run.samples, factory, window_s=spec.window_s))
 
 
+@dataclass
+class Explanation:
+    """One drive of a benchmark fleet, replayed with every decision the loop took (`explain_drive`)."""
+
+    result: DriveResult
+    planted: list[tuple[float, str]]  # the simulator's truth: (hour, kind) of each planted event
+    decisions: list[tuple[float, str]]  # (hour, what the loop did or saw)
+    hour_temp_c: list[float]  # the reported temperature, mean per drive-hour
+
+
+SPEC_NAME = re.compile(r"^s(\d+)-([0-9.]+)hz-(\d+)-([a-z]+)$")
+
+
+def spec_named(name: str, *, drives: int, days: float, window_s: float | None, events: bool = True) -> DriveSpec:
+    """The drive a benchmark names (s<seed>-<rate>hz-<index>-<motion>, as in its table) in a fleet of `drives`."""
+    match = SPEC_NAME.match(name)
+    if match is None:
+        raise InputError(f"drive name {name!r} is not s<seed>-<rate>hz-<index>-<motion> (e.g. s8-20hz-10-dwell)")
+    seed, rate = int(match.group(1)), float(match.group(2))
+    window = window_s or default_window(rate)
+    specs = fleet_specs(seed, drives, days, rate, window, events)
+    found = [spec for spec in specs if spec.name == name]
+    if not found:
+        raise InputError(
+            f"no drive {name!r} in the fleet of seed {seed} at {rate:g} Hz with {drives} drives: "
+            f"{', '.join(spec.name for spec in specs)}"
+        )
+    return found[0]
+
+
+def explain_drive(spec: DriveSpec) -> Explanation:
+    """Run one drive as the benchmark does, keeping every decision of the loop beside its score."""
+    physics, factory, run = drive_of(spec)
+    t0 = float(run.samples.t[0])
+    decisions = []
+    timeline = fleet_loop(
+        run.samples,
+        factory,
+        window_s=spec.window_s,
+        log=lambda t, text: decisions.append(((t - t0) / 3600.0, text)),
+    )
+    hours = np.floor((run.samples.t - t0) / 3600.0).astype(int)
+    temps = [float(np.mean(run.samples.temp_c[hours == h])) for h in range(hours.max() + 1)]
+    planted = [((e.t_s - t0) / 3600.0, e.kind) for e in physics.events]
+    return Explanation(scored(spec, factory, run, timeline), planted, decisions, temps)
+
+
+def format_explanation(ex: Explanation) -> str:
+    """The decisions in drive order, then a table of every drive-hour: what the factory set, the fleet and the
+    floors left, and which hours count as worse (and whether a floor or a planted step shares them)."""
+    r = ex.result
+    planted = ", ".join(f"{kind} at {h:.2f} h" for h, kind in ex.planted) or "nothing"
+    lines = [
+        f"{r.name}: {r.gain:.2f}x the factory set (its floor {r.floor_gain:.1f}x), {r.worse_hours} worse hour(s), "
+        f"{r.versions_applied} set(s) applied; planted (the simulator's truth, which the loop never sees): {planted}",
+        "",
+        "| drive hour | what the fleet did or saw |",
+        "|---|---|",
+    ]
+    lines += [f"| {h:.2f} | {text} |" for h, text in ex.decisions]
+    lines += [
+        "",
+        "| hour | °C | factory ° | fleet ° | reference-free floor ° | drift floor ° | |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    worse, floors, steps = set(r.worse_hour_indices), set(r.floor_worse_hour_indices), r.step_near_hours
+    for h, temp in enumerate(ex.hour_temp_c):
+        mark = ""
+        if h in worse:
+            mark = "worse" + (" (a floor too)" if h in floors else " (at a step)" if h in steps else "")
+        elif h in set(r.step_hours):
+            mark = "step"
+        lines.append(
+            f"| {h} | {temp:+.1f} | {r.factory_hour_deg[h]:.4f} | {r.fleet_hour_deg[h]:.4f} | "
+            f"{r.floor_hour_deg[h]:.4f} | {r.drift_floor_hour_deg[h]:.4f} | {mark} |"
+        )
+    return "\n".join(lines)
+
+
+def plot_explanation(ex: Explanation, path) -> None:
+    """The drive-hours as a picture: the factory set's, the fleet's and the floor's error (log scale), the worse
+    hours shaded, a tick at every set applied and every alarm raised; the temperature below."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    r = ex.result
+    hours = np.arange(len(r.fleet_hour_deg)) + 0.5
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(11, 6), sharex=True, height_ratios=(3, 1))
+    top.semilogy(hours, r.factory_hour_deg, "-", color="0.45", label="factory set")
+    top.semilogy(hours, r.fleet_hour_deg, "-", color="tab:blue", label="fleet (what the drive ran)")
+    top.semilogy(hours, r.floor_hour_deg, ":", color="tab:green", label="reference-free floor")
+    for h in r.worse_hour_indices:
+        top.axvspan(h, h + 1, color="tab:red", alpha=0.2, lw=0)
+    for h, text in ex.decisions:
+        if " applied: " in text:
+            top.axvline(h, color="tab:blue", lw=0.6, alpha=0.5)
+        elif text.startswith("alarm raise"):
+            top.axvline(h, color="tab:red", lw=1.0, ls="--")
+    for h, kind in ex.planted:
+        top.axvline(h, color="black", lw=1.0, ls=":")
+        top.annotate(f" {kind} (planted)", (h, 0.02), xycoords=("data", "axes fraction"), fontsize=8)
+    top.set_ylabel("true angle error, ° RMS per hour")
+    top.legend(loc="upper right", fontsize=8)
+    top.set_title(
+        f"{r.name}: {r.gain:.2f}x, {r.worse_hours} worse hour(s) shaded; blue lines: sets applied, red dashed: alarms, "
+        "black dotted: planted events",
+        fontsize=10,
+    )
+    bottom.plot(hours, ex.hour_temp_c, color="tab:orange")
+    bottom.set_ylabel("°C")
+    bottom.set_xlabel("drive hour")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def scored(spec: DriveSpec, factory: BandedCorrection, run: fieldsim.FieldRun, timeline) -> DriveResult:
     """A drive's result from the timeline of what it ran (from drive time, set), on true angle."""
     factory_hours, fleet_hours = score(run, factory, timeline)
@@ -282,21 +402,32 @@ def fleet_loop(
     guard: bool = True,
     watch_factory: bool = True,
     watch_every_s: float = WATCH_EVERY_S,
+    log: Callable[[float, str], None] | None = None,
 ) -> list[tuple[float, BandedCorrection]]:
     """The agent's windows, the service's band sums and refits, the drift monitor restarting band memory
     after a step, the guard holding each new set on trial until the soak judges it (service.runtime), the
-    agent applying sets: returns the timeline of what the drive ran, as (from drive time, set)."""
+    agent applying sets: returns the timeline of what the drive ran, as (from drive time, set). `log(drive time,
+    text)`, when given, hears every decision: alarms, refits, verdicts, sets sent and applied (`explain_drive`)."""
     with tempfile.TemporaryDirectory(prefix="fleet-accuracy-") as tmp:
         sums = StoreSums(Path(tmp) / "fleet.sqlite", float(samples.t[0]), horizon_s)
         try:
             return _fleet_loop(
-                samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s
+                samples,
+                factory,
+                sums,
+                window_s,
+                refit_every_s,
+                monitor,
+                guard,
+                watch_factory,
+                watch_every_s,
+                log or (lambda t, text: None),
             )
         finally:
             sums.store.close()
 
 
-def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s):
+def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s, log):
     scale = normalisation_scale(factory)  # the agent's normalisation
     watch = DeviceMonitor("drive") if monitor else None
     factory_msg = factory_message("drive", factory)
@@ -318,6 +449,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             lag = pending.get("thermal_lag_s", running.thermal_lag_s)  # a set without one keeps the drive's
             running, running_msg = BandedCorrection.from_dict({**pending, "thermal_lag_s": lag}), pending
             timeline.append((float(block.t[0]), running))
+            log(float(block.t[0]), f"v{pending['version']} applied: {_set_summary(pending)}")
             if watch is not None and step_at is not None and pending["created_at"] >= step_at:
                 # service.monitor: the step is cleared once a set made after it is applied (the next can be named)
                 for cause in STEP_CAUSES:
@@ -331,6 +463,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
         if deferred is not None and pending is None and trial is None:  # service.runtime.refit: after the verdict
             bands = step_moved_bands(running_msg["bands"], deferred[0], deferred[1], scale)
             pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": float(block.t[0])}
+            log(float(block.t[0]), f"v{pending['version']} sent: the running set moved for the {deferred[0]}")
             deferred = None
             next_refit = float(block.t[0]) + refit_every_s
         block = replace(block, temp_c=die(block.t, block.temp_c, running.thermal_lag_s))  # EdgeAgent.step
@@ -352,6 +485,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 lag_used_s=running.thermal_lag_s,
             )
             for event in watch.update(features):
+                log(event.at, f"alarm {event.kind}: {event.cause}: {event.evidence}")
                 if event.cause in STEP_CAUSES and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
@@ -359,6 +493,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     no_axis_step &= event.cause != "axis_step"
                     if not watch.step_measured(event.at):  # service.runtime.back_to_factory: not moved for
                         pending = factory_again(factory_msg, len(timeline), end_s)
+                        log(end_s, f"v{pending['version']} sent: the factory set again (the step was not measured)")
                         confirmed, trial, deferred = pending, None, None
                         next_refit = end_s + refit_every_s
                     elif trial is not None and trial[0]["created_at"] >= event.at:
@@ -368,6 +503,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                     else:  # service.runtime.publish_step_move
                         bands = step_moved_bands(running_msg["bands"], event.cause, event.parameters, scale)
                         pending = {"bands": bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
+                        log(end_s, f"v{pending['version']} sent: the running set moved for the {event.cause}")
                         next_refit = end_s + refit_every_s
         if watch_factory and pending is None and end_s >= next_watch:
             next_watch = end_s + watch_every_s
@@ -376,6 +512,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 # the first rule: the running set is worse than the factory's: the factory's again, and the drive
                 # learnt from what it is now
                 pending = factory_again(factory_msg, len(timeline), end_s)
+                log(end_s, f"v{pending['version']} sent: the factory set again (the running set measured worse)")
                 confirmed, trial = pending, None
                 sums.restart(after_s=end_s - WATCH_S)
                 next_refit = end_s + refit_every_s
@@ -386,6 +523,9 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 verdict = judge(TrialEvidence(trial[0], confirmed, trial[1], factory=factory_msg))
                 if verdict.action == "wait" and end_s - trial[3] >= TRIAL_MAX_S:
                     verdict.action = "confirm"  # a trial not measured in time stays on the refit's word
+                    verdict.reason = "not measured within the trial's limit: kept on the refit's word"
+                if verdict.action != "wait":
+                    log(end_s, f"v{trial[0]['version']} {verdict.action}: {verdict.reason}")
                 if verdict.action == "confirm":
                     confirmed, trial = trial[0], None
                 elif verdict.action == "rollback":
@@ -400,6 +540,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             if lag is not None:  # service.runtime.publish_lag: the bands as they run, read at the new die estimate
                 pending = {"bands": running_msg["bands"], "basis": "fit", "version": len(timeline), "created_at": end_s}
                 pending.update(thermal_lag_s=lag, lag_only=True, bands_from=bands_from(running_msg))
+                log(end_s, f"v{pending['version']} sent: the running bands with a die lag of {lag:.0f} s")
                 continue
         band_sums = sums.band_sums()
         bin_temps = {b: s.bin_temps() for b, s in band_sums.items()}  # what service.runtime passes
@@ -416,14 +557,41 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             axis_turn=axis_turn,
             held_watched=watch is not None and watch.watches_held_positions(),  # as service.runtime passes it
         )
+        log(end_s, _refit_summary(result))
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})
             try:
                 check_plausible(candidate, factory)
-            except InputError:
+            except InputError as exc:
+                log(end_s, f"the agent would refuse that set ({exc}): not sent")
                 continue  # the agent refuses it and keeps running what it has
             pending = {"bands": result.bands, "basis": "fit", "version": len(timeline), "created_at": end_s}
+            log(end_s, f"v{pending['version']} sent: the refit's set")
     return timeline
+
+
+def _set_summary(msg: dict) -> str:
+    """A set message in a line: its basis and the temperatures of its entries."""
+    temps = ", ".join("bench" if b["temp_c"] is None else f"{b['temp_c']:+.1f}" for b in msg["bands"])
+    lag = f", die lag {msg['thermal_lag_s']:.0f} s" if msg.get("thermal_lag_s") else ""
+    return f"{msg['basis']}, entries at {temps} °C{lag}"
+
+
+def _refit_summary(result) -> str:
+    """A refit's decisions in a line: each band adopted (its stated error, and how far the running set sat from
+    it), the bands moved for an offset step, and how many candidates it kept the running set against."""
+    adopted = [
+        f"{d.temp_c:+.1f} °C (states {d.candidate_error_deg:.4f}°, the running set {d.running_error_deg:.4f}° off)"
+        for d in result.decisions
+        if d.adopted
+    ]
+    kept = sum(not d.adopted for d in result.decisions)
+    parts = [f"adopted {', '.join(adopted)}"] if adopted else ["adopted nothing"]
+    if result.moved_bands:
+        parts.append(f"moved bands {result.moved_bands} for the offset step")
+    if kept:
+        parts.append(f"kept the running set in {kept} band(s)")
+    return "refit: " + "; ".join(parts)
 
 
 def factory_again(factory_msg: dict, version: int, at: float) -> dict:

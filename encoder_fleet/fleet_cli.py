@@ -388,6 +388,8 @@ def cmd_bench_fleet_accuracy(args) -> int:
 
     from encoder_fleet.fleet_accuracy import format_report, run_bench
 
+    if args.explain or args.plot:
+        return explain_one(args)
     rates = [float(r) for r in args.rates.split(",")]
     seeds = [int(s) for s in args.seeds.split(",")]
     windows = {}
@@ -408,6 +410,25 @@ def cmd_bench_fleet_accuracy(args) -> int:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=1)
         print(f"wrote {args.json}")
+    return 0
+
+
+def explain_one(args) -> int:
+    """`bench-fleet-accuracy --explain DRIVE [--plot PNG]`: one drive, every decision, every hour."""
+    from encoder_fleet.fleet_accuracy import explain_drive, format_explanation, plot_explanation, spec_named
+
+    if not args.explain:
+        raise InputError("--plot draws the drive --explain names")
+    if args.through_service:
+        raise InputError("--explain runs the in-process loop, not --through-service")
+    spec = spec_named(
+        args.explain, drives=args.drives, days=args.days, window_s=args.window_s, events=not args.no_events
+    )
+    explanation = explain_drive(spec)
+    print(format_explanation(explanation))
+    if args.plot:
+        plot_explanation(explanation, args.plot)
+        print(f"wrote {args.plot}")
     return 0
 
 
@@ -434,4 +455,11 @@ def register_fleet_accuracy(sub) -> None:
         "FACTOR times real time (default 3600), instead of the in-process loop; recordings take ~50 MB per drive-day "
         "at 20 Hz",
     )
+    p.add_argument(
+        "--explain",
+        metavar="DRIVE",
+        help="run one drive of the table (e.g. s8-20hz-10-dwell, in the fleet --drives, --days and --window-s "
+        "describe) and print every decision the fleet took beside its error hour by hour",
+    )
+    p.add_argument("--plot", metavar="PNG", help="with --explain: also draw the drive's hours into this file")
     p.set_defaults(func=cmd_bench_fleet_accuracy)

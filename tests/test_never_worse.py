@@ -5,6 +5,7 @@ recording, and a small seeded fleet whose true angle error is scored against the
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -142,6 +143,46 @@ def test_worse_hours_the_reference_free_floors_share_and_those_at_a_step_are_cou
     assert summary["worse_hours_at_steps"] == 2 and summary["drives_past_1pct"] == 2
     assert summary["drives_past_1pct_own"] == 0  # r's hour 0 is the floor's, hour 2 the step's
     assert summary["floor_worse_hours"] == 6
+
+
+def test_explain_replays_one_drive_with_every_decision_beside_its_hours(tmp_path, capsys):
+    """`bench-fleet-accuracy --explain DRIVE`: the drive the table names, run as the benchmark runs it, with every
+    set the loop sent and applied, every verdict and alarm, then its error hour by hour, its worse hours and its
+    planted step's hour marked. Listening changes nothing: the drive scores as the benchmark scores it.
+    s10-0.5hz-07-reverse (the 12-drive fleet, 3 days): its axis step is drawn from the seed; the loop never sees it."""
+    from encoder_fleet.cli import main
+    from encoder_fleet.fleet_accuracy import explain_drive, format_explanation, plot_explanation, spec_named
+
+    spec = spec_named("s10-0.5hz-07-reverse", drives=12, days=3.0, window_s=None)
+    assert (spec.seed, spec.index, spec.rate_hz, spec.window_s, spec.event) == (10, 7, 0.5, 300.0, "axis_step")
+    explained = explain_drive(spec)
+    result = run_drive(spec)
+    assert explained.result.fleet_hour_deg == result.fleet_hour_deg
+    assert explained.result.versions_applied == result.versions_applied >= 1
+    applied = [text for _, text in explained.decisions if " applied: " in text]
+    assert len(applied) == result.versions_applied, explained.decisions
+    assert any(text.startswith("refit: adopted +") for _, text in explained.decisions)
+    hours = [h for h, _ in explained.decisions]
+    assert hours == sorted(hours) and 0.0 <= hours[0] and hours[-1] < 72.0
+    text = format_explanation(explained)
+    rows = [line.split("|")[1:-1] for line in text.splitlines() if re.match(r"\| \d+ \|", line)]  # the hours' table
+    assert [int(row[0]) for row in rows] == list(range(72))
+    assert [int(row[0]) for row in rows if row[-1].strip().startswith("worse")] == result.worse_hour_indices
+    ((step_hour, kind),) = explained.planted
+    assert kind == "axis_step" and result.step_hours == [int(step_hour)]
+    assert rows[int(step_hour)][-1].strip() in ("step", "worse (at a step)")
+    plot_explanation(explained, tmp_path / "drive.png")
+    assert (tmp_path / "drive.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    for argv, says in (
+        (["--explain", "s10-0.5hz-7-reverse"], "no drive 's10-0.5hz-7-reverse' in the fleet of seed 10 at 0.5 Hz"),
+        (["--explain", "s10-0.5hz-07-even"], "s10-0.5hz-07-reverse"),  # the fleet's names, to pick from
+        (["--explain", "drive-7"], "is not s<seed>-<rate>hz-<index>-<motion>"),
+        (["--plot", str(tmp_path / "p.png")], "--plot draws the drive --explain names"),
+    ):
+        assert main(["bench-fleet-accuracy", *argv]) == 2
+        assert says in capsys.readouterr().err
+    assert not (tmp_path / "p.png").exists()
 
 
 @pytest.mark.parametrize("seed", [3, 8])
