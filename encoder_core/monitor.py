@@ -53,7 +53,8 @@ N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbala
 MIN_FIT_SAMPLES = 100
 _SAME = math.radians(1.0)  # held positions closer than this along the circle are one
 _HELD_MEMORY_S = 12 * HOUR_S  # a held position not visited for this long is forgotten
-HELD_LAG_POSITIONS = 12  # held positions whose radius measures the die's lag (a servo holds 3-6), the oldest dropped
+HELD_LAG_POSITIONS = 8  # held positions whose radius measures the die's lag (a servo holds 3-6; each adds ~8 KB to
+# the monitor's saved state), the one fitted longest ago dropped
 HELD_WATCH_PAIRS = 10.0  # pairs of visits the held map learnt from (decayed): the held positions are watched
 _JUMP_PENDING_S = 1800.0  # a jump of the held positions waits this long to be seen still again
 # a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
@@ -1383,6 +1384,7 @@ class DeviceMonitor:
         """After an offset step: the arcs' offset tests start over, and every pair and block that would straddle the
         step is dropped (a pair or block with the step in it would name it again)."""
         self.arc_block, self.short = None, None
+        self.held_lag = {}  # each held position's radius moved its own way (a second step too, its alarm still open)
         for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
             chain.offsets = [WindowJump(), WindowJump()]
             if name != source:
@@ -1486,6 +1488,7 @@ class DeviceMonitor:
         alarm (and one move of the running set); a gain step moves the level, and what learnt the drive restarts."""
         if axis or gain is not None:
             self.arc_block, self.short = None, None
+            self.held_lag = {}  # each held position's radius moved its own way
             for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
                 if name != source:  # the next pair starts after the step: one with the step in it would name it again
                     chain.last = None

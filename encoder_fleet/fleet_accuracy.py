@@ -421,13 +421,14 @@ def fleet_loop(
                 guard,
                 watch_factory,
                 watch_every_s,
-                log or (lambda t, text: None),
+                log,
             )
         finally:
             sums.store.close()
 
 
-def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s, log):
+def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard, watch_factory, watch_every_s, listen):
+    log = listen or (lambda t, text: None)  # the summaries below are only built for a listener
     scale = normalisation_scale(factory)  # the agent's normalisation
     watch = DeviceMonitor("drive") if monitor else None
     factory_msg = factory_message("drive", factory)
@@ -449,7 +450,8 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             lag = pending.get("thermal_lag_s", running.thermal_lag_s)  # a set without one keeps the drive's
             running, running_msg = BandedCorrection.from_dict({**pending, "thermal_lag_s": lag}), pending
             timeline.append((float(block.t[0]), running))
-            log(float(block.t[0]), f"v{pending['version']} applied: {_set_summary(pending)}")
+            if listen:
+                log(float(block.t[0]), f"v{pending['version']} applied: {_set_summary(pending)}")
             if watch is not None and step_at is not None and pending["created_at"] >= step_at:
                 # service.monitor: the step is cleared once a set made after it is applied (the next can be named)
                 for cause in STEP_CAUSES:
@@ -557,7 +559,8 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             axis_turn=axis_turn,
             held_watched=watch is not None and watch.watches_held_positions(),  # as service.runtime passes it
         )
-        log(end_s, _refit_summary(result))
+        if listen:
+            log(end_s, _refit_summary(result))
         if result.changed:
             candidate = BandedCorrection.from_dict({"bands": result.bands})
             try:
