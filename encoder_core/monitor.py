@@ -36,7 +36,7 @@ from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C, band_of
 from .stacked import eig_stack, solve_stack
 from .stats import MONOMIALS, N_BINS, WindowStats
-from .thermal import LagEstimate, tau_of
+from .thermal import LagEstimate
 
 
 def _plain(obj) -> dict:
@@ -53,8 +53,6 @@ N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbala
 MIN_FIT_SAMPLES = 100
 _SAME = math.radians(1.0)  # held positions closer than this along the circle are one
 _HELD_MEMORY_S = 12 * HOUR_S  # a held position not visited for this long is forgotten
-HELD_LAG_POSITIONS = 8  # held positions whose radius measures the die's lag (a servo holds 3-6; each adds ~8 KB to
-# the monitor's saved state), the one fitted longest ago dropped
 HELD_WATCH_PAIRS = 10.0  # pairs of visits the held map learnt from (decayed): the held positions are watched
 _JUMP_PENDING_S = 1800.0  # a jump of the held positions waits this long to be seen still again
 # a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
@@ -976,9 +974,6 @@ class DeviceMonitor:
     temp_rate_last: float | None = None  # the last window's temperature rate (°C/s)
     calm_since: float | None = None  # since when the rate has moved by no more than held_far_rate_change a window
     lag: LagEstimate = field(default_factory=LagEstimate)  # the die's lag, from the windows' amplitude
-    # ... and, where the drive holds positions (no ellipse, no amplitude), from each position's radius: angle
-    # (degrees, as first seen) -> its LagEstimate, fitted on the die path `lag` draws
-    held_lag: dict = field(default_factory=dict)
 
     def __post_init__(self):
         s = self.settings
@@ -1033,7 +1028,6 @@ class DeviceMonitor:
             "temp_rate_last": self.temp_rate_last,
             "calm_since": self.calm_since,
             "lag": self.lag.to_dict(),
-            "held_lag": {k: v.to_dict() for k, v in self.held_lag.items()},
         }
 
     @classmethod
@@ -1075,7 +1069,6 @@ class DeviceMonitor:
             temp_rate_last=d.get("temp_rate_last"),
             calm_since=d.get("calm_since"),
             lag=LagEstimate.from_dict(d["lag"]) if "lag" in d else LagEstimate(),
-            held_lag={k: LagEstimate.from_dict(v) for k, v in d.get("held_lag", {}).items()},
         )
 
     # --- state for users ---------------------------------------------------------------------------
@@ -1168,7 +1161,7 @@ class DeviceMonitor:
         if f.start is None:
             return
         fitted = f.y is not None and not absurd
-        mean = self.lag.add(
+        self.lag.add(
             start=f.start,
             end=f.t,
             temp_c=f.temp_c,
@@ -1177,28 +1170,10 @@ class DeviceMonitor:
             log_amp=float(f.y[_AMP]) if fitted else None,
             sd=float(f.sigma[_AMP]) if fitted else None,
         )
-        if mean is None or fitted or absurd:
-            return
-        for x, y, sd in f.held or ():  # no ellipse: each held position's radius moves with the common gain too
-            radius = math.hypot(x, y)
-            angle = math.degrees(math.atan2(y, x))
-            key = next((k for k in self.held_lag if abs(math.remainder(float(k) - angle, 360.0)) < 1.0), None)
-            if key is None:
-                if len(self.held_lag) >= HELD_LAG_POSITIONS:
-                    del self.held_lag[min(self.held_lag, key=lambda k: self.held_lag[k].t_fit or 0.0)]
-                key = f"{angle:.2f}"
-                self.held_lag[key] = LagEstimate()
-            self.held_lag[key].fit(mean, f.t, math.log(radius), sd / radius)
 
     def thermal_lag(self) -> tuple[float, float] | None:
-        """(τ s, its standard error) of the die's lag behind the reported temperature, once the windows show it:
-        from the ellipse's amplitude, else, where the held test watches the positions the drive holds, from their
-        radii (a servo's drive, whose held points scatter across the circle with the lag: README, fifty-ninth
-        session; a 0.5 Hz drive's 300 s windows are never compared, and its held fit is off)."""
-        own = self.lag.tau()
-        if own is not None or not self.watches_held_positions():
-            return own
-        return tau_of(list(self.held_lag.values()))
+        """(τ s, its standard error) of the die's lag behind the reported temperature, once the windows show it."""
+        return self.lag.tau()
 
     def watches_held_positions(self) -> bool:
         """The held-step test compares the positions the drive holds visit by visit (its map of how they move with
@@ -1225,8 +1200,6 @@ class DeviceMonitor:
         events.append(AlarmEvent("raise", cause, at, parameters, evidence))
         if cause == "gain_step":
             self.lag.restart()  # the amplitude moved: windows from before the step would read as a lag
-        if cause in ("offset_step", "gain_step", "axis_step"):
-            self.held_lag = {}  # and each held position's radius moved its own way
 
     def _quiet(self, events, cause: str, at: float, quiet: bool, why: str) -> None:
         """Clear an open alarm once its condition has been gone for clear_after_s of drive time."""
@@ -1384,7 +1357,6 @@ class DeviceMonitor:
         """After an offset step: the arcs' offset tests start over, and every pair and block that would straddle the
         step is dropped (a pair or block with the step in it would name it again)."""
         self.arc_block, self.short = None, None
-        self.held_lag = {}  # each held position's radius moved its own way (a second step too, its alarm still open)
         for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
             chain.offsets = [WindowJump(), WindowJump()]
             if name != source:
@@ -1488,7 +1460,6 @@ class DeviceMonitor:
         alarm (and one move of the running set); a gain step moves the level, and what learnt the drive restarts."""
         if axis or gain is not None:
             self.arc_block, self.short = None, None
-            self.held_lag = {}  # each held position's radius moved its own way
             for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
                 if name != source:  # the next pair starts after the step: one with the step in it would name it again
                     chain.last = None
