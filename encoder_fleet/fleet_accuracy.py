@@ -296,8 +296,8 @@ def explain_drive(spec: DriveSpec) -> Explanation:
         window_s=spec.window_s,
         log=lambda t, text: decisions.append(((t - t0) / 3600.0, text)),
     )
-    hours = np.floor((run.samples.t - t0) / 3600.0).astype(int)
-    temps = [float(np.mean(run.samples.temp_c[hours == h])) for h in range(hours.max() + 1)]
+    hours = np.floor((run.samples.t - t0) / 3600.0).astype(int)  # as `score` counts drive-hours
+    temps = (np.bincount(hours, weights=run.samples.temp_c) / np.bincount(hours)).tolist()
     planted = [((e.t_s - t0) / 3600.0, e.kind) for e in physics.events]
     return Explanation(scored(spec, factory, run, timeline), planted, decisions, temps)
 
@@ -321,11 +321,12 @@ def format_explanation(ex: Explanation) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     worse, floors, steps = set(r.worse_hour_indices), set(r.floor_worse_hour_indices), r.step_near_hours
+    planted_hours = set(r.step_hours)
     for h, temp in enumerate(ex.hour_temp_c):
         mark = ""
         if h in worse:
             mark = "worse" + (" (a floor too)" if h in floors else " (at a step)" if h in steps else "")
-        elif h in set(r.step_hours):
+        elif h in planted_hours:
             mark = "step"
         lines.append(
             f"| {h} | {temp:+.1f} | {r.factory_hour_deg[h]:.4f} | {r.fleet_hour_deg[h]:.4f} | "
