@@ -36,7 +36,7 @@ from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C, band_of
 from .stacked import eig_stack, solve_stack
 from .stats import MONOMIALS, N_BINS, WindowStats
-from .thermal import LagEstimate
+from .thermal import LagEstimate, tau_of
 
 
 def _plain(obj) -> dict:
@@ -53,12 +53,20 @@ N_FEATURES = 4 + 2 * len(HARMONIC_CYCLES)  # center_d, center_q, log_amp, imbala
 MIN_FIT_SAMPLES = 100
 _SAME = math.radians(1.0)  # held positions closer than this along the circle are one
 _HELD_MEMORY_S = 12 * HOUR_S  # a held position not visited for this long is forgotten
+HELD_LAG_POSITIONS = 8  # held positions whose radius measures the die's lag (a servo holds 3-6; each adds ~8 KB to
+# the monitor's saved state), the one fitted longest ago dropped
 HELD_WATCH_PAIRS = 10.0  # pairs of visits the held map learnt from (decayed): the held positions are watched
 _JUMP_PENDING_S = 1800.0  # a jump of the held positions waits this long to be seen still again
 # a window that leaves more of the circle unseen than this (in angle bins: a quarter turn) is not judged: an
 # ellipse through one arc puts its centre anywhere along the arc's axis, and a reversing drive's windows then
 # read as offset steps (bench-fleet-accuracy: false offset_step alarms that moved every band of a good set)
 MAX_GAP_BINS = N_BINS // 4
+
+
+def _reported_c(f: Features) -> float:
+    """The window's mean temperature as the drive reported it: a window written at a die lag (a set that carries one,
+    lag_used_s) holds the die's estimate, and a first-order lag's die follows T = die + τ·d(die)/dt."""
+    return f.temp_c + f.lag_used_s * f.temp_rate
 
 
 def _settled(visit: list) -> bool:
@@ -958,8 +966,8 @@ class DeviceMonitor:
     last_absurd_t: float | None = None
     amp_ref: float | None = None  # log amplitude of the last accepted window (gate for unlearned bands)
     online: bool = True
-    # [x, y, sd, temp_c, t, the visit before as [x, y, sd, temp_c, t] or None, temp_rate] of each held position at
-    # its last visit
+    # [x, y, sd, temp_c, t, the visit before as [x, y, sd, temp_c, t] or None, temp_rate, still, the temperature the
+    # drive reported (_reported_c)] of each held position at its last visit
     held_last: list = field(default_factory=list)
     # [Δx, Δy, t, windows, after, far]: the held positions jumped at t, not yet seen still again; the step came
     # after `after` (the latest visit they were compared with); far: compared against the temperature map
@@ -974,6 +982,9 @@ class DeviceMonitor:
     temp_rate_last: float | None = None  # the last window's temperature rate (°C/s)
     calm_since: float | None = None  # since when the rate has moved by no more than held_far_rate_change a window
     lag: LagEstimate = field(default_factory=LagEstimate)  # the die's lag, from the windows' amplitude
+    # ... and, where the drive holds positions (no ellipse, no amplitude), from each position's radius: angle
+    # (degrees, as first seen) -> its LagEstimate, fitted on the die path `lag` draws
+    held_lag: dict = field(default_factory=dict)
 
     def __post_init__(self):
         s = self.settings
@@ -1028,6 +1039,7 @@ class DeviceMonitor:
             "temp_rate_last": self.temp_rate_last,
             "calm_since": self.calm_since,
             "lag": self.lag.to_dict(),
+            "held_lag": {k: v.to_dict() for k, v in self.held_lag.items()},
         }
 
     @classmethod
@@ -1069,6 +1081,7 @@ class DeviceMonitor:
             temp_rate_last=d.get("temp_rate_last"),
             calm_since=d.get("calm_since"),
             lag=LagEstimate.from_dict(d["lag"]) if "lag" in d else LagEstimate(),
+            held_lag={k: LagEstimate.from_dict(v) for k, v in d.get("held_lag", {}).items()},
         )
 
     # --- state for users ---------------------------------------------------------------------------
@@ -1161,7 +1174,7 @@ class DeviceMonitor:
         if f.start is None:
             return
         fitted = f.y is not None and not absurd
-        self.lag.add(
+        mean = self.lag.add(
             start=f.start,
             end=f.t,
             temp_c=f.temp_c,
@@ -1170,10 +1183,28 @@ class DeviceMonitor:
             log_amp=float(f.y[_AMP]) if fitted else None,
             sd=float(f.sigma[_AMP]) if fitted else None,
         )
+        if mean is None or fitted or absurd:
+            return
+        for x, y, sd in f.held or ():  # no ellipse: each held position's radius moves with the common gain too
+            radius = math.hypot(x, y)
+            angle = math.degrees(math.atan2(y, x))
+            key = next((k for k in self.held_lag if abs(math.remainder(float(k) - angle, 360.0)) < 1.0), None)
+            if key is None:
+                if len(self.held_lag) >= HELD_LAG_POSITIONS:
+                    del self.held_lag[min(self.held_lag, key=lambda k: self.held_lag[k].t_fit or 0.0)]
+                key = f"{angle:.2f}"
+                self.held_lag[key] = LagEstimate()
+            self.held_lag[key].fit(mean, f.t, math.log(radius), sd / radius)
 
     def thermal_lag(self) -> tuple[float, float] | None:
-        """(τ s, its standard error) of the die's lag behind the reported temperature, once the windows show it."""
-        return self.lag.tau()
+        """(τ s, its standard error) of the die's lag behind the reported temperature, once the windows show it:
+        from the ellipse's amplitude, else, where the held test watches the positions the drive holds, from their
+        radii (a servo's drive, whose held points scatter across the circle with the lag: README, fifty-ninth
+        session; a 0.5 Hz drive's 300 s windows are never compared, and its held fit is off)."""
+        own = self.lag.tau()
+        if own is not None or not self.watches_held_positions():
+            return own
+        return tau_of(list(self.held_lag.values()))
 
     def watches_held_positions(self) -> bool:
         """The held-step test compares the positions the drive holds visit by visit (its map of how they move with
@@ -1200,6 +1231,8 @@ class DeviceMonitor:
         events.append(AlarmEvent("raise", cause, at, parameters, evidence))
         if cause == "gain_step":
             self.lag.restart()  # the amplitude moved: windows from before the step would read as a lag
+        if cause in ("offset_step", "gain_step", "axis_step"):
+            self.held_lag = {}  # and each held position's radius moved its own way
 
     def _quiet(self, events, cause: str, at: float, quiet: bool, why: str) -> None:
         """Clear an open alarm once its condition has been gone for clear_after_s of drive time."""
@@ -1357,6 +1390,7 @@ class DeviceMonitor:
         """After an offset step: the arcs' offset tests start over, and every pair and block that would straddle the
         step is dropped (a pair or block with the step in it would name it again)."""
         self.arc_block, self.short = None, None
+        self.held_lag = {}  # each held position's radius moved its own way (a second step too, its alarm still open)
         for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
             chain.offsets = [WindowJump(), WindowJump()]
             if name != source:
@@ -1460,6 +1494,7 @@ class DeviceMonitor:
         alarm (and one move of the running set); a gain step moves the level, and what learnt the drive restarts."""
         if axis or gain is not None:
             self.arc_block, self.short = None, None
+            self.held_lag = {}  # each held position's radius moved its own way
             for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
                 if name != source:  # the next pair starts after the step: one with the step in it would name it again
                     chain.last = None
@@ -1530,7 +1565,7 @@ class DeviceMonitor:
             for p in near:
                 self.held_last.remove(p)
             previous = [*last[:5], None, *last[6:]] if matched else None  # the last visit, less its own before
-            self.held_last.append([x, y, sd, f.temp_c, f.t, previous, f.temp_rate, still])
+            self.held_last.append([x, y, sd, f.temp_c, f.t, previous, f.temp_rate, still, _reported_c(f)])
         self.held_last = [p for p in self.held_last if f.t - p[4] <= _HELD_MEMORY_S]
         if self.held_jump is not None and f.t - self.held_jump[2] > _JUMP_PENDING_S:
             self.held_jump = None  # never seen held again: no evidence either way
@@ -1764,9 +1799,17 @@ class DeviceMonitor:
         return self.calm_since is not None and t >= self.calm_since + self.settings.held_far_settle_s
 
     def _held_match(self, f: Features, visit: list) -> bool:
-        """A visit close enough in temperature and time to compare a held position with (held_match_c, _s)."""
+        """A visit close enough in temperature and time to compare a held position with (held_match_c, _s): at the
+        window's temperature, or at the one the drive reported (_reported_c), on which held_match_c was set. A die
+        catching up after a bump moves faster than the reported temperature: s10-20hz-14's gain step fell inside a
+        window, and against the visit two windows back the die had moved 1.1 °C where the reported temperature moved
+        0.8 °C; judged at the die's alone, the step went unnamed."""
         s = self.settings
-        return abs(f.temp_c - visit[3]) <= s.held_match_c and f.t - visit[4] <= s.held_match_s
+        if f.t - visit[4] > s.held_match_s:
+            return False
+        if abs(f.temp_c - visit[3]) <= s.held_match_c:
+            return True
+        return len(visit) > 8 and abs(_reported_c(f) - visit[8]) <= s.held_match_c
 
     def _held_jump_of(self, moves: list, calm: bool = False) -> tuple[np.ndarray, float, bool]:
         """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, all

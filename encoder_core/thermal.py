@@ -14,6 +14,9 @@ temperature is off by its drift's slope times τ times the rate, in opposite sen
   the log amplitude is fitted on the die temperature that gives (a + b·x + c·x² + e·t, t drive days for aging);
   τ is where that fit's misfit is least. (A first try, amplitude on temperature and rate, read the lag as
   τ·rate: load bumps change the rate faster than the die follows, and it found 0.6 τ on fieldsim's drives.)
+  A drive that holds positions shows no ellipse and no amplitude: there each held position's radius, which the
+  common gain moves alike, is fitted the same way on the same die path, one curve per position (`tau_of` sums
+  their misfits; DeviceMonitor.held_lag).
 """
 
 from __future__ import annotations
@@ -140,14 +143,16 @@ class LagEstimate:
         lag_used_s: float,
         log_amp: float | None,
         sd: float | None,
-    ) -> None:
+    ) -> np.ndarray | None:
         """One window, in drive order: its start and end (drive s), mean temperature and rate as the agent wrote
         them (lagged by lag_used_s, the τ of the set it ran: undone here as for a ramp), and its log amplitude
-        with that value's standard error (None: the window still moves the die, but is not fitted)."""
+        with that value's standard error (None: the window still moves the die, but is not fitted). Returns the
+        window's mean die temperature per candidate τ (None for a window out of order or not finite), which
+        `fit` takes for another amplitude of the same window."""
         if not all(math.isfinite(v) for v in (start, end, temp_c, rate_c_per_s, lag_used_s)) or end < start:
-            return
+            return None
         if self.last_end is not None and end <= self.last_end[0]:
-            return  # out of order: the die's path is drawn forwards only
+            return None  # out of order: the die's path is drawn forwards only
         grid = np.asarray(LAG_GRID_S, float)
         length = end - start
         reported_mean = temp_c + lag_used_s * rate_c_per_s
@@ -161,6 +166,12 @@ class LagEstimate:
             y0 = temp_prev + (self.die - temp_prev) * np.exp(-gap / np.maximum(grid, 1e-9))
         mean, y_end = ramp_lag(y0, start_c, rate_c_per_s, length, grid)
         self.die, self.last_end = y_end, (end, start_c + rate_c_per_s * length)
+        self.fit(mean, end, log_amp, sd)
+        return mean
+
+    def fit(self, mean: np.ndarray, end: float, log_amp: float | None, sd: float | None) -> None:
+        """One window's log amplitude against its mean die temperature per candidate τ (from `add`), weighed by its
+        standard error; nothing when either is missing."""
         if log_amp is None or sd is None or not (math.isfinite(log_amp) and math.isfinite(sd) and sd > 0):
             return
         if self.t0 is None:
@@ -198,26 +209,7 @@ class LagEstimate:
 
     def tau(self) -> tuple[float, float] | None:
         """(τ s, its standard error) where the windows measure it, else None."""
-        rss = self.profile()
-        if rss is None:
-            return None
-        grid = np.asarray(LAG_GRID_S, float)
-        k = int(np.argmin(rss))
-        scale = max(rss[k] / max(self.sw - N_TERMS - 1, 1.0), 1e-300)  # misfit per window: one
-        chi2 = rss / scale
-        if k in (0, grid.size - 1):  # at the grid's edge: the edge, and how far the misfit allows
-            inside = grid[chi2 - chi2[k] < 1.0]
-            return float(grid[k]), float(max(inside.max() - inside.min(), grid[1] - grid[0]))
-        # a parabola through the minimum and its neighbours
-        x0, x1, x2 = grid[k - 1 : k + 2]
-        y0, y1, y2 = chi2[k - 1 : k + 2]
-        denom = (x0 - x1) * (x0 - x2) * (x1 - x2)
-        curv = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
-        lin = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / denom
-        if not curv > 0:
-            return None
-        best = float(np.clip(-lin / (2 * curv), x0, x2))
-        return best, float(1.0 / math.sqrt(curv))
+        return tau_of([self])
 
     def to_dict(self) -> dict:
         """Plain JSON (the drift monitor's saved state)."""
@@ -233,6 +225,34 @@ class LagEstimate:
         if d.get("last_end") is not None:
             d["last_end"] = tuple(d["last_end"])
         return cls(**d)
+
+
+def tau_of(estimates: list[LagEstimate]) -> tuple[float, float] | None:
+    """(τ s, its standard error) from the summed misfit of estimates that share one die (each its own amplitude
+    curve: the positions a drive holds each have their radius), where any measures it; else None."""
+    profiles = [(e.profile(), e.sw) for e in estimates]
+    profiles = [(rss, sw) for rss, sw in profiles if rss is not None]
+    if not profiles:
+        return None
+    rss = np.sum([p for p, _ in profiles], axis=0)
+    dof = sum(max(sw - N_TERMS - 1, 1.0) for _, sw in profiles)
+    grid = np.asarray(LAG_GRID_S, float)
+    k = int(np.argmin(rss))
+    scale = max(rss[k] / dof, 1e-300)  # misfit per window: one
+    chi2 = rss / scale
+    if k in (0, grid.size - 1):  # at the grid's edge: the edge, and how far the misfit allows
+        inside = grid[chi2 - chi2[k] < 1.0]
+        return float(grid[k]), float(max(inside.max() - inside.min(), grid[1] - grid[0]))
+    # a parabola through the minimum and its neighbours
+    x0, x1, x2 = grid[k - 1 : k + 2]
+    y0, y1, y2 = chi2[k - 1 : k + 2]
+    denom = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    curv = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
+    lin = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / denom
+    if not curv > 0:
+        return None
+    best = float(np.clip(-lin / (2 * curv), x0, x2))
+    return best, float(1.0 / math.sqrt(curv))
 
 
 def lag_to_send(estimate: tuple[float, float] | None, running_s: float) -> float | None:

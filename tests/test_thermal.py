@@ -13,7 +13,7 @@ import pytest
 from mcap.reader import make_reader
 
 from edge_agent.agent import temp_rate
-from encoder_core.monitor import window_features
+from encoder_core.monitor import DeviceMonitor, window_features
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_core.thermal import DieTemperature, LagEstimate, first_order_lag, lag_to_send
 from encoder_fleet import fieldsim
@@ -94,6 +94,30 @@ def test_the_lag_is_measured_from_window_statistics_within_a_tenth(seed, written
     assert abs(tau - phys.die_lag_s) < max(0.1 * phys.die_lag_s, 20.0), (tau, se, phys.die_lag_s)
     assert se < 0.1 * phys.die_lag_s
     assert lag_to_send((tau, se), used) is not None  # far enough from what the agent runs to be sent
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_dwelling_drives_lag_is_measured_from_the_positions_it_holds(seed):
+    """A servo holding positions shows no ellipse, so no amplitude: each held position's radius moves with the
+    channels' common gain at the die's temperature instead, one curve per position (DeviceMonitor.held_lag), all on
+    the one die path. Hidden in the seed: the lag (60-600 s), the drift, the positions; the monitor sees windows.
+    Without it a dwelling drive's held points scatter across the circle in proportion to its lag (README)."""
+    rng = np.random.default_rng([86, seed])
+    phys = replace(fieldsim.draw_drive(rng), die_lag_s=float(rng.uniform(60, 600)))
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    run = fieldsim.field_run(phys, days=1.0, rate_hz=5.0, regime="dwell", rng=rng)
+    monitor = DeviceMonitor("servo")
+    for block, stats in windows(run, factory, 60.0):
+        start, end = float(block.t[0]), float(block.t[-1])
+        monitor.update(
+            window_features(stats, t=end, temp_c=stats.temp_mean, band=0, start=start, temp_rate=temp_rate(block))
+        )
+    assert monitor.lag.tau() is None  # no window fitted an ellipse
+    tau, se = monitor.thermal_lag()
+    assert abs(tau - phys.die_lag_s) < max(0.1 * phys.die_lag_s, 20.0), (tau, se, phys.die_lag_s)
+    assert (lag_to_send((tau, se), 0.0) is not None) == (phys.die_lag_s > 120.0)  # a minute's lag is not sent
+    kept = DeviceMonitor.from_dict(json.loads(json.dumps(monitor.to_dict())))  # the service saves the monitor
+    assert kept.thermal_lag() == (tau, se)
 
 
 def test_a_drive_whose_die_does_not_lag_gets_no_lag():
