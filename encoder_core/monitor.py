@@ -70,7 +70,7 @@ def _reported_c(f: Features) -> float:
 
 
 def _settled(visit: list) -> bool:
-    """Whether a held position's visit was still against the visit before it (a held_last entry's last field; state
+    """Whether a held position's visit was still against the visit before it (a held_last entry's eighth field; state
     kept before it was has none): a visit in the window the drive arrived in, or the step came in, is no baseline for
     a jump under held_step_min (s4-5hz-22: a 0.44 % gain step in the window the servo arrived at a position; the
     part of it seen in the next window became the candidate, and the position held before it, moved by the whole
@@ -144,7 +144,8 @@ class Settings:
     held_match_c: float = 1.0  # a held position is compared with its last visit this close in temperature (at
     # 2 °C the channels' common gain, 0.15 %/K on s6-20hz-02, moved a lone held position radially by the whole
     # held_step_min: a false step at +61 °C, moved for; 1 °C kept all 17 steps of the 20 Hz dwelling drives of
-    # seeds 1-6)
+    # seeds 1-6). Set on reported temperatures: a window written at a die lag matches at either (_held_match), so a
+    # die catching up after a bump may move by more between the two visits
     held_match_s: float = 180.0  # ... and this recent: over minutes the die's lag moves it by up to 0.002
     held_far_s: float = HOUR_S  # a position the drive comes back to later than that is compared with its last
     held_far_c: float = 10.0  # visit this recent and close in temperature, against where the drive's own map of
@@ -966,8 +967,8 @@ class DeviceMonitor:
     last_absurd_t: float | None = None
     amp_ref: float | None = None  # log amplitude of the last accepted window (gate for unlearned bands)
     online: bool = True
-    # [x, y, sd, temp_c, t, the visit before as [x, y, sd, temp_c, t] or None, temp_rate, still, the temperature the
-    # drive reported (_reported_c)] of each held position at its last visit
+    # [x, y, sd, temp_c, t, the visit before (such an entry, its own visit before None) or None, temp_rate, still, the
+    # temperature the drive reported (_reported_c)] of each held position at its last visit
     held_last: list = field(default_factory=list)
     # [Δx, Δy, t, windows, after, far]: the held positions jumped at t, not yet seen still again; the step came
     # after `after` (the latest visit they were compared with); far: compared against the temperature map

@@ -106,10 +106,11 @@ def test_windows_written_at_a_die_lag_name_the_held_steps_as_at_the_reported_tem
     """An agent running a set that carries a die lag writes its windows at its die estimate, which moves faster than
     the reported temperature while the die catches up after a bump; the held test's bars (held_match_c) were set on
     reported temperatures, and a first-order lag gives them back: T = die + τ·d(die)/dt (s10-20hz-14: at the die's
-    temperature a gain step that fell inside a window went unnamed). The same drives (offset step, lag 60-600 s and
-    all else drawn from the seed), written with and without the lag: the held test names the same steps, when it
-    names them (the die's own temperature, read back at the reported one for every comparison, named false steps
-    through the temperature map on two seeds of four, hours before the step)."""
+    temperature a gain step that fell inside a window went unnamed; test_a_step_kind_that_fails_its_checks_...
+    guards that). The same drives (offset step and all else drawn from the seed), written with and without a lag
+    (60-600 s, drawn from the seed; not the drive's own): the held test names the same steps, when it names them.
+    (Every comparison read back at the reported temperature named false steps through the temperature map on two
+    seeds of four, hours before the step.)"""
     steps = 0
     for seed in SEEDS:
         phys, factory, run = dwelling_drive(seed, "offset_step")
@@ -724,7 +725,7 @@ def test_a_step_kind_that_fails_its_checks_leaves_the_step_unmeasured_instead_of
     closer to the gain kind across the circle, but its misfit along the circle is past MAX_ALONG_SCALE; the offset
     kind passes that check, and its set, adopted, was 0.3° wrong where the factory set left 0.1° (hours 48-50 worse).
     The kind the points sit closer to is the one judged: failing, it leaves the step unmeasured and the drive on the
-    set it runs. In the eight hours after the step's own, no hour is over 0.005° worse than the factory set (the offset
+    set it runs. In the eight hours after the step's own, no hour is over 0.01° worse than the factory set (the offset
     kind's set: 0.2°; with the drive's die lag measured from its held positions the refit adopts an hour earlier, its
     top entry at +32 °C, and hours 47-48 at +39 and +47 °C ran 0.004° worse than the factory set: the drift past that
     entry); over the day after it, the sets made once the gain kind passes its checks leave a fifth less error than
@@ -736,7 +737,7 @@ def test_a_step_kind_that_fails_its_checks_leaves_the_step_unmeasured_instead_of
     first = int((step.t_s - run.samples.t[0]) // 3600) + 2
     after = slice(first, first + 8)
     excess = np.array(fleet_hours[after]) - np.array(factory_hours[after])
-    assert excess.max() < 0.005, (first, fleet_hours[after], factory_hours[after])
+    assert excess.max() < 0.01, (first, fleet_hours[after], factory_hours[after])
     day = slice(first, first + 24)  # and the gain kind's sets, once it passes, beat the factory set over the day
     assert sum(fleet_hours[day]) < 0.8 * sum(factory_hours[day]), (fleet_hours[day], factory_hours[day])
 
