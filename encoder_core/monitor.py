@@ -36,7 +36,7 @@ from .monitor_causes import check_parameters
 from .physics import BAND_WIDTH_C, band_of
 from .stacked import eig_stack, solve_stack
 from .stats import MONOMIALS, N_BINS, WindowStats
-from .thermal import LagEstimate, tau_of
+from .thermal import LagEstimate, reported_temp, tau_of
 
 
 def _plain(obj) -> dict:
@@ -64,9 +64,8 @@ MAX_GAP_BINS = N_BINS // 4
 
 
 def _reported_c(f: Features) -> float:
-    """The window's mean temperature as the drive reported it: a window written at a die lag (a set that carries one,
-    lag_used_s) holds the die's estimate, and a first-order lag's die follows T = die + τ·d(die)/dt."""
-    return f.temp_c + f.lag_used_s * f.temp_rate
+    """The window's mean temperature as the drive reported it (a window written at a die lag holds the die's)."""
+    return reported_temp(f.temp_c, f.lag_used_s, f.temp_rate)
 
 
 def _settled(visit: list) -> bool:
@@ -1232,8 +1231,6 @@ class DeviceMonitor:
         events.append(AlarmEvent("raise", cause, at, parameters, evidence))
         if cause == "gain_step":
             self.lag.restart()  # the amplitude moved: windows from before the step would read as a lag
-        if cause in ("offset_step", "gain_step", "axis_step"):
-            self.held_lag = {}  # and each held position's radius moved its own way
 
     def _quiet(self, events, cause: str, at: float, quiet: bool, why: str) -> None:
         """Clear an open alarm once its condition has been gone for clear_after_s of drive time."""
@@ -1391,7 +1388,9 @@ class DeviceMonitor:
         """After an offset step: the arcs' offset tests start over, and every pair and block that would straddle the
         step is dropped (a pair or block with the step in it would name it again)."""
         self.arc_block, self.short = None, None
-        self.held_lag = {}  # each held position's radius moved its own way (a second step too, its alarm still open)
+        # each held position's radius moved its own way (every step restarts here or in _shape_restart, a second one
+        # too while its alarm is still open)
+        self.held_lag = {}
         for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
             chain.offsets = [WindowJump(), WindowJump()]
             if name != source:

@@ -70,6 +70,12 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float, y0: float | None
     return y
 
 
+def reported_temp(die_c: float, lag_s: float, die_rate_c_per_s: float) -> float:
+    """The temperature the drive reported, from a window written at a die lag (its mean die estimate and that
+    estimate's rate): a first-order lag's die follows T = die + τ·d(die)/dt."""
+    return die_c + lag_s * die_rate_c_per_s
+
+
 class DieTemperature:
     """The agent's die estimate: the reported temperature lagged by τ, continued from the last sample it saw
     (a window's first samples follow from the window before). Non-finite readings pass through unchanged and
@@ -155,7 +161,7 @@ class LagEstimate:
             return None  # out of order: the die's path is drawn forwards only
         grid = np.asarray(LAG_GRID_S, float)
         length = end - start
-        reported_mean = temp_c + lag_used_s * rate_c_per_s
+        reported_mean = reported_temp(temp_c, lag_used_s, rate_c_per_s)
         start_c = reported_mean - rate_c_per_s * length / 2
         if self.die is None:
             y0 = np.full(grid.size, start_c)
