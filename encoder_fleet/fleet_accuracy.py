@@ -444,6 +444,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
     axis_turn = 0.0  # the axis steps named so far, summed (service.runtime.fit)
     no_axis_step = True  # no step named so far was an axis step (service.runtime.fit)
     deferred = None  # a step's move waiting for a trial's verdict: (cause, parameters, at)
+    before_step = None  # the set confirmed before a step the monitor could not measure (service.runtime.fit)
     die = DieTemperature()  # the agent's
     for start, end in windows_of(samples.t, window_s):
         block = samples.subset(slice(start, end))
@@ -492,9 +493,12 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
                 if event.cause in STEP_CAUSES and event.kind == "raise":
                     sums.restart(after_s=event.at)
                     step_at = event.at
+                    before_step = None
                     axis_turn += event.parameters["delta_skew"] if event.cause == "axis_step" else 0.0
                     no_axis_step &= event.cause != "axis_step"
                     if not watch.step_measured(event.at):  # service.runtime.back_to_factory: not moved for
+                        if -math.inf < bands_from(confirmed) < step_at:
+                            before_step = BandedCorrection.from_dict(confirmed)
                         pending = factory_again(factory_msg, len(timeline), end_s)
                         log(end_s, f"v{pending['version']} sent: the factory set again (the step was not measured)")
                         confirmed, trial, deferred = pending, None, None
@@ -559,6 +563,7 @@ def _fleet_loop(samples, factory, sums, window_s, refit_every_s, monitor, guard,
             no_axis_step=no_axis_step,
             axis_turn=axis_turn,
             held_watched=watch is not None and watch.watches_held_positions(),  # as service.runtime passes it
+            before_step=before_step,
         )
         if listen:
             log(end_s, _refit_summary(result))

@@ -114,6 +114,7 @@ def refit_device(
     no_axis_step: bool = False,
     axis_turn: float = 0.0,
     held_watched: bool = False,
+    before_step: BandedCorrection | None = None,
 ) -> RefitResult:
     """The device's next set (or the reasons for none) from its band statistics.
 
@@ -134,6 +135,10 @@ def refit_device(
     gain, whichever the points fit (held_model; the held test names a step offset_step when it cannot tell them
     apart: DeviceMonitor.step_measured). An axis step's rotation half turns every held position alike, which no held
     point tells from the factory's zero.
+
+    before_step: the set the drive ran before its newest step, when the monitor could not measure that step and the
+    drive went back to its factory set (service.runtime.back_to_factory). Past the bands the data since the step
+    speak for, the drive runs it moved by the offset change every fitted band agrees on (carried_over_step).
 
     axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
     is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a
@@ -157,6 +162,7 @@ def refit_device(
             no_axis_step=no_axis_step,
             axis_turn=axis_turn,
             held_watched=held_watched,
+            before_step=before_step,
         )
     return refit_legacy(
         band_stats,
@@ -187,6 +193,7 @@ def refit_from_bench(
     no_axis_step: bool = False,
     axis_turn: float = 0.0,
     held_watched: bool = False,
+    before_step: BandedCorrection | None = None,
 ) -> RefitResult:
     """bin_temps (optional): per band, Σ over its windows of the window's mean temperature times the window's
     count in each angle bin; with it each band's fit sets aside the common scale's change across its bins."""
@@ -206,6 +213,7 @@ def refit_from_bench(
     chosen: dict[int, dict] = {}
     moves = []  # per fitted band: where the candidate puts the channels' centre against the running set, ± error
     move_temps = []  # and the temperature it was measured at
+    move_corrs = []  # and the candidate it was measured on
     candidates = []  # per band the refit speaks for: (band, statistics, quality, the candidate's error, locus, errors)
     corrs = []  # and its candidate correction
     to_anchor = []  # (place, ruler, drift) of the candidates that take the ruler's zero
@@ -255,6 +263,7 @@ def refit_from_bench(
                 (centre(corr) - centre(now), locus.radius * np.array([errors["offset_d"], errors["offset_q"]]))
             )
             move_temps.append(corr.temp_c)
+            move_corrs.append(corr)
         adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
         if held is not None and not held.drift.covers(corr.temp_c):
             adopt = False  # a position the drive holds was not seen near this temperature: its angle is a guess
@@ -287,8 +296,19 @@ def refit_from_bench(
         return result
     # what the refit says nothing about stays as the device runs it, moved by an offset change every fitted band
     # agrees on (a step the monitor saw restarts band memory: the first band fitted after it moves the rest)
-    moved = offset_move(moves, anchors[0][1].radius) if after_step else None
-    if moved is not None:
+    carried = None
+    if before_step is not None and move_corrs:
+        # the same candidates against the set the drive ran before the step: there its drift was measured, so what
+        # they agree it is off by is the step alone
+        thens = before_step.at_each(move_temps)
+        carried = offset_move(
+            [(centre(c) - centre(then), err) for c, then, (_, err) in zip(move_corrs, thens, moves)],
+            anchors[0][1].radius,
+        )
+    moved = offset_move(moves, anchors[0][1].radius) if after_step and carried is None else None
+    if carried is not None:
+        running, result.moved_bands = carried_over_step(running, before_step, carried, set(chosen))
+    elif moved is not None:
         running, result.moved_bands = moved_near(running, moved, move_temps, set(chosen))
     # without a drift curve (one band fitted) nothing measured the drift between that band and its neighbours
     # (with one, the curve through the bench says it, and reaches MODEL_REACH_C past the fitted bands: holding the
@@ -372,6 +392,29 @@ def moved_near(
     moved = [corr.offsets_moved(*move) if n else corr for corr, n in zip(running.bands, near)]
     bands = sorted(band_index(c) for c, n in zip(running.bands, near) if n and band_index(c) not in spoken)
     return BandedCorrection(moved, running.thermal_lag_s), bands
+
+
+def carried_over_step(
+    running: BandedCorrection, before_step: BandedCorrection, move: tuple[float, float], spoken: set[int]
+) -> tuple[BandedCorrection, list[int]]:
+    """The running set inside the bands the refit speaks for (`spoken`), and past them the set the drive ran
+    before a step the monitor could not measure, moved by the offset change the fitted bands agree on against it
+    (offset_move); with the bands whose entry that changes by MIN_GAIN_DEG or more. After such a step the drive runs
+    its factory set again (flat in temperature, off by the step everywhere) and the data since speak only for the
+    temperatures visited since: s8-20hz-10-dwell, its bands refitted from -20 to +24 °C after an offset step at
+    -10 °C, ran the +24 °C entry flat up to +63 °C, 0.16-0.26° for five hours against the factory set's
+    0.08-0.22°, where the set it ran before the step, moved, would have left ~0.01°."""
+    lo, hi = min(spoken), max(spoken)
+    kept = [c for c in running.bands if lo <= band_index(c) <= hi]
+    carried = [c.offsets_moved(*move) for c in before_step.bands if not lo <= band_index(c) <= hi]
+    if not carried:
+        return running, []
+    changed = [
+        band_index(c)
+        for c in carried
+        if not any(band_index(r) == band_index(c) and difference_deg(r, c) < MIN_GAIN_DEG for r in running.bands)
+    ]
+    return BandedCorrection(kept + carried, running.thermal_lag_s), sorted(changed)
 
 
 def offset_move(moves: list[tuple[np.ndarray, np.ndarray]], radius: float) -> tuple[float, float] | None:

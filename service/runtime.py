@@ -1033,7 +1033,18 @@ class FleetService:
             no_axis_step=not axis_steps,
             axis_turn=sum(a["parameters"]["delta_skew"] for a in axis_steps),
             held_watched=self.monitor.watches_held_positions(device),
+            before_step=self._set_before_unmeasured_step(device, step_at),
         )
+
+    def _set_before_unmeasured_step(self, device: str, step_at: float | None) -> BandedCorrection | None:
+        """The set the drive ran before its newest step, when the monitor could not measure that step (the drive
+        went back to its factory set: back_to_factory) and the set's bands are the fleet's, not the factory's."""
+        if step_at is None or self.monitor.step_measured(device, step_at):
+            return None
+        version = self.store.confirmed_before(device, step_at)
+        if version is None or self._bands_made_at(device, version) == -math.inf:
+            return None
+        return self._correction(device, version)
 
     def _issue_set(
         self,

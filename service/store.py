@@ -996,6 +996,15 @@ class Store:
         )
         return json.loads(rows[0]["body_json"]) if rows else None
 
+    def confirmed_before(self, device: str, at: float) -> int | None:
+        """The version of the newest confirmed set made before drive time `at`: what the drive ran then, a set on
+        trial at `at` aside."""
+        return self._rows(
+            "SELECT max(version) AS v FROM coefficient_sets WHERE device = ? AND state = 'confirmed' "
+            "AND created_at < ?",
+            (device, at),
+        )[0]["v"]
+
     def refusals(self, device: str, *, since: float | None = None) -> list[dict]:
         """The sets the device's agent refused and never applied (acks with status rejected, none applied: a
         forged or damaged copy refused before the real one was applied does not count): {version, reason}, oldest

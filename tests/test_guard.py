@@ -471,6 +471,42 @@ def test_after_a_step_only_a_set_whose_bands_predate_it_moves_its_unvisited_band
     assert service._bands_made_at(DEVICE, 5) == float("-inf")
 
 
+def test_past_the_data_since_a_step_the_monitor_could_not_measure_the_drive_runs_its_set_from_before_it_moved(fleet):
+    """A step the monitor could not measure returns the drive to its factory set (back_to_factory), flat in
+    temperature and off by the step everywhere; the data since speak only for the temperatures visited since. Past
+    them the refit's set carries the set the drive ran before the step, moved by the offset change the fitted bands
+    agree on against it (service.refit.carried_over_step: s8-20hz-10-dwell ran its +24 °C entry flat up to +63 °C,
+    five hours worse than the factory set). Here the set before the step has its offsets off by what the drive then
+    moves (the windows are the factory's drive): its bands at -15 and +65 °C come back at the factory's offsets."""
+    from fleet_wire import alarms
+
+    store, service = fleet
+    factory_msg = factory_set(store)
+    run_on(store, 0, hours=2.0, band=2)  # the drive since the step, seen at +20 °C only
+    base = {k: v for k, v in factory_msg["bands"][0].items() if k != "bench_locus"}
+    base["w"] = [base["w"][0], base["w"][1] + 0.03, *base["w"][2:]]
+    bands = [{**base, "band": b, "temp_c": t} for b, t in ((-2, -15.0), (2, 20.0), (6, 65.0))]
+    store.insert_coefficient_set(wire.coefficients_message(DEVICE, 1, 100.0, "fit", bands))
+    store.mark_published(DEVICE, 1)
+    event = {"kind": "raise", "cause": "offset_step", "at": 3600.0, "parameters": {"delta_d": 0.0, "delta_q": 0.0}}
+    (step,) = store.save_monitor(DEVICE, {}, store.max_seq(DEVICE), [{**event, "evidence": "a test step"}])
+    with service.monitor._lock:  # the monitor's verdict on this step, as DeviceMonitor._held_judge leaves it
+        service.monitor._device(DEVICE).undecided_step_at = 3600.0
+    service._publish_alarm(*alarms.encode(step))
+    assert service.back_to_factory(DEVICE, ("offset_step", event["parameters"], 3600.0)) == 2
+    assert service._set_before_unmeasured_step(DEVICE, 3600.0).bands[0].w2 == base["w"][1]  # v1's, not v2's
+    result = service.fit(DEVICE)
+    assert result.moved_bands == [-2, 6], result.moved_bands
+    out = {b["band"]: b for b in result.bands}
+    for band in (-2, 6):
+        assert out[band]["temp_c"] == {-2: -15.0, 6: 65.0}[band]
+        assert abs(out[band]["w"][1] - factory_msg["bands"][0]["w"][1]) < 0.003, (out[band]["w"], base["w"])
+    assert [b["band"] for b in result.bands] == [-2, 2, 6] and result.changed
+    with service.monitor._lock:  # a step the monitor measured was moved for by its own parameters: no carrying
+        service.monitor._device(DEVICE).undecided_step_at = None
+    assert service._set_before_unmeasured_step(DEVICE, 3600.0) is None
+
+
 def test_a_refit_after_a_step_waits_for_the_band_memory_it_restarts(fleet):
     """The drift monitor stores a step's alarm, then publishes it after its pass; the publication restarts band
     memory. A refit between the two saw the step but sums from before and after it (the held fit after an offset
