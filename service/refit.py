@@ -71,7 +71,8 @@ class BandDecision:
 class RefitResult:
     bands: list[dict]  # the coefficient set's band entries (docs/wire.md)
     decisions: list[BandDecision] = field(default_factory=list)
-    moved_bands: list[int] = field(default_factory=list)  # running bands moved by an offset change (offset_move)
+    # running bands moved by an offset change (offset_move), or carried over a step (carried_over_step)
+    moved_bands: list[int] = field(default_factory=list)
 
     @property
     def changed(self) -> bool:
@@ -138,7 +139,9 @@ def refit_device(
 
     before_step: the set the drive ran before its newest step, when the monitor could not measure that step and the
     drive went back to its factory set (service.runtime.back_to_factory). Past the bands the data since the step
-    speak for, the drive runs it moved by the offset change every fitted band agrees on (carried_over_step).
+    speak for, the drive runs it moved by the offset change every fitted band agrees on, where they agree on one
+    clear of their errors (offset_move, carried_over_step); otherwise the refit goes on as without it. Sets with a
+    bench locus only (refit_from_bench): the legacy refit has no drift curve to carry.
 
     axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
     is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a
@@ -399,7 +402,7 @@ def carried_over_step(
 ) -> tuple[BandedCorrection, list[int]]:
     """The running set inside the bands the refit speaks for (`spoken`), and past them the set the drive ran
     before a step the monitor could not measure, moved by the offset change the fitted bands agree on against it
-    (offset_move); with the bands whose entry that changes by MIN_GAIN_DEG or more. After such a step the drive runs
+    (offset_move); and the bands whose entry that moves by MIN_GAIN_DEG or more. After such a step the drive runs
     its factory set again (flat in temperature, off by the step everywhere) and the data since speak only for the
     temperatures visited since: s8-20hz-10-dwell, its bands refitted from -20 to +24 °C after an offset step at
     -10 °C, ran the +24 °C entry flat up to +63 °C, 0.16-0.26° for five hours against the factory set's
