@@ -68,6 +68,33 @@ def _reported_c(f: Features) -> float:
     return reported_temp(f.temp_c, f.lag_used_s, f.temp_rate)
 
 
+def _one_step_fits(group: list, z_min: float) -> bool:
+    """Whether one step moved every position of `group` ([t, after, x, y, Δx, Δy, sd] each) as seen: the same
+    vector (offsets), or each along one channel by a fraction of where it sits on it (that channel's gain), z_min
+    standard errors clear of nothing, each move within 3 standard deviations of what the step predicts there; and
+    not as well by the channels' common gain (positions a few tens of degrees apart, each moved toward the centre)."""
+    pos = np.array([[e[2], e[3]] for e in group])
+    pos = pos / np.hypot(*pos.T)[:, None]
+    move = np.array([[e[4], e[5]] for e in group])
+    w = 1.0 / np.array([e[6] for e in group]) ** 2
+    mean = (w[:, None] * move).sum(axis=0) / w.sum()
+    fits = [(np.broadcast_to(mean, move.shape), float(np.hypot(*mean)) * math.sqrt(float(w.sum())))]  # offsets
+    for axis in (0, 1):  # one channel's gain: that channel moves by g times where the position sits on it
+        lever = pos[:, axis]
+        weight = float(np.sum(w * lever**2))
+        if weight <= 0.0:
+            continue
+        g = float(np.sum(w * lever * move[:, axis])) / weight
+        model = np.zeros_like(move)
+        model[:, axis] = g * lever
+        fits.append((model, abs(g) * math.sqrt(weight)))
+    sd = 1.0 / np.sqrt(w)
+    radial = (w * np.sum(move * pos, axis=1)).sum() / w.sum() * pos  # every position toward the centre alike
+    if np.all(np.hypot(*(move - radial).T) <= 3 * sd):
+        return False  # the channels' common gain, which the temperature map may miss, explains them as well
+    return any(z >= z_min and bool(np.all(np.hypot(*(move - model).T) <= 3 * sd)) for model, z in fits)
+
+
 def _settled(visit: list) -> bool:
     """Whether a held position's visit was still against the visit before it (a held_last entry's eighth field; state
     kept before it was has none): a visit in the window the drive arrived in, or the step came in, is no baseline for
@@ -159,6 +186,15 @@ class Settings:
     held_far_settle_s: float = 1800.0  # ... for this long before the earlier visit (a die 18 min behind a bump's
     # tail moved a clean drive's position by 0.003 more than its reported temperature said)
     held_far_sd_per_c: float = 5e-5  # ... what the map may miss per kelvin between the visits, beyond its own error
+    held_far_seen_z: float = 5.0  # far moves under held_step_z at each position are a jump too where positions at
+    # least held_far_apart apart each moved by this many standard deviations within held_far_s, all after one moment,
+    # and one step explains them all (an offset step, or one channel's gain): the step is held_step_z clear of its
+    # uncertainty, each position within 3 of its own (s8-20hz-22: a 0.8 % step of q's gain moved three positions by
+    # 5.3-7.6 standard deviations each; unnamed, the drive ran its old set eight hours worse than its factory set. On
+    # the 36 dwelling drives of seeds 1-6 at 20 Hz (24-drive fleets), 11 of 14,000 far moves away from a step reached
+    # 5, none of the 4,600 on the 12 clean drives (largest 4.9); 9 of the 11 on s5-20hz-02 in hours 7-11, toward the
+    # centre: the channels' common gain, which the map missed, and no step where that explains the moves as well)
+    held_far_apart: float = math.radians(10.0)  # (held_far_seen_z)
     held_map_min_c2: float = 4.0  # ... once the pairs it learnt from span this much Σ ΔT² (°C²)
     held_check_sd: float = 4.0  # a step the held positions showed is named an offset step once a position the
     # drive held before it, where a gain or an axis step would have moved it otherwise, moved alike: within this many
@@ -975,6 +1011,8 @@ class DeviceMonitor:
     # [Δx, Δy, since, after, far, x, y]: the jump of held_jump, seen still again at (x, y), not yet named: waiting for
     # a position held before it to say whether it moved every position alike (an offset step) or not
     held_candidate: list | None = None
+    # [t, after, x, y, Δx, Δy, sd] of the far moves over held_far_seen_z in the last held_far_s (_held_far_seen)
+    held_far_seen: list = field(default_factory=list)
     held_map: HeldMap = field(default_factory=HeldMap)
     # when the last step the held test named without a position held before it to compare with was raised: an offset
     # step or one channel's gain, which those positions do not tell apart (step_measured)
@@ -1034,6 +1072,7 @@ class DeviceMonitor:
             "held_last": self.held_last,
             "held_jump": self.held_jump,
             "held_candidate": self.held_candidate,
+            "held_far_seen": self.held_far_seen,
             "held_map": _plain(self.held_map),
             "undecided_step_at": self.undecided_step_at,
             "temp_rate_last": self.temp_rate_last,
@@ -1076,6 +1115,7 @@ class DeviceMonitor:
             held_last=d.get("held_last", []),
             held_jump=d.get("held_jump"),
             held_candidate=d.get("held_candidate"),
+            held_far_seen=d.get("held_far_seen", []),
             held_map=HeldMap(**d.get("held_map", {})),
             undecided_step_at=d.get("undecided_step_at"),
             temp_rate_last=d.get("temp_rate_last"),
@@ -1391,6 +1431,7 @@ class DeviceMonitor:
         # each held position's radius moved its own way (every step restarts here or in _shape_restart, a second one
         # too while its alarm is still open)
         self.held_lag = {}
+        self.held_far_seen = []  # moves seen across the step, which is named
         for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
             chain.offsets = [WindowJump(), WindowJump()]
             if name != source:
@@ -1495,6 +1536,7 @@ class DeviceMonitor:
         if axis or gain is not None:
             self.arc_block, self.short = None, None
             self.held_lag = {}  # each held position's radius moved its own way
+            self.held_far_seen = []  # moves seen across the step, which is named
             for name, chain in (("arc", self.arc), ("blocks", self.arc_blocks)):
                 if name != source:  # the next pair starts after the step: one with the step in it would name it again
                     chain.last = None
@@ -1581,10 +1623,14 @@ class DeviceMonitor:
                 if span_jumped and span_size > size:  # then the span holds all of it (a jump of the part in this
                     # window alone named s8-20hz-02's 0.75 % step 0.46 %)
                     delta, size, jumped, compared = span_delta, span_size, True, spans
+        seen = self._held_far_seen(f, far)
         if not jumped and self.held_jump is None and far:
             far_delta, _, far_jumped = self._held_jump_of(far)
+            after = max(m[2] for m in far)
+            if not far_jumped and seen is not None:  # several positions' far moves, one step
+                far_jumped, (after, far_delta) = True, seen
             if far_jumped:  # the step came after the last visits these positions are compared with
-                after = max(m[2] for m in far)
+                self.held_far_seen = []
                 self.held_jump = [float(far_delta[0]), float(far_delta[1]), f.t, 1, after, True]
                 return
         if not moves:
@@ -1731,6 +1777,7 @@ class DeviceMonitor:
     def _forget_held_before(self, since: float) -> None:
         """Forget the positions last held before a step (drive time `since`): the step moved each its own way."""
         self.held_last = [p for p in self.held_last if p[4] >= since]
+        self.held_far_seen = [e for e in self.held_far_seen if e[1] >= since]
 
     def _held_name(self, f: Features, events, confirmed: str, decided: bool = True) -> None:
         """An offset step of the held positions. Not decided: no position held before it was left to compare with,
@@ -1810,6 +1857,28 @@ class DeviceMonitor:
         if abs(f.temp_c - visit[3]) <= s.held_match_c:
             return True
         return len(visit) > 8 and abs(_reported_c(f) - visit[8]) <= s.held_match_c
+
+    def _held_far_seen(self, f: Features, far: list) -> tuple[float, np.ndarray] | None:
+        """The far moves of this window over held_far_seen_z kept with those of the last held_far_s; when those of
+        them that all came after one moment (each compared visit before every move's window) are from positions
+        held_far_apart apart and one step explains them (_one_step_fits): (the latest visit they were compared with,
+        which the step came after; this window's move), else None."""
+        s = self.settings
+        self.held_far_seen = [e for e in self.held_far_seen if f.t - e[0] <= s.held_far_s]
+        now = [[f.t, m[2], *m[3], *m[0], m[1]] for m in far if float(np.hypot(*m[0])) > s.held_far_seen_z * m[1]]
+        if not now:
+            return None
+        self.held_far_seen += now
+        group = list(self.held_far_seen)
+        while (after := max(e[1] for e in group)) >= min(e[0] for e in group):
+            group = [e for e in group if e[0] > after]  # (this window's moves stay: each came after its visit)
+        angles = [math.atan2(e[3], e[2]) for e in group]
+        if not any(abs(math.remainder(a - b, math.tau)) >= s.held_far_apart for a in angles for b in angles):
+            return None
+        biggest = max(float(np.hypot(e[4], e[5])) for e in group)
+        if biggest < s.held_step_min or not _one_step_fits(group, s.held_step_z):
+            return None
+        return after, np.mean([e[4:6] for e in now], axis=0)
 
     def _held_jump_of(self, moves: list, calm: bool = False) -> tuple[np.ndarray, float, bool]:
         """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, all

@@ -808,3 +808,59 @@ def test_a_position_held_before_the_step_that_moved_as_one_channels_gain_would_n
     at, cause, measured = raised[0]
     assert step.t_s <= at <= step.t_s + 3600.0, (step.t_s, raised)
     assert cause == "offset_step" and not measured, raised  # named, not moved for: the refit measures it
+
+
+def test_far_moves_of_several_positions_are_one_step_when_one_offset_or_gain_step_explains_them():
+    """The rule behind held_far_seen_z (monitor._one_step_fits): far moves of positions held around the circle, each
+    under the held test's bar, are one step when the same offset vector, or one channel's gain (each position moved
+    along that channel by the step times where it sits on it), explains every one within 3 standard deviations and
+    the step stands held_step_z clear of its error. Moves the channels' common gain explains as well (every position
+    toward the centre: the temperature map's miss), also at positions 12° apart where an offset or one channel's gain
+    could fit them too, or moves no one step explains, are none. Positions, step and noise drawn from the seed."""
+    from encoder_core.monitor import _one_step_fits
+
+    z = Settings().held_step_z
+    for seed in range(6):
+        rng = np.random.default_rng([611, seed])
+        angles = rng.uniform(-np.pi, np.pi, 3)
+        pos = np.column_stack([np.cos(angles), np.sin(angles)])
+        sd = rng.uniform(2e-4, 6e-4, 3)
+        noise = rng.normal(0.0, 1.0, (3, 2)) * sd[:, None] / 2
+
+        def group(move, pos=pos, noise=noise, sd=sd):
+            return [[0.0, 0.0, *p, *m, s] for p, m, s in zip(pos, move + noise, sd)]
+
+        size = rng.uniform(0.004, 0.008) * rng.choice([-1, 1])
+        axis = int(rng.integers(2))
+        gain = np.zeros((3, 2))
+        gain[:, axis] = size * pos[:, axis]
+        offset = np.tile(rng.normal(0.0, 1.0, 2) / math.sqrt(2) * abs(size), (3, 1))
+        radial = -abs(size) * pos  # every position toward the centre by the same fraction
+        assert _one_step_fits(group(offset), z), seed
+        if np.sum((pos[:, axis] / sd) ** 2) * size**2 >= (1.5 * z) ** 2:  # a step the positions see
+            assert _one_step_fits(group(gain), z), seed
+        assert not _one_step_fits(group(radial), z), seed
+        assert not _one_step_fits(group(offset * np.array([[1], [-1], [1]])), z), seed
+        near = angles[0] + np.radians([0.0, 12.0, 24.0])  # three positions a few tens of degrees apart
+        pos = np.column_stack([np.cos(near), np.sin(near)])
+        assert not _one_step_fits(group(-abs(size) * pos, pos=pos), z), seed  # toward the centre: no step
+
+
+def test_a_gain_step_seen_only_against_the_temperature_map_at_several_positions_is_named():
+    """s5-20hz-22-dwell (a drive of bench-fleet-accuracy's 24-drive fleets; the step of q's gain, its size, sign and
+    time drawn from the seed, at 40.3 h): the servo moved between positions across the step, so each position came
+    back 15-50 minutes and 2-7 °C later, 4.8-6.9 standard errors off where the temperature map put it, under the 8 the
+    held test asks of one position. Unnamed, the drive ran its set from before the step nine hours worse than its
+    factory set. Four positions, all moved after one moment, as one step of q's gain moves them: named within an
+    hour, and no hour worse than the factory set."""
+    from encoder_fleet.fleet_accuracy import explain_drive, spec_named
+
+    spec = spec_named("s5-20hz-22-dwell", drives=24, days=3.0, window_s=60.0)
+    assert spec.event == "gain_step"
+    phys, _, _ = drive_of(spec)
+    (step,) = phys.events  # the truth, the test's only
+    explained = explain_drive(spec)
+    raised = [at for at, text in explained.decisions if text.startswith("alarm raise") and "_step" in text]
+    t0 = step.t_s / 3600.0
+    assert raised and t0 <= min(raised) <= t0 + 1.0, (t0, raised)
+    assert explained.result.worse_hour_indices == [], explained.result.worse_hour_indices
