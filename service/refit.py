@@ -412,11 +412,8 @@ def carried_over_step(
     carried = [c.offsets_moved(*move) for c in before_step.bands if not lo <= band_index(c) <= hi]
     if not carried:
         return running, []
-    changed = [
-        band_index(c)
-        for c in carried
-        if not any(band_index(r) == band_index(c) and difference_deg(r, c) < MIN_GAIN_DEG for r in running.bands)
-    ]
+    runs = {band_index(r): r for r in running.bands}  # one entry a band (with_running_bands)
+    changed = [b for c in carried if (b := band_index(c)) not in runs or difference_deg(runs[b], c) >= MIN_GAIN_DEG]
     return BandedCorrection(kept + carried, running.thermal_lag_s), sorted(changed)
 
 
