@@ -1005,11 +1005,12 @@ class DeviceMonitor:
     # [x, y, sd, temp_c, t, the visit before (such an entry, its own visit before None) or None, temp_rate, still, the
     # temperature the drive reported (_reported_c)] of each held position at its last visit
     held_last: list = field(default_factory=list)
-    # [Δx, Δy, t, windows, after, far]: the held positions jumped at t, not yet seen still again; the step came
-    # after `after` (the latest visit they were compared with); far: compared against the temperature map
+    # [Δx, Δy, t, windows, after, far, small, x, y]: the held positions at (x, y) (their mean, in the jump's first
+    # window) jumped at t, not yet seen still again; the step came after `after` (the latest visit they were compared
+    # with); far: compared against the temperature map; small: a jump only at the calm bar
     held_jump: list | None = None
-    # [Δx, Δy, since, after, far, x, y]: the jump of held_jump, seen still again at (x, y), not yet named: waiting for
-    # a position held before it to say whether it moved every position alike (an offset step) or not
+    # [Δx, Δy, since, after, far, x, y]: the jump of held_jump, seen at (x, y), since seen still again, not yet named:
+    # waiting for a position held before it to say whether it moved every position alike (an offset step) or not
     held_candidate: list | None = None
     # [t, after, x, y, Δx, Δy, sd] of the far moves over held_far_seen_z in the last held_far_s (_held_far_seen)
     held_far_seen: list = field(default_factory=list)
@@ -1626,12 +1627,24 @@ class DeviceMonitor:
         seen = self._held_far_seen(f, far)
         if not jumped and self.held_jump is None and far:
             far_delta, _, far_jumped = self._held_jump_of(far)
-            after = max(m[2] for m in far)
+            where, after = [m[3] for m in far], max(m[2] for m in far)
+            is_clear = [float(np.hypot(*m[0])) > s.held_step_z * m[1] for m in far]
+            clear = [m for m, c in zip(far, is_clear) if c]
+            if not far_jumped and 0 < len(clear) < len(far):
+                # a position seen less well in the same window (the drive left or arrived inside it) does not hide
+                # the step the others show, where it moved alike within 3 of its standard errors (and its visit,
+                # which may have come after the step, does not date it)
+                clear_delta, _, clear_jumped = self._held_jump_of(clear)
+                less = [m for m, c in zip(far, is_clear) if not c]
+                if clear_jumped and all(float(np.hypot(*(m[0] - clear_delta))) <= 3 * m[1] for m in less):
+                    far_delta, far_jumped = clear_delta, True
+                    where, after = [m[3] for m in clear], max(m[2] for m in clear)
             if not far_jumped and seen is not None:  # several positions' far moves, one step
-                far_jumped, (after, far_delta) = True, seen
+                far_jumped, (after, far_delta, where) = True, seen
             if far_jumped:  # the step came after the last visits these positions are compared with
                 self.held_far_seen = []
-                self.held_jump = [float(far_delta[0]), float(far_delta[1]), f.t, 1, after, True]
+                x, y = map(float, np.mean(where, axis=0))
+                self.held_jump = [float(far_delta[0]), float(far_delta[1]), f.t, 1, after, True, False, x, y]
                 return
         if not moves:
             return
@@ -1639,7 +1652,8 @@ class DeviceMonitor:
             # a jump; a step is one (or two, when it fell inside a window), a shaft creeping along keeps jumping
             after = max(m[2] for m in compared)
             small = size < s.held_step_min  # a jump only at the calm bar
-            dx, dy, since, count, *rest = self.held_jump or [0.0, 0.0, f.t, 0, after, False, small]
+            x, y = map(float, np.mean([m[3] for m in compared], axis=0))
+            dx, dy, since, count, *rest = self.held_jump or [0.0, 0.0, f.t, 0, after, False, small, x, y]
             grown = [dx + float(delta[0]), dy + float(delta[1]), since, count + 1, *rest]
             self.held_jump = grown if count < 2 else None
             return
@@ -1658,7 +1672,10 @@ class DeviceMonitor:
         dx, dy, since, _, *rest = self.held_jump  # the positions are still again: it was a step
         after, far_jump = rest[:2] if rest else (since, False)  # (state kept before these were: as the window's)
         self.held_jump = None
-        at = np.mean([m[3] for m in moves], axis=0)  # where the positions seen still again are
+        # where the jump was seen: the step moved those positions by (dx, dy); those still again now may be others
+        # (s5-5hz-14: a q gain step seen at 101°, still again at -161°, where it moved q by a third as much and the
+        # other way; taken there, a position held before it at 90° read as moved alike, named an offset step)
+        at = rest[3:5] if len(rest) >= 5 else np.mean([m[3] for m in moves], axis=0)  # (state kept before: still)
         self.held_candidate = [dx, dy, since, after, far_jump, float(at[0]), float(at[1])]
         kept = []
         for last in self.held_last:  # positions not seen since the jump: where they sit after an offset step
@@ -1858,11 +1875,11 @@ class DeviceMonitor:
             return True
         return len(visit) > 8 and abs(_reported_c(f) - visit[8]) <= s.held_match_c
 
-    def _held_far_seen(self, f: Features, far: list) -> tuple[float, np.ndarray] | None:
+    def _held_far_seen(self, f: Features, far: list) -> tuple[float, np.ndarray, list] | None:
         """The far moves of this window over held_far_seen_z kept with those of the last held_far_s; when those of
         them that all came after one moment (each compared visit before every move's window) are from positions
         held_far_apart apart and one step explains them (_one_step_fits): (the latest visit they were compared with,
-        which the step came after; this window's move), else None."""
+        which the step came after; this window's move; the positions it was seen at), else None."""
         s = self.settings
         self.held_far_seen = [e for e in self.held_far_seen if f.t - e[0] <= s.held_far_s]
         now = [[f.t, m[2], *m[3], *m[0], m[1]] for m in far if float(np.hypot(*m[0])) > s.held_far_seen_z * m[1]]
@@ -1878,7 +1895,7 @@ class DeviceMonitor:
         biggest = max(float(np.hypot(e[4], e[5])) for e in group)
         if biggest < s.held_step_min or not _one_step_fits(group, s.held_step_z):
             return None
-        return after, np.mean([e[4:6] for e in now], axis=0)
+        return after, np.mean([e[4:6] for e in now], axis=0), [e[2:4] for e in now]
 
     def _held_jump_of(self, moves: list, calm: bool = False) -> tuple[np.ndarray, float, bool]:
         """(mean move, its size, whether it is a jump): over the bar, each position clear of its uncertainty, all
