@@ -905,3 +905,42 @@ def test_a_step_is_judged_at_the_position_it_was_seen_at_not_where_the_drive_hol
     raised = [text for _, text in explained.decisions if text.startswith("alarm raise") and "_step" in text]
     assert raised and not [text for text in raised if "offset_step" in text and "moved alike" in text], raised
     assert explained.result.worse_hour_indices == [], explained.result.worse_hour_indices
+
+
+def test_the_held_candidate_keeps_where_the_jump_was_seen_through_the_saved_state():
+    """The servo jumps at one position (its angle, the step's size and direction drawn from the seed) and is next still
+    at another: the candidate step carries the position the jump was seen at, also when the monitor's state is saved
+    as JSON and loaded between the two. A state saved before jumps carried their position (a jump of 6 or 7 fields)
+    takes the positions seen still again, as it did then."""
+    import json
+
+    from encoder_core.monitor import Features
+
+    rng = np.random.default_rng([612, 0])
+    seen_at, still_at = rng.uniform(-np.pi, np.pi), rng.uniform(-np.pi, np.pi)
+    step = rng.uniform(0.004, 0.008) * np.array([math.cos(a := rng.uniform(-np.pi, np.pi)), math.sin(a)])
+
+    def held(angle: float, moved=(0.0, 0.0)) -> list:
+        return [[math.cos(angle) + moved[0], math.sin(angle) + moved[1], 1e-4]]
+
+    def window(monitor: DeviceMonitor, t: float, positions: list) -> None:
+        features = Features(t=t, temp_c=20.0, band=0, samples=1000, seen=1000, rejected={}, held=positions)
+        monitor._held_step(features, [])
+
+    for kept_fields in (None, 7, 6):
+        monitor = DeviceMonitor("servo")
+        for t, positions in ((0.0, held(seen_at)), (60.0, held(seen_at)), (120.0, held(seen_at, step))):
+            window(monitor, t, positions)
+        assert monitor.held_jump is not None and np.allclose(monitor.held_jump[:2], step)
+        if kept_fields is not None:
+            monitor.held_jump = monitor.held_jump[:kept_fields]
+        monitor = DeviceMonitor.from_dict(json.loads(json.dumps(monitor.to_dict(), allow_nan=False)))
+        for t in (180.0, 240.0):
+            window(monitor, t, held(still_at))
+        assert monitor.held_candidate is not None
+        expected = still_at if kept_fields else seen_at
+        where = monitor.held_candidate[5:7]
+        assert np.allclose(where, held(expected, step if expected == seen_at else (0.0, 0.0))[0][:2]), (
+            kept_fields,
+            where,
+        )
