@@ -848,6 +848,22 @@ def test_far_moves_of_several_positions_are_one_step_when_one_offset_or_gain_ste
         assert not _one_step_fits(group(-abs(size) * pos, pos=pos), z), seed  # toward the centre: no step
 
 
+def step_named_within_an_hour_and_never_worse(name: str, drives: int, event: str) -> None:
+    """A drive of bench-fleet-accuracy's fleets (3 days, 60 s windows) with `event` planted: a step alarm within an
+    hour of the step (the simulator's truth, the test's only), and no hour worse than the factory set."""
+    from encoder_fleet.fleet_accuracy import explain_drive, spec_named
+
+    spec = spec_named(name, drives=drives, days=3.0, window_s=60.0)
+    assert spec.event == event
+    phys, _, _ = drive_of(spec)
+    (step,) = phys.events
+    explained = explain_drive(spec)
+    raised = [at for at, text in explained.decisions if text.startswith("alarm raise") and "_step" in text]
+    t0 = step.t_s / 3600.0
+    assert raised and t0 <= min(raised) <= t0 + 1.0, (t0, raised)
+    assert explained.result.worse_hour_indices == [], explained.result.worse_hour_indices
+
+
 def test_a_gain_step_seen_only_against_the_temperature_map_at_several_positions_is_named():
     """s5-20hz-22-dwell (a drive of bench-fleet-accuracy's 24-drive fleets; the step of q's gain, its size, sign and
     time drawn from the seed, at 40.3 h): the servo moved between positions across the step, so each position came
@@ -855,17 +871,7 @@ def test_a_gain_step_seen_only_against_the_temperature_map_at_several_positions_
     held test asks of one position. Unnamed, the drive ran its set from before the step nine hours worse than its
     factory set. Four positions, all moved after one moment, as one step of q's gain moves them: named within an
     hour, and no hour worse than the factory set."""
-    from encoder_fleet.fleet_accuracy import explain_drive, spec_named
-
-    spec = spec_named("s5-20hz-22-dwell", drives=24, days=3.0, window_s=60.0)
-    assert spec.event == "gain_step"
-    phys, _, _ = drive_of(spec)
-    (step,) = phys.events  # the truth, the test's only
-    explained = explain_drive(spec)
-    raised = [at for at, text in explained.decisions if text.startswith("alarm raise") and "_step" in text]
-    t0 = step.t_s / 3600.0
-    assert raised and t0 <= min(raised) <= t0 + 1.0, (t0, raised)
-    assert explained.result.worse_hour_indices == [], explained.result.worse_hour_indices
+    step_named_within_an_hour_and_never_worse("s5-20hz-22-dwell", drives=24, event="gain_step")
 
 
 def test_a_step_one_position_shows_clearly_is_named_though_another_in_the_same_window_shows_it_less_well():
@@ -876,17 +882,7 @@ def test_a_step_one_position_shows_clearly_is_named_though_another_in_the_same_w
     unnamed, the drive ran its set from before the step to the end, one hour worse than its factory set. A position
     seen less well that moved alike within 3 of its errors no longer hides the step: named within an hour, and no
     hour worse than the factory set."""
-    from encoder_fleet.fleet_accuracy import explain_drive, spec_named
-
-    spec = spec_named("s5-20hz-02-dwell", drives=12, days=3.0, window_s=60.0)
-    assert spec.event == "offset_step"
-    phys, _, _ = drive_of(spec)
-    (step,) = phys.events  # the truth, the test's only
-    explained = explain_drive(spec)
-    raised = [at for at, text in explained.decisions if text.startswith("alarm raise") and "_step" in text]
-    t0 = step.t_s / 3600.0
-    assert raised and t0 <= min(raised) <= t0 + 1.0, (t0, raised)
-    assert explained.result.worse_hour_indices == [], explained.result.worse_hour_indices
+    step_named_within_an_hour_and_never_worse("s5-20hz-02-dwell", drives=12, event="offset_step")
 
 
 def test_a_step_is_judged_at_the_position_it_was_seen_at_not_where_the_drive_holds_next():
