@@ -325,6 +325,40 @@ def test_the_ingest_queue_is_bounded_when_the_writer_falls_behind(tmp_path):
         fleet.stop()
 
 
+def test_a_fleet_starting_at_once_announces_its_factory_sets_and_each_is_stored_once(tmp_path):
+    """Factory sets queued in a row are stored in one transaction (FleetService._on_factories): while the store is
+    busy (its lock held, as by a long batch) 40 drives announce theirs, one of them malformed and one of them a
+    drive the service already holds a set for. Every good one is stored as version 0 and published, the malformed one
+    alone is dead-lettered with its reason, and the held set is not replaced."""
+    fleet = Fleet(tmp_path).start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    names = [f"drive-{i:03d}" for i in range(40)]
+    held = {**ws.coefficients(names[5], 0), "basis": "factory"}
+    try:
+        with fleet.store.transaction():
+            fleet.store.insert_coefficient_set(held)
+            fleet.store.mark_published(names[5], 0)
+        with fleet.store._lock:  # the control thread waits for the store: the announcements queue behind it
+            for name in names:
+                payload = wire.encode("coefficients", {**ws.coefficients(name, 0, bands=(1, 2)), "basis": "factory"})
+                if name == names[17]:
+                    payload = payload[: len(payload) // 2]  # cut short: not a message at all
+                client.put(keys.key(name, keys.FACTORY), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            time.sleep(0.5)
+        good = [n for n in names if n != names[17]]
+        assert wait_for(lambda: all(fleet.store.current_coefficients(n) is not None for n in good))
+        assert fleet.store.current_coefficients(names[17]) is None
+        for name in good:
+            current = fleet.store.current_coefficients(name, published_only=True)
+            assert current is not None and current["version"] == 0 and current["basis"] == "factory", name
+            assert [b["band"] for b in current["bands"]] == ([2] if name == names[5] else [1, 2]), name
+        refused = [d for d in fleet.store.dead_letters() if names[17] in d["key_expr"]]
+        assert len(refused) == 1 and refused[0]["reason"] == "not_json", refused
+    finally:
+        client.close()
+        fleet.stop()
+
+
 def test_analysis_waits_while_a_backlog_is_stored_but_is_never_starved(tmp_path):
     from service.runtime import STORE_FIRST_BACKLOG, STORE_FIRST_MAX_WAIT_S
 
