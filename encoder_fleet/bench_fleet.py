@@ -29,6 +29,7 @@ from fleet_wire import messages as wire
 from fleet_wire.session import loopback_endpoint, session_config
 
 TEMPLATE_SEED = 1
+FIRST_PUT = "first put at "  # the publisher's one line on stdout, then its CLOCK_MONOTONIC time
 
 
 def template_windows(
@@ -111,7 +112,7 @@ def publish(endpoint: str, devices: int, windows: int, pki: str | None = None) -
                 puts.append((keys.key(name, keys.STATS), encoder.encode(as_device(win, name))))
         put = session.put
         # the service times its windows from this moment (CLOCK_MONOTONIC is one clock for every process here)
-        print(f"first put at {time.monotonic():.6f}", flush=True)
+        print(f"{FIRST_PUT}{time.monotonic():.6f}", flush=True)
         for key, payload in puts:
             put(key, payload, congestion_control=block)
         # closing a session drops what it has not sent yet: like an agent, wait until the service has it all
@@ -203,6 +204,7 @@ def _run_size(devices: int, windows: int, workdir: Path, target: str, secure: bo
     else:
         session = open_session(listen=[endpoint])
     service = FleetService(store, session, refit_interval_s=0, min_band_samples=2000, **security).start()
+    proc = None
     try:
         total = devices * windows
         proc = subprocess.Popen(
@@ -214,7 +216,8 @@ def _run_size(devices: int, windows: int, workdir: Path, target: str, secure: bo
         # timed from the publisher's first window put to the last one stored (its start-up, building the windows,
         # aside); from the first window *stored* instead, a first batch slow to commit while the rest queued up
         # was left out of the time
-        first_put = float(proc.stdout.readline().rsplit(" ", 1)[-1] or "nan")
+        said = proc.stdout.readline()  # "" when the publisher died first: nothing timed
+        first_put = float(said.removeprefix(FIRST_PUT)) if said.startswith(FIRST_PUT) else float("nan")
         deadline = time.monotonic() + 600
         stored = 0
         while time.monotonic() < deadline:
@@ -249,6 +252,9 @@ def _run_size(devices: int, windows: int, workdir: Path, target: str, secure: bo
             "rejected": sum(v for k, v in service.counters.ingested.items() if k not in ("stored", "duplicate")),
         }
     finally:
+        if proc is not None and proc.poll() is None:  # failed or timed out on the way: the publisher goes too
+            proc.kill()
+            proc.wait()
         service.stop()
         session.close()
         store.close()

@@ -54,6 +54,7 @@ BURST_PER_KEY = 2_000.0  # … and at once (a catch-up resends at most 500 per s
 # start (each item is a reference, not a payload)
 MAX_CONTROL = 200_000
 MAX_FACTORY_RUN = 100  # factory sets stored in one transaction: the writer waits for at most one such commit
+_NO_JOB = object()  # the control loop holds no job taken from its queue (None there means stop)
 LAG_RETRY_AFTER_S = 86_400.0  # a lag refused this long before the agent came back online is offered again
 MAX_ALIVE_UNKNOWN = 10_000  # liveliness tokens of devices not yet heard from, remembered for when they speak
 # drive hours a band's sum remembers: short enough to follow a step within half a day, long enough for the
@@ -329,35 +330,35 @@ class FleetService:
 
     def _control_loop(self) -> None:
         job = self._control.get()
-        while job is not None:
+        while job is not None:  # None: stop
             handler, item = job
-            if handler == self._on_factory:
-                # a fleet of agents starting at once announces its factory sets together: a run of them queued in a
-                # row is stored in one transaction (one disk sync), in the order they came, as the writer stores
-                # windows. One at a time, each commit held the store's lock from the writer (bench-fleet, 1,000
-                # devices: 4 ms each, the last stored 2 s after the last window)
-                run, job = [item], None
-                while len(run) < MAX_FACTORY_RUN:
-                    try:
-                        job = self._control.get_nowait()
-                    except queue.Empty:
-                        break
-                    if job is None or job[0] != self._on_factory:
-                        break
-                    run.append(job[1])
-                    job = None
-                self._control_job(self._on_factories, run)
-            else:
+            if handler != self._on_factory:
                 self._control_job(handler, item)
-                job = None
-            if job is None:
+                job = self._control.get()
+                continue
+            # a fleet of agents starting at once announces its factory sets together: a run of them queued in a row
+            # is stored in one transaction (one disk sync), in the order they came, as the writer stores windows. One
+            # at a time, each commit held the store's lock from the writer (bench-fleet, 1,000 devices: 4 ms each,
+            # the last stored 2 s after the last window). The job that ends the run (or the stop) is the next one.
+            run, job = [item], _NO_JOB
+            while len(run) < MAX_FACTORY_RUN and job is _NO_JOB:
+                try:
+                    job = self._control.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None and job[0] == self._on_factory:
+                    run.append(job[1])
+                    job = _NO_JOB
+            self._control_job(self._on_factories, run)
+            if job is _NO_JOB:
                 job = self._control.get()
 
     def _control_job(self, handler: Callable, item) -> None:
         try:
             handler(item)
         except Exception:
-            log.exception("%s failed on %s", handler.__name__, getattr(item, "key_expr", item))
+            what = f"a run of {len(item)}" if isinstance(item, list) else getattr(item, "key_expr", item)
+            log.exception("%s failed on %s", handler.__name__, what)
         finally:
             if isinstance(item, zenoh.Query):
                 item.drop()  # the query's final answer: replies end here

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
+import time
 
 from fleet_wire.session import free_port
 
@@ -119,3 +121,21 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
         lines = err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and word in lines[0] and "Traceback" not in err, (argv, err)
     assert not (tmp_path / "x.csv").exists() and not (tmp_path / "o.mcap").exists()
+
+
+def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_from_the_first_put(tmp_path):
+    """`encoder-fleet bench-fleet` on a small fleet, as a user runs it: the publisher process's windows all stored
+    (none rejected), every device refitted and rolled out, and windows/s timed from the publisher's first put (the
+    one line it prints) to the last window stored: a finite rate, over a time no longer than the whole command's."""
+    out = tmp_path / "bench.json"
+    command = [sys.executable, "-m", "encoder_fleet.cli", "bench-fleet", "--sizes", "10", "--windows", "5"]
+    started = time.monotonic()
+    done = subprocess.run([*command, "--security", "off", "--json", str(out)], capture_output=True, text=True)
+    took = time.monotonic() - started
+    assert done.returncode == 0, done.stderr
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["devices"] == 10 and row["windows"] == row["expected"] == 50 and row["rejected"] == 0, row
+    assert row["refits"] == 10 and row["rollouts"] == 10, row
+    assert 0 < row["ingest_s"] <= row["monitored_s"] < took, row
+    assert math.isclose(row["windows_per_s"], 50 / row["ingest_s"]), row
+    assert "end to end" in done.stdout and "windows/s" in done.stdout

@@ -333,6 +333,13 @@ def test_a_fleet_starting_at_once_announces_its_factory_sets_and_each_is_stored_
     fleet = Fleet(tmp_path).start()
     client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
     names = [f"drive-{i:03d}" for i in range(40)]
+    runs, store_run = [], fleet.service._on_factories
+
+    def counted(samples):  # the real handler, its run's length noted
+        runs.append(len(samples))
+        store_run(samples)
+
+    fleet.service._on_factories = counted
     held = {**ws.coefficients(names[5], 0), "basis": "factory"}
     try:
         with fleet.store.transaction():
@@ -354,9 +361,29 @@ def test_a_fleet_starting_at_once_announces_its_factory_sets_and_each_is_stored_
             assert [b["band"] for b in current["bands"]] == ([2] if name == names[5] else [1, 2]), name
         refused = [d for d in fleet.store.dead_letters() if names[17] in d["key_expr"]]
         assert len(refused) == 1 and refused[0]["reason"] == "not_json", refused
+        assert sum(runs) == len(names) and max(runs) > 1, runs  # they queued behind the busy store: runs formed
     finally:
         client.close()
         fleet.stop()
+
+
+def test_the_control_thread_stops_when_the_stop_comes_behind_a_run_of_factory_sets(tmp_path):
+    """The stop (None) queued right behind factory sets, as when the service stops while a fleet announces: the run
+    is handled and the thread ends (it once took the stop as "nothing taken" and waited for a next job forever)."""
+    store = Store.open(tmp_path / "fleet.sqlite")
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0)  # not started: only its control thread runs
+    try:
+        for _ in range(5):
+            service._control.put((service._on_factory, "not a sample"))  # refused, logged, the run goes on
+        service._control.put(None)
+        service._control_thread.start()
+        service._control_thread.join(timeout=10)
+        assert not service._control_thread.is_alive()
+        assert service._control.empty()
+    finally:
+        session.close()
+        store.close()
 
 
 def test_analysis_waits_while_a_backlog_is_stored_but_is_never_starved(tmp_path):
