@@ -215,7 +215,7 @@ def _serve(
             while any(a.poll() is None for a in agents):
                 stored = sum(d["windows"] for d in store.devices())
                 bar.n = stored
-                bar.set_postfix(rollouts=service.counters.rollouts)
+                bar.set_postfix(rollouts=service.counters.rollouts, refresh=False)  # drawn once, below
                 bar.refresh()
                 time.sleep(0.5)
             bar.n = sum(d["windows"] for d in store.devices())
