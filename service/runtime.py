@@ -566,8 +566,10 @@ class FleetService:
         except wire.WireError as exc:
             self.store.dead_letter(key, exc.reason, str(exc), payload)
             return
-        if self.store.current_coefficients(device) is None:
-            with self.store.transaction():  # set and publication together: a savepoint of the run
+        # the look-up, the set and its publication together, in a savepoint of the run: one that fails is undone
+        # alone (on PostgreSQL a failed statement outside it would abort the whole run's transaction)
+        with self.store.transaction():
+            if self.store.current_coefficients(device) is None:
                 self.store.insert_coefficient_set(msg)
                 self.store.mark_published(device, 0)
 
