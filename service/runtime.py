@@ -552,6 +552,8 @@ class FleetService:
         with self.store.transaction():
             for sample in samples:
                 self._control_job(self._on_factory, sample)
+                if not self.store.transaction_open:  # the database ended it (a full disk): the agents announce again
+                    break
 
     def _on_factory(self, sample: zenoh.Sample) -> None:
         """An agent that found no set here tells what its factory wrote: it becomes version 0."""

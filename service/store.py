@@ -53,6 +53,10 @@ DEAD_LETTER_DETAIL = 1000  # characters of its reason text
 # them when it is read (Store._device_bands), so a crash still loses nothing.
 BANDS_WRITE_EVERY_S = 2.0
 
+TRANSACTION_ENDED = (
+    "the database ended the transaction after an error inside it (a full disk, an I/O error): nothing of it is stored"
+)
+
 # wire fields of a window stored as columns of the same name, in wire order
 WINDOW_FIELDS = (
     "device",
@@ -260,6 +264,10 @@ class Store:
         Inside another, a savepoint: a failing inner step rolls back alone and the batch goes on."""
         with self._lock:
             depth = self._depth
+            if depth and not self._conn.in_transaction:
+                # SQLite ended the transaction on an error inside it: a savepoint now would begin a transaction of its
+                # own and commit apart from the rest, so nothing more joins it (the caller's commit then fails too)
+                raise StoreError("unavailable", TRANSACTION_ENDED)
             self._conn.execute(f"SAVEPOINT sp{depth}" if depth else "BEGIN IMMEDIATE")
             self._depth += 1
             self._writing = threading.get_ident()
@@ -280,6 +288,8 @@ class Store:
                 if not self._depth:
                     self._writing = None
             try:
+                if not self._conn.in_transaction:  # said plainly, not as "cannot commit - no transaction is active"
+                    raise StoreError("unavailable", TRANSACTION_ENDED)
                 self._conn.execute(f"RELEASE sp{depth}" if depth else "COMMIT")
             except BaseException:
                 # a COMMIT can fail too (in WAL mode a full disk usually fails here): nothing of the batch was
@@ -395,6 +405,11 @@ class Store:
         """Several writes as one transaction (one disk sync); any failure undoes them all."""
         with self._tx():
             yield self
+
+    @property
+    def transaction_open(self) -> bool:
+        """False once the database has ended the transaction under way on an error inside it (see _tx)."""
+        return self._conn.in_transaction
 
     def ingest_many(self, items: list[tuple[str, bytes]], *, received_at: float | None = None) -> list[str]:
         """Several Zenoh samples in one transaction (one disk sync): the statuses of ingest(), in order."""

@@ -367,6 +367,51 @@ def test_a_fleet_starting_at_once_announces_its_factory_sets_and_each_is_stored_
         fleet.stop()
 
 
+def test_a_run_of_factory_sets_the_full_disk_refuses_is_stored_whole_once_space_is_back(tmp_path):
+    """The disk is full while a fleet announces its factory sets: a run the disk refuses is stored not at all (no
+    set without its publication; none of the run committed apart from it, as a savepoint after SQLite ended the
+    transaction would have been), the control thread goes on (it still answers the watermark query), and the
+    announcements the agents make again once there is space are stored, each once."""
+    fleet = Fleet(tmp_path).start()
+    client = zenoh.open(session_config("client", connect=[fleet.endpoint]))
+    names = [f"drive-{i:03d}" for i in range(30)]
+    store = fleet.store
+    runs, store_run = [], fleet.service._on_factories
+
+    def noted(samples):  # the real handler, the drives of each run noted
+        runs.append([keys.split(s.key_expr)[0] for s in samples])
+        store_run(samples)
+
+    fleet.service._on_factories = noted
+
+    def announce():
+        for name in names:
+            payload = wire.encode("coefficients", {**ws.coefficients(name, 0), "basis": "factory"})
+            client.put(keys.key(name, keys.FACTORY), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    try:
+        with store._lock:  # the disk is full: not one page more
+            pages = store._conn.execute("PRAGMA page_count").fetchone()[0]
+            store._conn.execute(f"PRAGMA max_page_count = {pages}")
+            announce()  # queued behind the lock: taken as runs once it is let go
+        assert wait_for(lambda: fleet.service._control.empty())
+        replies = [r.ok for r in client.get(keys.key(names[0], keys.RECEIVED), timeout=10) if r.ok]
+        assert replies and wire.parse_watermark(replies[0].payload.to_bytes(), names[0]) == 0  # still answering
+        held = {n for n in names if store.current_coefficients(n) is not None}  # what the free pages took
+        assert len(held) < len(names) and sum(map(len, runs)) == len(names), (held, runs)
+        assert held == {n for n in names if store.current_coefficients(n, published_only=True) is not None}
+        assert all(set(run) <= held or not set(run) & held for run in runs), (held, runs)  # each run whole or not
+        with store._lock:  # space is back
+            store._conn.execute("PRAGMA max_page_count = 1073741823")
+        announce()  # as each agent does at its next sync, having no set from the service
+        assert wait_for(lambda: all(store.current_coefficients(n, published_only=True) is not None for n in names))
+        rows = store._rows("SELECT device, version FROM coefficient_sets ORDER BY device")
+        assert [(r["device"], r["version"]) for r in rows] == [(n, 0) for n in names]
+    finally:
+        client.close()
+        fleet.stop()
+
+
 def test_the_control_thread_stops_when_the_stop_comes_behind_a_run_of_factory_sets(tmp_path):
     """The stop (None) queued right behind factory sets, as when the service stops while a fleet announces: the run
     is handled and the thread ends (it once took the stop as "nothing taken" and waited for a next job forever)."""

@@ -409,6 +409,26 @@ def test_a_commit_failed_by_a_full_disk_leaves_the_batch_out_of_the_band_sums(tm
         assert store.band_stats("drive-001")[2][1:] == (39, samples)
 
 
+def test_a_transaction_the_database_ended_takes_no_more_writes_and_commits_nothing(tmp_path):
+    """SQLite ends a transaction itself on some errors inside it (a full disk, an I/O error; here its ROLLBACK
+    stands in for one). A savepoint opened after that would begin a transaction of its own and commit apart from
+    the rest: the store refuses it, and the outer commit says plainly that nothing of the transaction is stored."""
+    with Store.open(tmp_path / "fleet.db") as store:
+        with pytest.raises(StoreError, match="ended the transaction") as ended:
+            with store.transaction():
+                store.insert_coefficient_set(coefficients("drive-001", 1))
+                store._conn.execute("ROLLBACK")  # what SQLite does on SQLITE_FULL inside a statement
+                assert not store.transaction_open
+                with pytest.raises(StoreError, match="ended the transaction"):
+                    with store.transaction():  # the next write of the run
+                        store.insert_coefficient_set(coefficients("drive-002", 1))
+        assert ended.value.reason == "unavailable"
+        assert store.newest_set("drive-001") is None and store.newest_set("drive-002") is None
+        with store.transaction():  # the next transaction is a new one, and commits
+            store.insert_coefficient_set(coefficients("drive-002", 1))
+        assert store.newest_set("drive-002")["version"] == 1
+
+
 def test_restarting_band_memory_keeps_only_windows_after_the_step(store):
     from encoder_core.stats import WindowStats
 
