@@ -47,6 +47,7 @@ class Monitor:
         self.last_seq: dict[str, int] = {}
         self._unsaved: dict[str, tuple[int, float]] = {}  # device -> (windows fed, first one's end) since written
         self._lags: dict[tuple[str, int], float] = {}
+        self._forgotten: set[str] = set()  # devices whose state in memory was dropped after a failed write
         self._lock = threading.RLock()
         self.reload(lambda device: True)
 
@@ -58,9 +59,12 @@ class Monitor:
                 del self.devices[device]
                 del self.last_seq[device]
                 self._unsaved.pop(device, None)
-            for device, (state, last_seq) in self.store.monitor_states().items():
-                if not which(device):
-                    continue
+            self._adopt({d: saved for d, saved in self.store.monitor_states().items() if which(d)})
+
+    def _adopt(self, states: dict[str, tuple[dict, int]]) -> None:
+        """Take saved states (Store.monitor_states) as the devices' monitors."""
+        with self._lock:
+            for device, (state, last_seq) in states.items():
                 try:
                     mon = DeviceMonitor.from_dict(state, self.settings)
                 except (KeyError, TypeError, ValueError) as exc:  # a state from an incompatible version: start over
@@ -70,20 +74,45 @@ class Monitor:
                 self.last_seq[device] = last_seq
                 self.fleet.report(device, mon.rate_estimates())
 
+    def _known(self, device: str) -> DeviceMonitor | None:
+        """The device's monitor, read again as written last where it was dropped (see _forget); None if none."""
+        if device in self._forgotten:
+            self._adopt(self.store.monitor_states(device))
+            self._forgotten.discard(device)
+        return self.devices.get(device)
+
     def _device(self, device: str) -> DeviceMonitor:
-        mon = self.devices.get(device)
+        mon = self._known(device)
         if mon is None:
             mon = self.devices[device] = DeviceMonitor(device, self.settings)
             self.last_seq[device] = 0
         return mon
+
+    def _forget(self, device: str) -> None:
+        """A state the database refused to write (busy, full): the one in memory has run ahead of it (windows
+        fed, alarms opened), and kept it would feed the next windows twice and never raise an alarm it holds open
+        already. Dropped, it is read again as written when next needed, and the windows since are fed again: the
+        same state, every alarm written once (as after a restart)."""
+        self.devices.pop(device, None)
+        self.last_seq.pop(device, None)
+        self._unsaved.pop(device, None)
+        self._forgotten.add(device)
 
     # --- feeding ------------------------------------------------------------------------------------
 
     def process(self, device: str) -> list[dict]:
         """Feed the device's stored windows it has not seen yet; returns the alarms raised or cleared."""
         written = []
-        with self._lock:
-            mon = self._device(device)
+        try:
+            with self._lock:
+                self._feed(device, written)
+        finally:  # what was written before a failure is published all the same
+            self._publish(written)
+        return written
+
+    def _feed(self, device: str, written: list[dict]) -> None:
+        mon = self._device(device)
+        try:
             through = self.store.contiguous_seq(device, start=self.last_seq[device])
             while self.last_seq[device] < through:
                 rows = self.store.monitor_windows(device, self.last_seq[device], through, limit=PAGE)
@@ -113,8 +142,9 @@ class Monitor:
                 else:
                     self.last_seq[device] = rows[-1]["seq"]
                     self._unsaved[device] = (fed, since)
-        self._publish(written)
-        return written
+        except BaseException:
+            self._forget(device)
+            raise
 
     def flush(self) -> None:
         """Write every state fed since it was last written (the service stops)."""
@@ -135,20 +165,20 @@ class Monitor:
     def thermal_lag(self, device: str) -> tuple[float, float] | None:
         """The device's die lag (τ s, standard error) as its windows measure it, or None."""
         with self._lock:
-            mon = self.devices.get(device)
+            mon = self._known(device)
             return mon.thermal_lag() if mon is not None else None
 
     def watches_held_positions(self, device: str) -> bool:
         """Whether the monitor would name a step of the positions the device holds (DeviceMonitor's)."""
         with self._lock:
-            mon = self.devices.get(device)
+            mon = self._known(device)
             return mon is not None and mon.watches_held_positions()
 
     def step_measured(self, device: str, at: float) -> bool:
         """Whether the step the device's monitor raised at `at` was measured as its alarm names it
         (DeviceMonitor.step_measured): only then is the running set moved by the alarm's parameters."""
         with self._lock:
-            mon = self.devices.get(device)
+            mon = self._known(device)
             return mon is None or mon.step_measured(at)
 
     def _refit_clears(self, device: str, mon: DeviceMonitor) -> list:
@@ -173,7 +203,11 @@ class Monitor:
         with self._lock:
             mon = self._device(device)
             events = mon.set_online(online)
-            written = self._save(device, mon, self.last_seq[device], events) if events else []
+            try:
+                written = self._save(device, mon, self.last_seq[device], events) if events else []
+            except BaseException:  # the state as written stands (this change of the token is lost, and logged)
+                self._forget(device)
+                raise
         self._publish(written)
         return written
 
@@ -206,7 +240,7 @@ class Monitor:
 
     def state(self, device: str, online: bool | None = None) -> str:
         with self._lock:
-            mon = self.devices.get(device)
+            mon = self._known(device)
             if mon is None:
                 return "offline" if online is False else "unknown"
             return mon.state()
@@ -216,7 +250,7 @@ def device_state(store: Store, device: str, monitor: Monitor | None = None) -> s
     """ok | watch | alarm | offline | unknown: from the running monitor, else from its stored state."""
     if monitor is not None:
         return monitor.state(device)
-    saved = store.monitor_states().get(device)
+    saved = store.monitor_states(device).get(device)
     if saved is None:
         return "unknown"
     try:

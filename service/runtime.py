@@ -236,6 +236,7 @@ class FleetService:
         self._clock = clock
         self._resent: dict[str, tuple[int, float, float]] = {}  # device -> (version, wall, drive time) of last resend
         self._refit_now: set[str] = set()  # devices whose next pass refits regardless of the cadence (a step)
+        self._resume_pending: set[str] = set()  # devices whose step the database refused to act on: taken up again
         self._step_moves: dict[str, tuple] = {}  # device -> the step the monitor measured (cause, size, raised_at)
         # device -> raised_at of the newest step whose band memory this process restarted (or found restarted)
         self._restarted_for: dict[str, float] = {}
@@ -659,6 +660,15 @@ class FleetService:
         alarm = json.loads(payload)
         try:
             self._act_on_alarm(alarm)
+        except Exception:
+            # the database refused the band memory's restart (busy, full): without a retry the device would wait
+            # for a move no pass makes and refit nothing until the process restarted. The next refit pass takes
+            # the step up again from its stored alarm, as a restart does (_resume_step_moves)
+            if alarm["cause"] in STEP_CAUSES:
+                with self._lock:
+                    self._resume_pending.add(alarm["device"])
+                self._wake_refit.set()
+            raise
         finally:  # the restart first: a put that fails must not leave the sums mixing the drive before a step
             self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
@@ -723,6 +733,15 @@ class FleetService:
     def refit_all(self) -> list[int]:
         """Refit every device that sent windows since its last refit and is due (REFIT_EVERY_S of drive time
         since then, a set on trial to judge, or a step); returns the versions published."""
+        with self._lock:
+            resume, self._resume_pending = self._resume_pending, set()
+        if resume:
+            try:
+                self._resume_step_moves(resume.__contains__)
+            except Exception:  # refused again: the next pass tries again
+                log.exception("taking up %d step(s) again failed", len(resume))
+                with self._lock:
+                    self._resume_pending |= resume
         with self._lock:
             pending, self._changed = deque(sorted(self._changed)), set()
         published, later, done = [], set(), set()

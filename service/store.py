@@ -1244,12 +1244,12 @@ class Store:
             for r in rows
         ]
 
-    def monitor_states(self) -> dict[str, tuple[dict, int]]:
-        """device -> (monitor state, last seq seen) for every device the monitor has seen."""
-        return {
-            r["device"]: (json.loads(r["state_json"]), r["last_seq"])
-            for r in self._rows("SELECT device, state_json, last_seq FROM monitor_state")
-        }
+    def monitor_states(self, device: str | None = None) -> dict[str, tuple[dict, int]]:
+        """device -> (monitor state, last seq seen) for every device the monitor has seen (or for one)."""
+        sql, args = "SELECT device, state_json, last_seq FROM monitor_state", ()
+        if device is not None:
+            sql, args = sql + " WHERE device = ?", (device,)
+        return {r["device"]: (json.loads(r["state_json"]), r["last_seq"]) for r in self._rows(sql, args)}
 
     def save_monitor(self, device: str, state: dict, last_seq: int, events: list[dict]) -> list[dict]:
         """The monitor's state and the alarms it raised or cleared, in one transaction. events: {"kind":

@@ -107,6 +107,67 @@ def test_a_state_fed_but_not_yet_written_is_fed_again_after_a_crash(tmp_path, ag
         assert store.monitor_states()[spec.name][1] == len(msgs)
 
 
+def test_a_state_the_database_refuses_to_write_is_fed_again_and_its_alarm_raised_once(tmp_path, aging):
+    """The database refuses the monitor's write (an outside writer holds its lock past the busy timeout) in the pass
+    whose windows raise the drift's alarm, and in some passes before it. The monitor in memory had fed those windows
+    and opened the alarm; kept, it would feed the next ones twice and never raise the alarm again (it is open in
+    memory). It goes on from the state written instead: the alarm is raised, stored and published once, at the same
+    time as in a run that never failed, and the state ends as that run's. A token lost to a refused write leaves
+    no alarm open in memory that the database does not hold."""
+    import sqlite3
+
+    spec, msgs = aging
+    with Store.open(tmp_path / "whole.sqlite") as store:
+        insert(store, msgs)
+        whole = Monitor(store)
+        alarms = whole.process(spec.name)
+    raised_at = alarms[0]["raised_at"]
+    raising = next(i for i, m in enumerate(msgs) if m["window_end"] >= raised_at)
+    path = tmp_path / "refused.sqlite"
+    published = []
+    with Store.open(path) as store:
+        store._conn.execute("PRAGMA busy_timeout = 50")  # the service waits 30 s; the test need not
+        monitor, got, refused, k = Monitor(store, publish=lambda key, p: published.append(p)), [], 0, 0
+        while k < len(msgs):
+            step = 1 + k % 3
+            insert(store, msgs[k : k + step])
+            k += step
+            alarm_pass = k > raising >= k - step
+            if alarm_pass or k % 40 < 3:  # the alarm's pass, and now and then another (refused where it writes)
+                other = sqlite3.connect(path, isolation_level=None)
+                other.execute("BEGIN IMMEDIATE")
+                try:
+                    got += monitor.process(spec.name)
+                    assert not alarm_pass  # a pass that raises an alarm writes it
+                except sqlite3.OperationalError as exc:
+                    assert "locked" in str(exc)
+                    refused += 1
+                finally:
+                    other.execute("ROLLBACK")
+                    other.close()
+                continue  # a refused pass's windows are fed again by the next one, with the next ones
+            got += monitor.process(spec.name)
+        got += monitor.process(spec.name)
+        monitor.flush()
+        assert refused >= 5
+        assert [(a["cause"], a["raised_at"]) for a in got] == [(alarms[0]["cause"], raised_at)]
+        assert len(store.alarms(spec.name)) == 1 and len(published) == 1
+        assert monitor.devices[spec.name].to_dict() == whole.devices[spec.name].to_dict()
+        assert store.monitor_states(spec.name)[spec.name][1] == len(msgs)
+
+        other = sqlite3.connect(path, isolation_level=None)
+        other.execute("BEGIN IMMEDIATE")
+        try:
+            with pytest.raises(sqlite3.OperationalError, match="locked"):
+                monitor.set_online(spec.name, False)  # the offline alarm this token change raises is not written
+        finally:
+            other.execute("ROLLBACK")
+            other.close()
+        assert "offline" not in monitor.devices.get(spec.name, whole.devices[spec.name]).open
+        assert [a["cause"] for a in monitor.set_online(spec.name, False)] == ["offline"]  # the next one raises it
+        assert [a["cause"] for a in store.alarms(spec.name, cause="offline")] == ["offline"]
+
+
 def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
     spec, msgs = aging
     with Store.open(tmp_path / "fleet.sqlite") as store:

@@ -412,6 +412,53 @@ def test_a_run_of_factory_sets_the_full_disk_refuses_is_stored_whole_once_space_
         fleet.stop()
 
 
+def test_a_step_whose_band_memory_restart_the_database_refused_is_taken_up_by_the_next_refit_pass(tmp_path):
+    """The monitor stores an offset step, and the database refuses the band memory's restart that acts on it (an
+    outside writer holds its lock past the busy timeout). The alarm is still put; the next refit pass takes the
+    step up again from its stored alarm and sends the drive its set moved for the step. Without that the device
+    waited for a move no pass made, refitting nothing, until the process restarted."""
+    import sqlite3
+
+    from fleet_wire import alarms as alarm_wire
+
+    path = tmp_path / "fleet.sqlite"
+    store = Store.open(path)
+    session = open_session(listen=[loopback_endpoint()])
+    heard = []
+    listener = session.declare_subscriber(keys.every(keys.ALARMS), lambda sample: heard.append(sample))
+    service = FleetService(store, session, refit_interval_s=0, monitor_interval_s=0)  # passes called by the test
+    try:
+        factory = {**ws.coefficients(DEVICE, 0, 0.0), "basis": "factory"}
+        with store.transaction():
+            store.insert_coefficient_set(factory)
+            store.mark_published(DEVICE, 0)
+            for seq in range(1, 41):
+                store.insert_window(ws.window(DEVICE, seq))
+        step = {"kind": "raise", "cause": "offset_step", "at": 1500.0, "parameters": {"delta_d": 0.01, "delta_q": 0.0}}
+        (alarm,) = store.save_monitor(DEVICE, {}, 0, [{**step, "evidence": "a step, drawn by the test"}])
+        store._conn.execute("PRAGMA busy_timeout = 50")  # the service waits 30 s; the test need not
+        other = sqlite3.connect(path, isolation_level=None)
+        other.execute("BEGIN IMMEDIATE")
+        try:
+            with pytest.raises(sqlite3.OperationalError, match="locked"):
+                service._publish_alarm(*alarm_wire.encode(alarm))  # as the monitor publishes what it stored
+        finally:
+            other.execute("ROLLBACK")
+            other.close()
+        assert wait_for(lambda: heard, timeout=10)  # the alarm went out all the same
+        published = service.refit_all()
+        assert len(published) == 1, published
+        (newest, *_) = store.coefficient_history(DEVICE)
+        assert newest["version"] == published[0] and newest["state"] == "trial", newest
+        assert newest["state_reason"].startswith("offset step: v0 moved for it"), newest  # the step's move
+        assert service._restarted_for[DEVICE] == alarm["raised_at"]
+        assert service.fit(DEVICE) is not None  # refits go on after the step
+    finally:
+        listener.undeclare()
+        session.close()
+        store.close()
+
+
 def test_the_control_thread_stops_when_the_stop_comes_behind_a_run_of_factory_sets(tmp_path):
     """The stop (None) queued right behind factory sets, as when the service stops while a fleet announces: the run
     is handled and the thread ends (it once took the stop as "nothing taken" and waited for a next job forever)."""
