@@ -11,7 +11,6 @@ coefficient set (version 0, basis factory) that `encoder-fleet agent --factory F
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 
@@ -20,6 +19,7 @@ from encoder_core.differential import BenchLocus
 from encoder_core.methods import OursLsRef
 from encoder_core.physics import REFERENCE_TEMP_C
 from encoder_core.samples import InputError, Samples, check_angle_coverage
+from encoder_fleet.outputs import write_file
 
 PLATEAU_GAP_C = 2.0  # a bench's temperature plateaus are separated by more than this
 
@@ -69,8 +69,7 @@ def cmd_calibrate(args) -> int:
     samples = read_recording(args.bench)
     factory = calibrate(samples)
     msg = factory_set(args.device, factory)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(msg, indent=1))
+    write_file(args.out, json.dumps(msg, indent=1))
     for band in factory.bands:
         harmonics = ", ".join(f"{m}: {np.degrees(np.hypot(a, b)):.3f}°" for m, (a, b) in sorted(band.harmonics.items()))
         print(

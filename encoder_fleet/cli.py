@@ -143,6 +143,9 @@ def main(argv=None) -> int:
     except InputError as exc:
         print(f"encoder-fleet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a path or the machine, not the code: a file that cannot be written, a full disk, ...
+        print(f"encoder-fleet {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
 

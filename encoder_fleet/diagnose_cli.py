@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from encoder_fleet.argtypes import positive_int
+from encoder_fleet.outputs import write_file
 
 PROGRESS_MIN_ROWS = 20000  # a progress bar only on long recordings
 
@@ -58,9 +59,7 @@ def cmd_diagnose(args) -> int:
             bar.close()
     report = result.report
     if args.json:
-        out = Path(args.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(_finite(report), indent=2, allow_nan=False) + "\n")
+        write_file(args.json, json.dumps(_finite(report), indent=2, allow_nan=False) + "\n")
     if args.report:
         from encoder_fleet.report import write_report
 

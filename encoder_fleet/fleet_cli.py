@@ -28,14 +28,13 @@ def device_seed(device: str) -> int:
 
 
 def cmd_agent(args) -> int:
-    import json
-
     import zenoh
 
     from edge_agent.agent import EdgeAgent
     from edge_agent.outbox import Outbox
     from edge_agent.sources import ReplaySource, SimulatedDrive, drive_model, factory_calibration
     from encoder_core.correction import BandedCorrection
+    from fleet_wire import messages as wire
     from fleet_wire.session import agent_session_config, set_on_signals
 
     seed = args.seed if args.seed is not None else device_seed(args.device)
@@ -57,10 +56,13 @@ def cmd_agent(args) -> int:
     else:
         raise InputError(f"--source {args.source!r}: use 'sim' or 'replay:REC.csv'")
     if args.factory:
-        try:
-            factory = BandedCorrection.from_dict({"bands": json.loads(Path(args.factory).read_text())["bands"]})
-        except (OSError, ValueError, KeyError) as exc:
+        try:  # checked as the wire checks a set (schema, types, finite numbers), with its reason
+            msg = wire.decode("coefficients", Path(args.factory).read_bytes(), key_device=None)
+        except OSError as exc:
+            raise InputError(f"--factory {args.factory}: cannot read: {exc.strerror}") from None
+        except wire.WireError as exc:
             raise InputError(f"--factory {args.factory}: not a coefficient set: {exc}") from None
+        factory = BandedCorrection.from_dict(msg)
     if factory is None:
         raise InputError("a replayed recording needs --factory FILE (a coefficient set as JSON)")
     identity, verifier = agent_security(args)
@@ -145,7 +147,14 @@ def cmd_service(args) -> int:
     )
 
 
+def _database_files(db: Path) -> set[Path]:
+    """A SQLite database's files: the database, its write-ahead log and its shared memory."""
+    db = db.resolve()
+    return {db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")}
+
+
 def cmd_export(args) -> int:
+    from encoder_fleet.outputs import replaced
     from service.db import is_postgres, sqlite_path
     from service.mcap_export import export_mcap
     from service.store import Store
@@ -154,11 +163,13 @@ def cmd_export(args) -> int:
         raise InputError(f"--db {args.db}: no such database")
     if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
+    if not is_postgres(args.db) and Path(args.out).resolve() in _database_files(Path(sqlite_path(args.db))):
+        raise InputError(f"--out {args.out} is the database itself (or its WAL): name another file")
     store = Store.open(args.db)
     try:
         if store.device(args.device) is None:
             raise InputError(f"device {args.device!r} is not in {args.db}")
-        with open(args.out, "wb") as out:
+        with replaced(args.out, "wb") as out:  # whole or not at all: a failed export leaves no half file
             export_mcap(store, args.device, out, t_from=args.t_from, t_to=args.t_to)
     finally:
         store.close()

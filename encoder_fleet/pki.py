@@ -19,6 +19,7 @@ import json
 import os
 from pathlib import Path
 
+from encoder_fleet.outputs import write_file
 from fleet_wire import keys
 from fleet_wire.security import (
     CA_NAME,
@@ -42,11 +43,7 @@ LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
 
 def _write(path: Path, data: bytes, *, private: bool) -> None:
     """Write a file; a private key is created 0600 from the start (never readable by others, not even briefly)."""
-    mode = 0o600 if private else 0o644
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-    with os.fdopen(fd, "wb") as out:
-        out.write(data)
-    os.chmod(path, mode)
+    write_file(path, data, perms=0o600 if private else 0o644)
 
 
 def _pem_private(key) -> bytes:
@@ -279,7 +276,7 @@ def cmd_pki(args) -> int:
         )
         text = json.dumps(conf, indent=1)
         if args.out:
-            Path(args.out).write_text(text + "\n")
+            write_file(args.out, text + "\n")
             print(f"wrote {args.out}: {len(registry(args.dir))} devices admitted")
         else:
             print(text)

@@ -10,6 +10,7 @@ import numpy as np
 
 from encoder_core.physics import halls_to_dq
 from encoder_core.samples import InputError, Samples
+from encoder_fleet.outputs import replaced
 
 HALL_COLUMNS = ("a_plus", "a_minus", "b_plus", "b_minus")
 OPTIONAL = ("temp_c", "theta_ref_deg", "speed_rpm", "run")
@@ -19,49 +20,64 @@ def read_recording(path: str | Path) -> Samples:
     """Parse a recording; any problem raises InputError naming the file, line and column."""
     path = Path(path)
     try:
-        handle = path.open(newline="")
+        handle = path.open(newline="", encoding="utf-8-sig")  # -sig: a byte-order mark before the header is dropped
     except OSError as exc:
         raise InputError(f"{path}: cannot open: {exc.strerror}") from exc
     with handle:
         reader = csv.reader(handle)
         try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise InputError(f"{path}: the file is empty (expected a header row)") from None
-        except csv.Error as exc:
-            raise InputError(f"{path}, line 1: not valid CSV: {exc}") from None
-        if "t" not in header:
-            raise InputError(f"{path}: missing column 't' (header has: {', '.join(header)})")
-        has_dq = "d" in header and "q" in header
-        has_halls = all(h in header for h in HALL_COLUMNS)
-        if not (has_dq or has_halls):
+            return _parse(path, reader)
+        except UnicodeDecodeError as exc:
             raise InputError(
-                f"{path}: missing columns: need 'd' and 'q', or all of {', '.join(HALL_COLUMNS)}"
-                f" (header has: {', '.join(header)})"
-            )
-        wanted = ["t"] + (["d", "q"] if has_dq else list(HALL_COLUMNS)) + [c for c in OPTIONAL if c in header]
-        index = {name: header.index(name) for name in wanted}
-        columns: dict[str, list[float]] = {name: [] for name in wanted}
-        lines: list[int] = []  # the file line of each data row, for messages about rows
-        try:
-            for row in reader:
-                line = reader.line_num
-                if not row or all(not cell.strip() for cell in row):
-                    continue
-                lines.append(line)
-                if len(row) < len(header):
-                    raise InputError(f"{path}, line {line}: {len(row)} fields, expected {len(header)}")
-                for name, col in index.items():
-                    cell = row[col].strip()
-                    try:
-                        value = float(cell)
-                    except ValueError:
-                        raise InputError(f"{path}, line {line}, column '{name}': not a number: {cell!r}") from None
-                    if not math.isfinite(value):
-                        raise InputError(f"{path}, line {line}, column '{name}': not a finite number: {cell!r}")
-                    columns[name].append(value)
-        except csv.Error as exc:
-            raise InputError(f"{path}, line {reader.line_num}: not valid CSV: {exc}") from None
+                f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} "
+                f"{f'after line {reader.line_num}' if reader.line_num else 'in its first lines'}): "
+                "a recording is a CSV text file"
+            ) from None
+
+
+def _parse(path: Path, reader) -> Samples:
+    """The rows of an open recording as Samples (read_recording's body; its errors name the line and column)."""
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise InputError(f"{path}: the file is empty (expected a header row)") from None
+    except csv.Error as exc:
+        raise InputError(f"{path}, line 1: not valid CSV: {exc}") from None
+    twice = sorted({h for h in header if h and header.count(h) > 1})
+    if twice:
+        raise InputError(f"{path}, line 1: column {twice[0]!r} appears twice in the header")
+    if "t" not in header:
+        raise InputError(f"{path}: missing column 't' (header has: {', '.join(header)})")
+    has_dq = "d" in header and "q" in header
+    has_halls = all(h in header for h in HALL_COLUMNS)
+    if not (has_dq or has_halls):
+        raise InputError(
+            f"{path}: missing columns: need 'd' and 'q', or all of {', '.join(HALL_COLUMNS)}"
+            f" (header has: {', '.join(header)})"
+        )
+    wanted = ["t"] + (["d", "q"] if has_dq else list(HALL_COLUMNS)) + [c for c in OPTIONAL if c in header]
+    index = {name: header.index(name) for name in wanted}
+    columns: dict[str, list[float]] = {name: [] for name in wanted}
+    lines: list[int] = []  # the file line of each data row, for messages about rows
+    try:
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not cell.strip() for cell in row):
+                continue
+            lines.append(line)
+            if len(row) < len(header) or any(cell.strip() for cell in row[len(header) :]):
+                raise InputError(f"{path}, line {line}: {len(row)} fields, expected {len(header)}")
+            for name, col in index.items():
+                cell = row[col].strip()
+                try:
+                    value = float(cell)
+                except ValueError:
+                    raise InputError(f"{path}, line {line}, column '{name}': not a number: {cell!r}") from None
+                if not math.isfinite(value):
+                    raise InputError(f"{path}, line {line}, column '{name}': not a finite number: {cell!r}")
+                columns[name].append(value)
+    except csv.Error as exc:
+        raise InputError(f"{path}, line {reader.line_num}: not valid CSV: {exc}") from None
     arrays = {k: np.asarray(v, dtype=float) for k, v in columns.items()}
     t = arrays["t"]
     if t.size == 0:
@@ -108,8 +124,9 @@ def write_recording(samples: Samples, path: str | Path, *, halls: bool = False) 
         cols["speed_rpm"] = samples.speed_rpm
     if samples.run is not None:
         cols["run"] = samples.run
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fmt = {"t": "%.4f", "run": "%d"}
     matrix = np.column_stack(list(cols.values()))
-    np.savetxt(path, matrix, delimiter=",", header=",".join(cols), comments="", fmt=[fmt.get(c, "%.6g") for c in cols])
+    with replaced(path) as out:  # whole or not at all
+        np.savetxt(
+            out, matrix, delimiter=",", header=",".join(cols), comments="", fmt=[fmt.get(c, "%.6g") for c in cols]
+        )

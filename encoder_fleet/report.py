@@ -5,9 +5,10 @@ from __future__ import annotations
 import base64
 import html
 import io
-from pathlib import Path
 
 import numpy as np
+
+from encoder_fleet.outputs import write_file
 
 
 def _png(fig) -> str:
@@ -136,6 +137,4 @@ def _repeatability(rep: dict | None) -> str:
 
 
 def write_report(diagnosis, path, title: str = "recording") -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(render(diagnosis, title))
+    write_file(path, render(diagnosis, title))

@@ -9,6 +9,7 @@ import urllib.request
 from pathlib import Path
 
 from encoder_core.samples import InputError
+from encoder_fleet.outputs import write_file
 
 from .argtypes import positive_float, positive_int
 
@@ -89,7 +90,7 @@ def cmd_rollout(args) -> int:
     else:  # pause | resume | abort
         result = request(args, "POST", f"/rollouts/{args.id}/{action}")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+        write_file(args.json, json.dumps(result, indent=2) + "\n")
     if action != "list":
         show(result)
     for r in result if action == "list" else []:

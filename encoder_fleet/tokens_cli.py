@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from encoder_core.samples import InputError
+from encoder_fleet.outputs import write_file
 
 
 def cmd_token(args) -> int:
@@ -21,7 +22,11 @@ def cmd_token(args) -> int:
         if args.token_command == "create":
             token_id, token = auth.create(args.scope, args.name or "")
             if args.out:
-                write_secret(Path(args.out), token)
+                try:
+                    write_secret(Path(args.out), token)
+                except OSError:  # a token nobody holds must not stay live: revoked, and the error said
+                    auth.revoke(token_id)
+                    raise
                 print(f"token {token_id} ({args.scope}) written to {args.out} (0600)", flush=True)
             else:
                 print(token)  # stdout only, once: the database keeps its hash
@@ -40,13 +45,7 @@ def cmd_token(args) -> int:
 
 
 def write_secret(path: Path, text: str) -> None:
-    import os
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as out:
-        out.write(text + "\n")
-    os.chmod(path, 0o600)
+    write_file(path, text + "\n", perms=0o600)
 
 
 def register(sub) -> None:

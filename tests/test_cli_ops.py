@@ -139,3 +139,96 @@ def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_fr
     assert 0 < row["ingest_s"] <= row["monitored_s"] < took, row
     assert math.isclose(row["windows_per_s"], 50 / row["ingest_s"]), row
     assert "end to end" in done.stdout and "windows/s" in done.stdout
+
+
+def test_export_refuses_to_write_over_its_own_database(tmp_path):
+    """`export --out` naming the database (or its write-ahead log) is refused before anything is opened for writing:
+    once, it truncated the fleet's history to 0 bytes. The history is whole afterwards and a real export works."""
+    from fleet_wire import keys
+    from fleet_wire import messages as wire
+    from service.store import Store
+    from tests.wire_samples import window
+
+    db = tmp_path / "fleet.sqlite"
+    with Store.open(db) as store:
+        store.ingest_many([(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=s))) for s in (1, 2)])
+    size = db.stat().st_size
+    for out in (db, tmp_path / "fleet.sqlite-wal", tmp_path / "." / "fleet.sqlite"):
+        done = subprocess.run(
+            [sys.executable, "-m", "encoder_fleet.cli", "export", "--db", str(db), "--device", "drive-001"]
+            + ["--out", str(out)],
+            capture_output=True,
+            text=True,
+        )
+        assert done.returncode == 2 and "is the database itself" in done.stderr, done.stderr
+    assert db.stat().st_size == size
+    with Store.open(db) as store:
+        assert store.max_seq("drive-001") == 2
+    done = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "export", "--db", str(db), "--device", "drive-001"]
+        + ["--out", str(tmp_path / "drive-001.mcap")],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0 and (tmp_path / "drive-001.mcap").stat().st_size > 0, done.stderr
+
+
+def test_an_agent_refuses_a_factory_file_that_is_not_a_coefficient_set(tmp_path):
+    """`agent --factory` checks the file as the wire checks a set (schema, types, finite numbers): null, a list, a
+    set with a NaN weight, too few weights or no schema is one line naming the file and what is wrong, exit 2, and
+    nothing is created (no outbox)."""
+    from tests.wire_samples import coefficients
+
+    rec = tmp_path / "rec.csv"
+    assert main_simulate(rec) == 0
+    good = {**coefficients("drive-001", 0), "basis": "factory"}
+    nan_w = json.dumps(good).replace('"w": [1.01', '"w": [NaN', 1)
+    short_w = json.loads(json.dumps(good))
+    short_w["bands"][0]["w"] = [1.0, 2.0]
+    no_schema = {k: v for k, v in good.items() if k != "schema"}
+    for name, text in [
+        ("null", "null"),
+        ("list", "[1, 2, 3]"),
+        ("nan", nan_w),
+        ("short", json.dumps(short_w)),
+        ("schema", json.dumps(no_schema)),
+    ]:
+        factory = tmp_path / f"{name}.json"
+        factory.write_text(text)
+        outbox = tmp_path / f"{name}-outbox.sqlite"
+        command = [sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", "drive-001", "--insecure"]
+        command += ["--connect", f"tcp/127.0.0.1:{free_port()}", "--source", f"replay:{rec}"]
+        command += ["--factory", str(factory), "--outbox", str(outbox)]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2, (name, done.stderr)
+        assert f"--factory {factory}: not a coefficient set" in done.stderr and "Traceback" not in done.stderr, name
+        assert not outbox.exists(), name
+
+
+def main_simulate(out) -> int:
+    from encoder_fleet.cli import main
+
+    return main(["simulate", "--scenario", "field", "--days", "0.01", "--out", str(out)])
+
+
+def test_a_token_that_could_not_be_written_out_is_revoked(tmp_path):
+    """`token create --out` where the file cannot be written (a directory stands there): one line, exit 2, and the
+    token it made is revoked, so that no live token exists that nobody holds. The file written for a good path is
+    0600 and holds the token."""
+    import os
+    import stat
+
+    db = tmp_path / "fleet.sqlite"
+    (tmp_path / "taken").mkdir()
+    token = [sys.executable, "-m", "encoder_fleet.cli", "token"]
+    done = subprocess.run(
+        [*token, "create", "--scope", "read", "--db", str(db), "--create-db", "--out", str(tmp_path / "taken")],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2 and "is a directory" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    listed = subprocess.run([*token, "list", "--db", str(db)], capture_output=True, text=True).stdout.split()
+    assert listed[1:3] == ["read", "revoked"], listed
+    good = tmp_path / "keys" / "read.token"
+    done = subprocess.run([*token, "create", "--scope", "read", "--db", str(db), "--out", str(good)], text=True)
+    assert done.returncode == 0 and stat.S_IMODE(os.stat(good).st_mode) == 0o600 and len(good.read_text()) > 20

@@ -61,6 +61,8 @@ def test_simulate_field_without_reference_and_with_halls(tmp_path):
         ("t,d,q\n0,1,2\n\n1,1,2\n0.5,1,3\n", "line 5, column 't'"),  # a blank line does not shift the count
         ("t,d,q\n0,1,nan\n", "not a finite number"),
         ("t,d,q\n0,1\n", "2 fields, expected 3"),
+        ("t,d,q\n0,1,2\n1,1,2,7\n", "line 3: 4 fields, expected 3"),  # a value past the header's columns
+        ("t,d,q,d\n0,1,2,3\n", "line 1: column 'd' appears twice"),
         ("", "empty"),
     ],
 )
@@ -91,3 +93,39 @@ def test_bench_methods_writes_json_and_png(tmp_path):
     assert by[("seed001", "seed001-mix")]["max_error_deg"] < 0.5  # seed 001's own claim, reproduced
     assert (tmp_path / "b.png").stat().st_size > 10000
     assert "noise floor" in res.stdout
+
+
+def test_a_recording_with_a_byte_order_mark_or_trailing_empty_cells_reads_as_without(tmp_path):
+    plain, marked = tmp_path / "plain.csv", tmp_path / "marked.csv"
+    plain.write_text("t,d,q\n0,1,2\n1,1.5,2.5\n")
+    marked.write_bytes(b"\xef\xbb\xbf" + b"t,d,q\r\n0,1,2,\r\n1,1.5,2.5,\r\n")  # as a spreadsheet saves it
+    a, b = read_recording(plain), read_recording(marked)
+    assert np.array_equal(a.t, b.t) and np.array_equal(a.d, b.d) and np.array_equal(a.q, b.q)
+
+
+def test_a_binary_file_given_as_a_recording_is_one_line_and_exit_2(tmp_path):
+    path = tmp_path / "bin.csv"
+    path.write_bytes(b"t,d,q\n0,1,2\n" + bytes(range(128, 256)) * 40)
+    for command in (["diagnose", str(path)], ["calibrate", str(path), "--out", str(tmp_path / "f.json")]):
+        res = run_cli(*command)
+        assert res.returncode == 2, res.stderr
+        assert "not UTF-8 text" in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert not (tmp_path / "f.json").exists()
+
+
+def test_an_output_that_cannot_be_written_is_one_line_and_leaves_what_was_there(tmp_path):
+    """A command's output is written whole or not at all: a directory where the file should be, or a path under a
+    file, is one line and exit 2 (no traceback); the file that was there before a failed write is as it was, and
+    no temporary file is left beside it."""
+    rec = tmp_path / "rec.csv"
+    assert main(["simulate", "--scenario", "field", "--days", "0.01", "--out", str(rec)]) == 0
+    before = rec.read_bytes()
+    (tmp_path / "a-dir").mkdir()
+    for out in (tmp_path / "a-dir", rec / "under-a-file.csv"):
+        res = run_cli("simulate", "--scenario", "field", "--days", "0.01", "--seed", "3", "--out", str(out))
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1 and str(out) in res.stderr, res.stderr
+    res = run_cli("diagnose", str(rec), "--no-progress", "--json", str(tmp_path / "a-dir"))
+    assert res.returncode == 2 and "is a directory" in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert rec.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-dir", "rec.csv"]  # no .part file left
