@@ -4,12 +4,31 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 import numpy as np
 
 from encoder_core.samples import InputError
 from encoder_fleet.argtypes import finite_float, positive_float
+
+
+def _unlike(value, default) -> str | None:
+    """What is wrong with `value` for a model parameter whose default is `default` (None: nothing): the same kind
+    (a flag, a number, a list), and every number in it finite."""
+
+    def numbers(x):
+        return [n for v in x for n in numbers(v)] if isinstance(x, list) else [x]
+
+    kinds = ((bool, "takes true or false"), ((int, float), "takes a number"), ((list, tuple), "takes a list"))
+    for kind, says in kinds:  # the first kind the default is (a flag is an int too)
+        if isinstance(default, kind):
+            if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+                return says
+            break
+    if any(isinstance(n, float) and not math.isfinite(n) for n in numbers(value)):
+        return "takes finite numbers only"
+    return None
 
 
 def cmd_simulate(args) -> int:
@@ -30,6 +49,9 @@ def cmd_simulate(args) -> int:
             parsed = json.loads(value)
         except json.JSONDecodeError:
             raise InputError(f"--set {item!r}: value must be JSON (a number, true/false or a list)") from None
+        problem = _unlike(parsed, model.to_dict()[key])
+        if problem:
+            raise InputError(f"--set {item!r}: {key} {problem}")
         changes[key] = parsed
     model = EncoderModel.from_dict({**model.to_dict(), **changes})
     if args.scenario == "bench":

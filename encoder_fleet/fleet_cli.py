@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import signal
+import sqlite3
 import threading
 from pathlib import Path
 
@@ -66,7 +67,11 @@ def cmd_agent(args) -> int:
     if factory is None:
         raise InputError("a replayed recording needs --factory FILE (a coefficient set as JSON)")
     identity, verifier = agent_security(args)
-    outbox = Outbox(args.outbox or Path("out") / "outbox" / f"{args.device}.sqlite")
+    outbox_path = args.outbox or Path("out") / "outbox" / f"{args.device}.sqlite"
+    try:
+        outbox = Outbox(outbox_path)
+    except (sqlite3.Error, OSError) as exc:  # a directory there, another kind of file, no room
+        raise InputError(f"--outbox {outbox_path}: cannot be used as the agent's outbox: {exc}") from None
     try:
         session = zenoh.open(agent_session_config(args.connect, identity=identity))
     except zenoh.ZError as exc:

@@ -22,6 +22,8 @@ def request(args, method: str, path: str, body: dict | None = None) -> dict | li
             headers["Authorization"] = "Bearer " + Path(args.token_file).read_text().strip()
         except OSError as exc:
             raise InputError(f"--token-file {args.token_file}: {exc.strerror}") from None
+        except UnicodeDecodeError:
+            raise InputError(f"--token-file {args.token_file}: not a token (not text)") from None
     data = None
     if body is not None:
         data, headers["Content-Type"] = json.dumps(body).encode(), "application/json"
@@ -39,6 +41,8 @@ def request(args, method: str, path: str, body: dict | None = None) -> dict | li
         raise InputError(f"{method} {path}: {exc.code} {detail or exc.reason}") from None
     except (urllib.error.URLError, OSError) as exc:
         raise InputError(f"{url}: cannot reach the service ({getattr(exc, 'reason', exc)})") from None
+    except ValueError as exc:  # urllib's "unknown url type", or an answer that is not JSON
+        raise InputError(f"{url}: {exc} (--url is the service's REST address, e.g. http://127.0.0.1:8000)") from None
 
 
 def parse_abort(text: str) -> dict:

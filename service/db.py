@@ -18,6 +18,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
+from encoder_core.samples import InputError
+
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
 READ_POOL_SIZE = 4  # read connections per service process (PostgreSQL's default max_connections is 100)
 CHECKPOINT_EVERY_S = 1.0  # how often committed WAL pages are copied into a SQLite file (SqliteCheckpointer)
@@ -30,9 +32,13 @@ def is_postgres(target) -> bool:
 
 
 def sqlite_path(target) -> str:
-    """A bare path or sqlite:///path -> the file's path."""
+    """A bare path or sqlite:///path -> the file's path; another URL (mysql://…) is refused, not made a file."""
     text = str(target)
-    return text[len("sqlite:///") - 1 :] if text.startswith("sqlite:///") else text
+    if text.startswith("sqlite:///"):
+        return text[len("sqlite:///") - 1 :]
+    if re.match(r"[A-Za-z][A-Za-z0-9+.-]*://", text):
+        raise InputError(f"database {redacted(text)}: not a file path, sqlite:///PATH or postgresql://… URL")
+    return text
 
 
 def redacted(url: str) -> str:

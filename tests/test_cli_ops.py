@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from fleet_wire.session import free_port
 
@@ -115,12 +116,18 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
         (("export", "--db", str(tmp_path / "f.sqlite"), "--device", "d", "--out", "o.mcap", "--from", "5", "--to", "1"),
          "--from"),
         (("no-such-command",), "invalid choice"),
+        (("simulate", "--out", str(tmp_path / "x.csv"), "--set", "thermal_lag_tau_s=NaN"), "finite numbers only"),
+        (("simulate", "--out", str(tmp_path / "x.csv"), "--set", 'thermal_lag_tau_s="x"'), "takes a number"),
+        (("simulate", "--out", str(tmp_path / "x.csv"), "--set", "harmonics=3"), "takes a list"),
+        (("service", "--insecure", "--db", "mysql://h/fleet", "--http-port", "0"), "not a file path"),
+        (("rollout", "list", "--url", "notaurl"), "REST address"),
     ]  # fmt: skip
     for argv, word in cases:
         code, err = run_main(capsys, *argv)
         lines = err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and word in lines[0] and "Traceback" not in err, (argv, err)
     assert not (tmp_path / "x.csv").exists() and not (tmp_path / "o.mcap").exists()
+    assert not list(tmp_path.glob("mysql*")) and not list(Path().glob("mysql:*"))  # no file made of the URL
 
 
 def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_from_the_first_put(tmp_path):
