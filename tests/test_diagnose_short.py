@@ -74,6 +74,39 @@ def test_dropped_reads_are_named_outliers_and_decide_nothing(seed, style):
     assert report["extended"]["rms_error_deg"] == pytest.approx(clean["extended"]["rms_error_deg"], rel=0.1)
 
 
+def spike_reads(rng, samples: Samples) -> np.ndarray:
+    """1-3 samples read 3 to 10^300 times their field on one channel (a spike on the line, a corrupted word)."""
+    rows = rng.choice(len(samples), size=int(rng.integers(1, 4)), replace=False)
+    channel = samples.d if rng.random() < 0.5 else samples.q
+    channel[rows] = (
+        np.sign(channel[rows] + 0.5)
+        * np.hypot(samples.d[rows], samples.q[rows])
+        * 10.0 ** rng.uniform(0.5, 300, rows.size)
+    )
+    return rows
+
+
+SPIKE_CASES = [(seed, style) for seed in range(320, 324) for style in ("jig-reference", "jig-no-reference", "field")]
+
+
+@pytest.mark.parametrize("seed,style", SPIKE_CASES, ids=[f"{style}-{seed}" for seed, style in SPIKE_CASES])
+def test_reads_of_an_impossible_field_are_named_outliers_and_decide_nothing(seed, style):
+    """The mirror of a dropped read: a sample whose field reads far over the typical one (up to 1e300 times:
+    once, such a value crashed diagnose, and one of 1e6 set the normalisation and left 'no findings' with a max
+    error of 38 degrees). Named outliers, said to be over the typical field, and the errors are the clean ones."""
+    rng = np.random.default_rng(seed)
+    samples = field_style(rng) if style == "field" else jig_style(rng, reference=style == "jig-reference")
+    clean = diagnose(samples).report
+    rows = spike_reads(rng, samples)
+    report = diagnose(samples).report
+    assert [f["cause"] for f in report["findings"]] == ["outliers"], report["findings"]
+    finding = report["findings"][0]
+    assert finding["parameters"]["fraction"] == pytest.approx(rows.size / len(samples), abs=0.5 / len(samples))
+    assert "of the typical field (over 200 %" in finding["evidence"], finding["evidence"]
+    assert report["extended"]["max_error_deg"] == pytest.approx(clean["extended"]["max_error_deg"], rel=0.1)
+    assert report["extended"]["rms_error_deg"] == pytest.approx(clean["extended"]["rms_error_deg"], rel=0.1)
+
+
 @pytest.mark.parametrize("seed", range(310, 316))
 def test_runs_shifted_by_a_constant_are_reported_as_repeatability(seed):
     """Each run re-mounted with its own zero (plus a common one): the common zero is named, the rest is

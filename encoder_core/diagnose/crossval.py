@@ -50,8 +50,10 @@ def _folds_span_temperature(data: RecordingData, folds: np.ndarray) -> bool:
 
 def summarise(err_deg: np.ndarray, rejected: int = 0) -> Eval:
     ok = np.isfinite(err_deg)
-    rms = float(np.sqrt(np.mean(err_deg[ok] ** 2))) if ok.any() else float("nan")
-    mx = float(np.max(np.abs(err_deg[ok]))) if ok.any() else float("nan")
+    # no angle is further off than 180°: the radius metric of a corrupted read (10^300 times the field) says more
+    err = np.clip(err_deg[ok], -180.0, 180.0)
+    rms = float(np.sqrt(np.mean(err**2))) if ok.any() else float("nan")
+    mx = float(np.max(np.abs(err))) if ok.any() else float("nan")
     return Eval(err_deg, rms, mx, rejected)
 
 

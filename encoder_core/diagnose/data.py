@@ -20,7 +20,8 @@ T_SCALE = 50.0  # °C: temperature is used as (T - 20)/50 for conditioning
 OUTLIER_SIGMAS = 8.0
 OUTLIER_FLOOR = 0.01  # radius deviation (fraction of the radius) below which nothing is an outlier
 # A read whose field magnitude is under half the recording's typical one carries no angle: no drift,
-# imbalance or harmonic moves a healthy sample that far, a failed conversion or a loose connector does.
+# imbalance or harmonic moves a healthy sample that far, a failed conversion or a loose connector does; nor does
+# one over twice the typical one (a spike on the line, a corrupted word)
 DROPPED_READ_RATIO = 0.5
 
 
@@ -38,7 +39,8 @@ class RecordingData:
         self.n = n
         self.t = np.asarray(samples.t, float)
         self.center = np.array([np.median(samples.d), np.median(samples.q)])
-        amp = np.sqrt(np.mean((samples.d - self.center[0]) ** 2 + (samples.q - self.center[1]) ** 2))
+        # the median radius, not the rms: one corrupted read of a thousand times the field would set the scale
+        amp = np.median(np.hypot(samples.d - self.center[0], samples.q - self.center[1]))
         if not amp > 0:
             raise InputError("d and q do not vary: nothing to fit")
         self.scale = float(amp)
@@ -57,7 +59,8 @@ class RecordingData:
         self.run = None if samples.run is None else np.asarray(samples.run)
         self._lagged: dict[float, np.ndarray] = {}
         self.read_ratio = field_ratio(self.d, self.q)
-        self.dropped = self.read_ratio < DROPPED_READ_RATIO
+        # a read under half the typical field (dropped) or over twice it (a spike on the line) carries no angle
+        self.dropped = ~((self.read_ratio >= DROPPED_READ_RATIO) & (self.read_ratio <= 1 / DROPPED_READ_RATIO))
         self.clip_d, self.clip_q, self.clip_info = find_clipping(samples, self.d, self.q, self.dropped)
         self.clipped = self.clip_d | self.clip_q
         self.suspect = np.zeros(n, bool)  # set after the baseline: isolated samples far off the circle
@@ -149,7 +152,7 @@ def field_ratio(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     cx, cy = np.median(x), np.median(y)
     for _ in range(2):
         r = np.hypot(x - cx, y - cy)
-        keep = r >= DROPPED_READ_RATIO * np.median(r)
+        keep = (r >= DROPPED_READ_RATIO * np.median(r)) & (r <= np.median(r) / DROPPED_READ_RATIO)
         a = np.column_stack([2 * x[keep], 2 * y[keep], np.ones(int(keep.sum()))])
         (cx, cy, _), *_ = np.linalg.lstsq(a, x[keep] ** 2 + y[keep] ** 2, rcond=None)
     r = np.hypot(x - cx, y - cy)

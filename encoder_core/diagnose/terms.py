@@ -360,11 +360,19 @@ class Outliers(Term):
             how = f"jump off the circle, each alone, {beyond}"
         else:
             ratio = 100 * data.read_ratio[data.dropped]
-            how = (
-                f"are corrupted: {dropped} dropped read(s), a field magnitude of {ratio.min():.1f}-{ratio.max():.1f} % "
-                f"of the typical one (under {100 * DROPPED_READ_RATIO:.0f} %: a failed conversion or a loose "
-                "connector)"
-            )
+            low, high = ratio[ratio < 100], ratio[ratio >= 100]
+            said = []
+            if low.size:
+                said.append(
+                    f"{low.size} dropped read(s), a field magnitude of {low.min():.1f}-{low.max():.1f} % of the "
+                    f"typical one (under {100 * DROPPED_READ_RATIO:.0f} %: a failed conversion or a loose connector)"
+                )
+            if high.size:
+                said.append(
+                    f"{high.size} read(s) of {high.min():.3g}-{high.max():.3g} % of the typical field (over "
+                    f"{100 / DROPPED_READ_RATIO:.0f} %: a spike on the line or a corrupted word)"
+                )
+            how = "are corrupted: " + " and ".join(said)
             if count > dropped:
                 how += f", and {count - dropped} isolated jump(s) off the circle {beyond}"
         return {"fraction": round(frac, 6)}, {"count": count, "percent": 100 * frac, "how": how}
