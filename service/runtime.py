@@ -1398,6 +1398,11 @@ def run_service(
     with ExitStack() as running:  # whatever started is stopped again, in reverse, on any error
         if http_port:
             check_port_free(http_host, http_port, "REST")
+        for endpoint in listen:  # before the database is made: a start that cannot listen leaves nothing behind
+            proto, _, address = endpoint.partition("/")
+            host, _, port = address.rpartition(":")
+            if proto in ("tcp", "tls") and port.isdigit() and int(port):
+                check_port_free(host.strip("[]"), int(port), f"Zenoh listen ({endpoint})")
         postgres = is_postgres(db)
         if member is not None and not postgres:
             raise InputError("--member shares the fleet through one PostgreSQL database; a SQLite file has one process")

@@ -155,6 +155,7 @@ def test_service_on_a_taken_port_says_so_in_one_line(tmp_path):
                          "--insecure", "--listen", f"tcp/127.0.0.1:{free_port()}", cwd=tmp_path)  # fmt: skip
     assert_one_line_error(zenoh_taken, f"127.0.0.1:{port}")
     assert_one_line_error(http_taken, f"127.0.0.1:{port}", "REST")
+    assert not (tmp_path / "a.sqlite").exists() and not (tmp_path / "b.sqlite").exists()  # a start that failed
 
 
 def test_a_database_that_cannot_be_opened_is_one_line_not_a_traceback(tmp_path):
