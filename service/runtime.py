@@ -964,6 +964,17 @@ class FleetService:
             with self._lock:  # only the step read above: one the monitor raised since waits for the next pass
                 if self._step_moves.get(device) is step:
                     self._step_moves.pop(device, None)
+        try:
+            return self._refit_taken(device, step, held, trial, unmeasured)
+        except Exception:  # the database refused (busy, full): the step's move is made by the next pass, not lost
+            if step is not None:
+                with self._lock:
+                    self._step_moves.setdefault(device, step)
+                    self._refit_now.add(device)  # visited by the next pass, windows or not
+            raise
+
+    def _refit_taken(self, device: str, step: tuple | None, held: bool, trial: dict | None, unmeasured: bool):
+        """refit's actions, once it has taken the step it acts on (if any) from the pending ones."""
         if held:
             return None
         if unmeasured:

@@ -412,14 +412,29 @@ def test_a_run_of_factory_sets_the_full_disk_refuses_is_stored_whole_once_space_
         fleet.stop()
 
 
-def test_a_step_whose_band_memory_restart_the_database_refused_is_taken_up_by_the_next_refit_pass(tmp_path):
-    """The monitor stores an offset step, and the database refuses the band memory's restart that acts on it (an
-    outside writer holds its lock past the busy timeout). The alarm is still put; the next refit pass takes the
-    step up again from its stored alarm and sends the drive its set moved for the step. Without that the device
-    waited for a move no pass made, refitting nothing, until the process restarted."""
+@pytest.mark.parametrize("refused", ["restart", "move"])
+def test_a_step_whose_action_the_database_refused_is_taken_up_by_the_next_refit_pass(tmp_path, refused):
+    """The monitor stores an offset step, and the database refuses (an outside writer holds its lock past the busy
+    timeout) either the band memory's restart that acts on it, or the refit pass's set moved for it. The alarm is
+    still put; the next refit pass takes the step up again and sends the drive its set moved for the step. Before,
+    a refused restart left the device waiting for a move no pass made, refitting nothing until the process
+    restarted, and a refused move was dropped."""
+    import contextlib
     import sqlite3
 
     from fleet_wire import alarms as alarm_wire
+
+    @contextlib.contextmanager
+    def locked(when: bool):
+        other = sqlite3.connect(path, isolation_level=None) if when else None
+        if other is not None:
+            other.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+        finally:
+            if other is not None:
+                other.execute("ROLLBACK")
+                other.close()
 
     path = tmp_path / "fleet.sqlite"
     store = Store.open(path)
@@ -437,15 +452,16 @@ def test_a_step_whose_band_memory_restart_the_database_refused_is_taken_up_by_th
         step = {"kind": "raise", "cause": "offset_step", "at": 1500.0, "parameters": {"delta_d": 0.01, "delta_q": 0.0}}
         (alarm,) = store.save_monitor(DEVICE, {}, 0, [{**step, "evidence": "a step, drawn by the test"}])
         store._conn.execute("PRAGMA busy_timeout = 50")  # the service waits 30 s; the test need not
-        other = sqlite3.connect(path, isolation_level=None)
-        other.execute("BEGIN IMMEDIATE")
-        try:
-            with pytest.raises(sqlite3.OperationalError, match="locked"):
-                service._publish_alarm(*alarm_wire.encode(alarm))  # as the monitor publishes what it stored
-        finally:
-            other.execute("ROLLBACK")
-            other.close()
+        with locked(refused == "restart"):
+            if refused == "restart":
+                with pytest.raises(sqlite3.OperationalError, match="locked"):
+                    service._publish_alarm(*alarm_wire.encode(alarm))  # as the monitor publishes what it stored
+            else:
+                service._publish_alarm(*alarm_wire.encode(alarm))
         assert wait_for(lambda: heard, timeout=10)  # the alarm went out all the same
+        with locked(refused == "move"):
+            if refused == "move":
+                assert service.refit_all() == []  # the move refused: logged, kept for the next pass
         published = service.refit_all()
         assert len(published) == 1, published
         (newest, *_) = store.coefficient_history(DEVICE)
