@@ -43,7 +43,8 @@ def _parse(path: Path, reader) -> Samples:
         raise InputError(f"{path}: the file is empty (expected a header row)") from None
     except csv.Error as exc:
         raise InputError(f"{path}, line 1: not valid CSV: {exc}") from None
-    twice = sorted({h for h in header if h and header.count(h) > 1})
+    known = ("t", "d", "q", *HALL_COLUMNS, *OPTIONAL)  # one that is read must not be ambiguous; others are left
+    twice = sorted({h for h in header if h in known and header.count(h) > 1})
     if twice:
         raise InputError(f"{path}, line 1: column {twice[0]!r} appears twice in the header")
     if "t" not in header:

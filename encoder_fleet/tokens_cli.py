@@ -24,8 +24,14 @@ def cmd_token(args) -> int:
             if args.out:
                 try:
                     write_secret(Path(args.out), token)
-                except OSError:  # a token nobody holds must not stay live: revoked, and the error said
-                    auth.revoke(token_id)
+                except BaseException as exc:  # a token nobody holds must not stay live: revoked, and the error said
+                    try:
+                        auth.revoke(token_id)
+                    except Exception:
+                        raise InputError(
+                            f"--out {args.out}: {exc}; token {token_id} could not be revoked either: "
+                            f"run `encoder-fleet token revoke {token_id} --db {args.db}`"
+                        ) from None
                     raise
                 print(f"token {token_id} ({args.scope}) written to {args.out} (0600)", flush=True)
             else:

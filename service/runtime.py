@@ -6,6 +6,7 @@ endpoints it joins external routers as a client instead.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import math
@@ -372,6 +373,7 @@ class FleetService:
             self._watched_at = {d: t for d, t in self._watched_at.items() if keys.partition(d) not in parts}
             self._step_moves = {d: m for d, m in self._step_moves.items() if keys.partition(d) not in parts}
             self._restarted_for = {d: t for d, t in self._restarted_for.items() if keys.partition(d) not in parts}
+            self._resume_pending = {d for d in self._resume_pending if keys.partition(d) not in parts}
         self.store.forget_partitions(parts)
         self.monitor.reload(lambda device: keys.partition(device) in parts)
 
@@ -418,7 +420,8 @@ class FleetService:
             self.store.restart_band_memory(device, after=alarm["raised_at"])
             with self._lock:
                 self._restarted_for[device] = alarm["raised_at"]
-                if device not in self._step_moves:
+                pending = self._step_moves.get(device)
+                if pending is None or pending[2] < alarm["raised_at"]:  # the newest step's move, as _act_on_alarm
                     self._step_moves[device] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
                     self._changed.add(device)
                     self._refit_now.add(device)
@@ -638,8 +641,10 @@ class FleetService:
             self._store_first()
             try:
                 n += len(self.monitor.process(device))
-            except Exception:  # one device's failure must not stop the others
+            except Exception:  # one device's failure must not stop the others; the next pass feeds it again
                 log.exception("%s: monitor failed", device)
+                with self._lock:
+                    self._monitor_changed.add(device)
         return n
 
     def _store_first(self) -> None:
@@ -737,7 +742,7 @@ class FleetService:
             resume, self._resume_pending = self._resume_pending, set()
         if resume:
             try:
-                self._resume_step_moves(resume.__contains__)
+                self._resume_step_moves(lambda device: device in resume and self.partitions.serves(device))
             except Exception:  # refused again: the next pass tries again
                 log.exception("taking up %d step(s) again failed", len(resume))
                 with self._lock:
@@ -964,34 +969,36 @@ class FleetService:
             with self._lock:  # only the step read above: one the monitor raised since waits for the next pass
                 if self._step_moves.get(device) is step:
                     self._step_moves.pop(device, None)
-        try:
-            return self._refit_taken(device, step, held, trial, unmeasured)
-        except Exception:  # the database refused (busy, full): the step's move is made by the next pass, not lost
-            if step is not None:
-                with self._lock:
-                    self._step_moves.setdefault(device, step)
-                    self._refit_now.add(device)  # visited by the next pass, windows or not
-            raise
-
-    def _refit_taken(self, device: str, step: tuple | None, held: bool, trial: dict | None, unmeasured: bool):
-        """refit's actions, once it has taken the step it acts on (if any) from the pending ones."""
         if held:
             return None
         if unmeasured:
-            version = self.back_to_factory(device, step)
+            version = self._keeping_step(device, step, lambda: self.back_to_factory(device, step))
             self._refitted(device)
             return version
         if trial is not None:
             return self._judge_trial(device, trial)
-        if step is not None and (version := self.publish_step_move(device, *step[:2])) is not None:
-            self._refitted(device)
-            return version
+        if step is not None:
+            version = self._keeping_step(device, step, lambda: self.publish_step_move(device, *step[:2]))
+            if version is not None:
+                self._refitted(device)
+                return version
         if (version := self.publish_lag(device)) is not None:
             self._refitted(device)
             return version
         result = self.fit(device)
         self._refitted(device)
         return self.publish_fit(device, result) if result is not None and result.changed else None
+
+    def _keeping_step(self, device: str, step: tuple, act: Callable[[], int | None]) -> int | None:
+        """act(), the step's move that refit took from the pending ones; if the database refuses it (busy, full), the
+        step is pending again and the next pass visits the device, with or without new windows (it was dropped)."""
+        try:
+            return act()
+        except Exception:
+            with self._lock:
+                self._step_moves.setdefault(device, step)
+                self._refit_now.add(device)
+            raise
 
     def _refitted(self, device: str) -> None:
         """A refit pass was made for the device (a fit or a move): its cadence restarts, and it is counted."""
@@ -1341,6 +1348,15 @@ def open_session(
         ) from None
 
 
+def _is_ip(host: str) -> bool:
+    """A literal address (a name is left to Zenoh, which resolves it as it likes)."""
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
+
+
 def check_port_free(host: str, port: int, what: str) -> None:
     """InputError unless host:port can be bound now (the same SO_REUSEADDR rule servers use)."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
@@ -1412,7 +1428,7 @@ def run_service(
         for endpoint in listen:  # before the database is made: a start that cannot listen leaves nothing behind
             proto, _, address = endpoint.partition("/")
             host, _, port = address.rpartition(":")
-            if proto in ("tcp", "tls") and port.isdigit() and int(port):
+            if proto in ("tcp", "tls") and port.isdigit() and int(port) and _is_ip(host.strip("[]")):
                 check_port_free(host.strip("[]"), int(port), f"Zenoh listen ({endpoint})")
         postgres = is_postgres(db)
         if member is not None and not postgres:

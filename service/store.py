@@ -54,7 +54,8 @@ DEAD_LETTER_DETAIL = 1000  # characters of its reason text
 BANDS_WRITE_EVERY_S = 2.0
 
 TRANSACTION_ENDED = (
-    "the database ended the transaction after an error inside it (a full disk, an I/O error): nothing of it is stored"
+    "the database ended the transaction after an error inside it (a full disk, an I/O error, a lost connection): "
+    "nothing of it is stored"
 )
 
 # wire fields of a window stored as columns of the same name, in wire order
