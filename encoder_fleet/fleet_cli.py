@@ -166,6 +166,8 @@ def cmd_export(args) -> int:
 
     if not is_postgres(args.db) and not Path(sqlite_path(args.db)).exists():
         raise InputError(f"--db {args.db}: no such database")
+    if not is_postgres(args.db) and Path(sqlite_path(args.db)).stat().st_size == 0:  # an export makes no database
+        raise InputError(f"--db {args.db}: an empty file, not the service's database")
     if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
     if not is_postgres(args.db) and Path(args.out).resolve() in _database_files(Path(sqlite_path(args.db))):

@@ -3,6 +3,7 @@ runs them: create, list, show, pause, resume, abort. A thin client of the same e
 
 from __future__ import annotations
 
+import argparse
 import json
 import urllib.error
 import urllib.request
@@ -48,9 +49,14 @@ def request(args, method: str, path: str, body: dict | None = None) -> dict | li
 def parse_abort(text: str) -> dict:
     """FAILURE:PERCENT:MIN_EXECUTED[:ACTION], e.g. regressed:10:5 or timed_out:20:10:pause."""
     parts = text.split(":")
-    if len(parts) not in (3, 4):
-        raise ValueError(f"{text!r}: expected FAILURE:PERCENT:MIN_EXECUTED[:abort|pause]")
-    criterion = {"failure_type": parts[0], "threshold_percentage": float(parts[1]), "min_executed": int(parts[2])}
+    if len(parts) not in (3, 4):  # ArgumentTypeError: argparse says this, not "invalid parse_abort value"
+        raise argparse.ArgumentTypeError(f"{text!r}: expected FAILURE:PERCENT:MIN_EXECUTED[:abort|pause]")
+    try:
+        criterion = {"failure_type": parts[0], "threshold_percentage": float(parts[1]), "min_executed": int(parts[2])}
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: PERCENT is a number and MIN_EXECUTED a whole number (FAILURE:PERCENT:MIN_EXECUTED)"
+        ) from None
     if len(parts) == 4:
         criterion["action"] = parts[3]
     return criterion

@@ -105,6 +105,8 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
     from service.store import Store
 
     Store.open(tmp_path / "f.sqlite").close()
+    empty = tmp_path / "empty.sqlite"
+    empty.touch()
     cases = [
         (("simulate", "--out", str(tmp_path / "x.csv"), "--days", "-1"), "--days"),
         (("simulate", "--out", str(tmp_path / "x.csv"), "--sample-s", "nan"), "--sample-s"),
@@ -121,6 +123,9 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
         (("simulate", "--out", str(tmp_path / "x.csv"), "--set", "harmonics=3"), "takes a list"),
         (("service", "--insecure", "--db", "mysql://h/fleet", "--http-port", "0"), "not a file path"),
         (("rollout", "list", "--url", "notaurl"), "REST address"),
+        (("rollout", "create", "--url", "http://127.0.0.1:1", "--name", "n", "--change", "refit",
+          "--base-per-minute", "1", "--abort", "regressed:ten:5"), "PERCENT is a number"),
+        (("export", "--db", str(empty), "--device", "d", "--out", str(tmp_path / "e.mcap")), "an empty file"),
     ]  # fmt: skip
     for argv, word in cases:
         code, err = run_main(capsys, *argv)
@@ -128,6 +133,7 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
         assert code == 2 and len(lines) == 1 and word in lines[0] and "Traceback" not in err, (argv, err)
     assert not (tmp_path / "x.csv").exists() and not (tmp_path / "o.mcap").exists()
     assert not list(tmp_path.glob("mysql*")) and not list(Path().glob("mysql:*"))  # no file made of the URL
+    assert empty.stat().st_size == 0 and not (tmp_path / "e.mcap").exists()  # an export made no database of it
 
 
 def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_from_the_first_put(tmp_path):
