@@ -36,7 +36,7 @@ def cmd_agent(args) -> int:
     from edge_agent.sources import ReplaySource, SimulatedDrive, drive_model, factory_calibration
     from encoder_core.correction import BandedCorrection
     from fleet_wire import messages as wire
-    from fleet_wire.session import agent_session_config, set_on_signals
+    from fleet_wire.session import agent_session_config, error_line, set_on_signals
 
     seed = args.seed if args.seed is not None else device_seed(args.device)
     if args.source == "sim":
@@ -76,8 +76,7 @@ def cmd_agent(args) -> int:
         session = zenoh.open(agent_session_config(args.connect, identity=identity))
     except zenoh.ZError as exc:
         outbox.close()
-        first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise InputError(f"cannot connect to {', '.join(args.connect)}: {first_line}") from None
+        raise InputError(f"cannot connect to {', '.join(args.connect)}: {error_line(exc)}") from None
     agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s, verifier=verifier)
     stop = threading.Event()
     set_on_signals(stop, signal.SIGTERM)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import socket
 
 import zenoh
@@ -48,6 +49,12 @@ def agent_session_config(connect: list[str], *, identity=None) -> zenoh.Config:
 
 
 CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 4000, "period_increase_factor": 2}
+
+
+def error_line(exc: zenoh.ZError) -> str:
+    """Zenoh's error in one line for a person: its first line, without the Rust source file it came from."""
+    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?$", "", first) or type(exc).__name__
 
 
 def free_port() -> int:

@@ -1331,7 +1331,7 @@ def open_session(
     A router that cannot listen (a port taken, an endpoint malformed) raises InputError in one line.
     pki (a PKI folder): TLS with mutual authentication as the service's certificate; an embedded router
     also enforces the access control generated from the device registry (service/guard.py)."""
-    from fleet_wire.session import session_config
+    from fleet_wire.session import error_line, session_config
 
     from .guard import router_security
 
@@ -1342,9 +1342,8 @@ def open_session(
         return zenoh.open(session_config("router", listen=listen, connect=mesh, identity=identity, access_control=acl))
     except zenoh.ZError as exc:
         where = ", ".join(connect or listen or [])
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(
-            f"cannot open the Zenoh {'client of' if connect else 'router on'} {where}: {first_line}"
+            f"cannot open the Zenoh {'client of' if connect else 'router on'} {where}: {error_line(exc)}"
         ) from None
 
 
@@ -1443,10 +1442,11 @@ def run_service(
         except OSError as exc:
             raise InputError(f"database {db}: its folder cannot be created: {exc.strerror or exc}") from None
         horizon_s = band_horizon_h * 3600.0 if band_horizon_h else None
-        store = Store.open(db, band_horizon_s=horizon_s, check_integrity=True, max_mb=db_max_mb)
-        running.callback(store.close)
+        # the session first: a router that cannot listen (an endpoint malformed, a name taken) leaves no database
         session = open_session(listen=listen, connect=connect, mesh=mesh, pki=pki)
         running.callback(session.close)
+        store = Store.open(db, band_horizon_s=horizon_s, check_integrity=True, max_mb=db_max_mb)
+        running.callback(store.close)
         from .guard import service_security
 
         secured = service_security(store, pki)

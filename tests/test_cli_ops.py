@@ -126,14 +126,18 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
         (("rollout", "create", "--url", "http://127.0.0.1:1", "--name", "n", "--change", "refit",
           "--base-per-minute", "1", "--abort", "regressed:ten:5"), "PERCENT is a number"),
         (("export", "--db", str(empty), "--device", "d", "--out", str(tmp_path / "e.mcap")), "an empty file"),
+        (("service", "--insecure", "--db", str(tmp_path / "s" / "f.sqlite"), "--listen", "tcp/bad",
+          "--http-port", "0"), "tcp/bad: invalid socket address"),
     ]  # fmt: skip
     for argv, word in cases:
         code, err = run_main(capsys, *argv)
         lines = err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and word in lines[0] and "Traceback" not in err, (argv, err)
+        assert ".rs:" not in err, err  # no Rust source file in a person's error
     assert not (tmp_path / "x.csv").exists() and not (tmp_path / "o.mcap").exists()
     assert not list(tmp_path.glob("mysql*")) and not list(Path().glob("mysql:*"))  # no file made of the URL
     assert empty.stat().st_size == 0 and not (tmp_path / "e.mcap").exists()  # an export made no database of it
+    assert not (tmp_path / "s" / "f.sqlite").exists()  # a router that could not listen: no database made
 
 
 def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_from_the_first_put(tmp_path):
