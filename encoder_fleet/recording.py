@@ -14,6 +14,7 @@ from encoder_fleet.outputs import replaced
 
 HALL_COLUMNS = ("a_plus", "a_minus", "b_plus", "b_minus")
 OPTIONAL = ("temp_c", "theta_ref_deg", "speed_rpm", "run")
+ABSOLUTE_ZERO_C = -273.15  # a temperature below it is a broken reading, not a cold drive
 
 
 def read_recording(path: str | Path) -> Samples:
@@ -76,6 +77,8 @@ def _parse(path: Path, reader) -> Samples:
                     raise InputError(f"{path}, line {line}, column '{name}': not a number: {cell!r}") from None
                 if not math.isfinite(value):
                     raise InputError(f"{path}, line {line}, column '{name}': not a finite number: {cell!r}")
+                if name == "temp_c" and value < ABSOLUTE_ZERO_C:
+                    raise InputError(f"{path}, line {line}, column 'temp_c': {cell} °C is below absolute zero")
                 columns[name].append(value)
     except csv.Error as exc:
         raise InputError(f"{path}, line {reader.line_num}: not valid CSV: {exc}") from None

@@ -63,6 +63,7 @@ def test_simulate_field_without_reference_and_with_halls(tmp_path):
         ("t,d,q\n0,1\n", "2 fields, expected 3"),
         ("t,d,q\n0,1,2\n1,1,2,7\n", "line 3: 4 fields, expected 3"),  # a value past the header's columns
         ("t,d,q,d\n0,1,2,3\n", "line 1: column 'd' appears twice"),
+        ("t,d,q,temp_c\n0,1,2,20\n1,1,2,-1e9\n", "line 3, column 'temp_c': -1e9 °C is below absolute zero"),
         ("", "empty"),
     ],
 )
