@@ -25,7 +25,9 @@ from pydantic import BaseModel, Field
 from .store import Store
 
 SCOPES = ("read", "admin")
-PUBLIC_PATHS = frozenset({"/healthz", "/"})  # "/" is the fleet page's HTML shell: its data needs a token
+# "/" is the fleet page's HTML shell (its data needs a token); /docs and /redoc the API's documentation (no data:
+# their openapi.json is open too)
+PUBLIC_PATHS = frozenset({"/healthz", "/", "/docs", "/docs/oauth2-redirect", "/redoc"})
 PUBLIC_PREFIX = "/static/"  # the page's script, style and Plotly.js: code, no data
 _PREFIX = {"read": "efr_", "admin": "efa_"}
 

@@ -1366,6 +1366,23 @@ def check_port_free(host: str, port: int, what: str) -> None:
             raise InputError(f"{what} port {host}:{port} cannot be used: {exc.strerror or exc}") from None
 
 
+class _NoQueries(logging.Filter):
+    """uvicorn's access lines with each query string cut: a client may put a token there (`?token=…`), which the
+    service refuses but the line would keep; tokens are never logged."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if isinstance(args, tuple) and len(args) == 5 and isinstance(args[2], str) and "?" in args[2]:
+            record.args = (*args[:2], args[2].split("?", 1)[0] + "?…", *args[3:])
+        return True
+
+
+def _access_log_without_queries() -> None:
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, _NoQueries) for f in access.filters):
+        access.addFilter(_NoQueries())
+
+
 class HttpServer:
     """The REST API on a background thread (uvicorn), stoppable."""
 
@@ -1379,6 +1396,7 @@ class HttpServer:
         app = create_app(store, service, auth)
         # log_config=None: uvicorn's loggers go through the process's own (structured) handlers and level
         config = uvicorn.Config(app, host=host, port=port, log_config=None, log_level=logging.getLogger().level)
+        _access_log_without_queries()
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="http", daemon=True)
 

@@ -304,3 +304,29 @@ def test_openapi_documents_every_status_the_device_routes_answer(client, history
     assert reversed_range.status_code == 422
     (error,) = reversed_range.json()["detail"]  # the documented HTTPValidationError shape
     assert error["loc"] == ["query", "from"] and "after" in error["msg"]
+
+
+def test_a_body_json_cannot_carry_back_or_too_large_is_a_clear_4xx_not_a_500(tmp_path):
+    """NaN, 1e999 or a lone surrogate in a body: 422 saying where and what (FastAPI's own handler sent the input
+    back, which JSON cannot carry: a 500). A body over MAX_BODY: 413 before it is read whole, token or not."""
+    from service.api import MAX_BODY
+    from service.auth import TokenAuth
+
+    with Store.open(tmp_path / "svc.db") as store:
+        auth = TokenAuth(store)
+        _, admin = auth.create("admin", "test")
+        client = TestClient(create_app(store, None, auth))
+        sent = {"Authorization": f"Bearer {admin}", "Content-Type": "application/json"}
+        for body, where in [
+            ("1e999", ["body"]),
+            ('{"scope": "read", "name": NaN}', ["body", "name"]),
+            ('{"scope": "read", "name": "\\ud800"}', ["body", "name"]),
+        ]:
+            answer = client.post("/tokens", content=body, headers=sent)
+            assert answer.status_code == 422, (body, answer.text)
+            assert [d["loc"] for d in answer.json()["detail"]] == [where], answer.json()
+        huge = b'{"scope": "read", "name": "' + b"x" * (MAX_BODY + 1) + b'"}'
+        for headers in (sent, {"Content-Type": "application/json"}):
+            answer = client.post("/tokens", content=huge, headers=headers)
+            assert answer.status_code == 413 and "at most" in answer.json()["detail"], answer.text
+        assert [t["name"] for t in auth.tokens()] == ["test"]  # nothing was made of any of them

@@ -354,6 +354,8 @@ def test_tokens_are_stored_hashed_and_never_logged(tmp_path, pki):
             assert http.get("/devices", headers={"Authorization": f"Bearer {read}"}).status_code == 200
             assert http.get("/tokens", headers={"Authorization": f"Bearer {read}"}).status_code == 403
             assert http.get("/devices", headers={"Authorization": f"Bearer {read}x"}).status_code == 401
+            assert http.get(f"/devices?token={read}").status_code == 401  # refused there, and not logged (below)
+            assert http.get("/docs").status_code == 200 and http.get("/redoc").status_code == 200  # no data
             new = http.post("/tokens", json={"scope": "read"}, headers={"Authorization": f"Bearer {admin}"})
             tokens.append(new.json()["token"])
             assert http.get("/metrics", headers={"Authorization": f"Bearer {tokens[-1]}"}).status_code == 200
