@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import sqlite3
 import threading
 import time
 from collections.abc import Callable
@@ -36,12 +37,14 @@ log = logging.getLogger("edge_agent")
 # plausible bounds for a coefficient set: gains within 5x of the factory's, harmonics under 6°
 MAX_GAIN_RATIO = 5.0
 MAX_HARMONIC_RAD = 0.1
+MAX_TERM_MOVE = 0.5  # offsets (w2, w4) and the axis terms (w5, zero) from the factory's: half the radius, ~29°
 
 
 @dataclass
 class AgentCounters:
     windows: int = 0
-    unsent_windows: int = 0  # windows the wire cannot carry (no usable sample: no temperature, no band)
+    unsent_windows: int = 0  # windows the wire cannot carry (no usable sample) or the outbox could not keep
+    outbox_errors: int = 0  # steps the outbox failed in (its disk full or failing): the agent went on
     resent: int = 0
     applied: list[int] = field(default_factory=list)
     refused: list[tuple[int, str]] = field(default_factory=list)
@@ -176,7 +179,7 @@ class EdgeAgent:
         Repeated at each sync until the service answers with a set: an agent that started with no router
         still announces its factory set once one appears."""
         replies = self._get(self.keys["coefficients"]) or []
-        self.service_has_set = any(self.trusted(payload) for payload in replies)
+        self.service_has_set = any(self.trusted(p) or self._is_own_factory(p) for p in replies)
         if not self.service_has_set:
             self.put(self.keys["factory"], wire.encode("coefficients", self.factory_message()))
         for payload in replies:
@@ -192,8 +195,12 @@ class EdgeAgent:
         clock at that many times real time; 0 runs as fast as the machine can."""
         started = time.monotonic()
         while stop is None or not stop.is_set():
-            if not self.step():
-                break
+            try:
+                if not self.step():
+                    break
+            except sqlite3.Error as exc:  # the outbox's disk (full, failing): logged, and the drive keeps its angle
+                log.warning("%s: the outbox failed: %s", self.device, exc)
+                self.counters.outbox_errors += 1
             if real_time_factor > 0:
                 windows = self.counters.windows + self.counters.unsent_windows
                 ahead = windows * self.window_s / real_time_factor - (time.monotonic() - started)
@@ -254,8 +261,15 @@ class EdgeAgent:
             self.counters.unsent_windows += 1
             self.sync()  # what the outbox holds is still resent
             return True
+        try:
+            self.outbox.add(self.seq + 1, payload, window_end=msg["window_end"])
+        except sqlite3.Error as exc:
+            # the outbox cannot keep it (its disk is full): not sent and no seq used, as above; the drive's angle was
+            # corrected all the same, and the agent goes on (it stopped here, and the correction with it)
+            log.warning("%s: window %.1f-%.1f s not kept, the outbox refused it: %s", self.device, start, end, exc)
+            self.counters.unsent_windows += 1
+            return True
         self.seq += 1
-        self.outbox.add(self.seq, payload, window_end=msg["window_end"])
         if self.resumed:  # before the service has said where it stands, a window's seq and time may still move
             self.put(self.keys["stats"], payload)
             self.outbox.mark_sent([("window", self.seq)], self.clock())
@@ -274,8 +288,10 @@ class EdgeAgent:
         estimate (the interpolation across bands would make the angle handed to the drive NaN); the sample itself
         stays rejected from the statistics."""
         temp = block.temp_c
-        if temp is not None and not np.all(np.isfinite(temp)) and self.die.last is not None:
-            temp = np.where(np.isfinite(temp), temp, self.die.last[2])
+        if temp is not None and not np.all(np.isfinite(temp)):
+            # before any finite reading (a channel dead from the start) at the bench's temperature
+            known = self.die.last[2] if self.die.last is not None else REFERENCE_TEMP_C
+            temp = np.where(np.isfinite(temp), temp, known)
         return self.correction.angle(block.d, block.q, temp)
 
     def angle_quality_deg(self, block: Samples, usable: np.ndarray) -> float:
@@ -307,6 +323,10 @@ class EdgeAgent:
                 return False
         if not self.service_has_set:
             self.ask_for_set()
+        if self.version > acked and self.pending_ack is None and self.version not in self.outbox.pending_acks():
+            # the set this agent runs was applied and never acknowledged (the process ended before its next block,
+            # and a restart resumes it without a word): the service clears a step's alarm on that ack
+            self.pending_ack = self.version
         self.outbox.confirm_through(watermark, acked)
         due = self.outbox.due(self.clock(), self.resend_after_s)
         for kind, _, payload in due:
@@ -356,6 +376,16 @@ class EdgeAgent:
         except wire.WireError:
             return False
         return True
+
+    def _is_own_factory(self, payload: bytes) -> bool:
+        """The service's copy of our own factory set (version 0, which it keeps unsigned, as announced): it has our
+        set. Only our own bands count, so a reply nobody signed can stop nothing but a repeat of the same set."""
+        try:
+            msg = wire.decode("coefficients", payload, key_device=self.device)
+        except wire.WireError:
+            return False
+        mine = json.loads(json.dumps(self.factory_message()))  # as the wire carries it
+        return msg["version"] == 0 and msg["basis"] == "factory" and msg["bands"] == mine["bands"]
 
     def on_coefficients(self, payload: bytes, *, acknowledge: bool = True) -> None:
         signed = True
@@ -433,6 +463,14 @@ def check_plausible(candidate: BandedCorrection, factory: BandedCorrection) -> N
             ratio = w / w_ref
             if not (1 / MAX_GAIN_RATIO < ratio < MAX_GAIN_RATIO):
                 raise InputError(f"band at {band.temp_c} °C: {name} = {w:.4g} is {ratio:.3g}x the factory's")
+        for name, w, w_ref in (
+            ("w2", band.w2, ref.w2),
+            ("w4", band.w4, ref.w4),
+            ("w5", band.w5, ref.w5),
+            ("zero_offset_rad", band.zero_offset_rad, ref.zero_offset_rad),
+        ):
+            if abs(w - w_ref) > MAX_TERM_MOVE:  # in the circle's own units: a move of half its radius is no drift
+                raise InputError(f"band at {band.temp_c} °C: {name} = {w:.4g} is {w - w_ref:+.3g} from the factory's")
         for m, (a, b) in band.harmonics.items():
             if np.hypot(a, b) > MAX_HARMONIC_RAD:
                 raise InputError(f"band at {band.temp_c} °C: harmonic {m} of {np.hypot(a, b):.3g} rad is implausible")

@@ -177,7 +177,8 @@ _F8 = np.dtype("<f8")
 
 Count = Annotated[int, msgspec.Meta(ge=0, le=MAX_INT)]
 Temp = Annotated[float, msgspec.Meta(ge=-273.15, le=300)]
-Time = Annotated[float, msgspec.Meta(ge=0, le=1e10)]
+MAX_TIME_S = 1e10  # a drive clock in seconds: 300 years
+Time = Annotated[float, msgspec.Meta(ge=0, le=MAX_TIME_S)]
 Device = Annotated[str, msgspec.Meta(pattern=keys.DEVICE_RE.pattern)]
 
 
@@ -912,7 +913,8 @@ def parse_resume_point(payload: bytes, device: str) -> tuple[int, float] | None:
     seq, end = body.get("max_seq"), body.get("last_window_end")
     if seq is None and end is None:
         return None
-    if not _count(seq) or isinstance(end, bool) or not isinstance(end, (int, float)) or not math.isfinite(end):
+    bad_end = isinstance(end, bool) or not isinstance(end, (int, float)) or not 0 <= end <= MAX_TIME_S
+    if not _count(seq) or bad_end:  # past the windows' own time bound, every window moved after it would be refused
         raise WireError("schema", f"a watermark reply for {device} with a bad resume point: {bytes(payload)[:200]!r}")
     return seq, float(end)
 

@@ -398,3 +398,105 @@ def test_a_watermark_with_a_bad_resume_point_still_lets_windows_go(setup, tmp_pa
     agent.run()
     agent.close()
     assert agent.resumed and [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3] and len(agent.outbox) == 0
+
+
+def test_a_temperature_dead_from_the_start_still_gives_the_drive_a_finite_angle(setup, tmp_path):
+    """A two-band set and a temperature channel that reads NaN from the agent's first sample (unplugged at boot):
+    no finite reading to hold, so the angle is corrected at the bench's temperature (it was NaN for every sample)."""
+    import numpy as np
+
+    from encoder_core.correction import BandedCorrection, Correction
+    from encoder_core.samples import Samples
+
+    _, _, client, factory, _, _ = setup
+    agent = EdgeAgent(DEVICE, SimulatedDrive(SEED, hours=1), client, Outbox(tmp_path / "dead.sqlite"), factory)
+    warm = Correction.from_dict({**factory.bands[0].to_dict(), "temp_c": 45.0, "w": [1.01, 0.0, 1.0, 0.0]})
+    agent.correction = BandedCorrection([factory.bands[0], warm])
+    block = agent.source.read(60.0)
+    block = Samples(t=block.t, d=block.d, q=block.q, temp_c=np.full(len(block), np.nan))
+    angle = agent.correct(agent.at_die_temperature(block))
+    assert np.all(np.isfinite(angle)) and angle.size == len(block)
+    agent.close()
+
+
+@pytest.mark.parametrize("term,value", [("w2", 40.0), ("w4", -3.0), ("w5", 500.0), ("zero_offset_rad", 1.5)])
+def test_a_set_with_an_absurd_offset_or_axis_term_is_refused(setup, term, value):
+    """check_plausible bounded the gains and harmonics only: a set with w2 = 40 (182° of error) or w5 = 500 was
+    applied and saved. An offset or axis term more than half the circle's radius from the factory's is refused, and
+    the refusal acknowledged."""
+    store, _, client, factory, make_agent, _ = setup
+    agent = make_agent(client)
+    msg = coefficient_set(factory, 3)
+    index = {"w2": 1, "w4": 3}.get(term)
+    for band in msg["bands"]:
+        if index is not None:
+            band["w"][index] += value
+        else:
+            band[term] = value
+    agent.on_coefficients(wire.encode("coefficients", msg))
+    assert agent.version == 0 and agent.counters.refused and term in agent.counters.refused[0][1]
+    good = coefficient_set(factory, 4, scale_w1=1.01)
+    agent.on_coefficients(wire.encode("coefficients", good))
+    assert agent.version == 4  # a set within the bounds still applies
+    agent.close()
+
+
+def test_an_outbox_that_refuses_windows_does_not_stop_the_agent(setup, tmp_path, caplog):
+    """The outbox's disk fills (here its page limit): the windows it cannot keep are logged and counted, not sent
+    and given no seq, and the agent goes on correcting and, once there is room, keeps and sends again. Before, the
+    outbox's error ended the agent, and the drive's correction with it."""
+    store, _, client, factory, _, _ = setup
+    outbox = Outbox(tmp_path / "full.sqlite")
+    agent = EdgeAgent(DEVICE, SimulatedDrive(SEED, hours=1), client, outbox, factory)
+    agent.start()
+    for _ in range(3):
+        assert agent.step()
+    pages = outbox.db.execute("PRAGMA page_count").fetchone()[0]
+    outbox.db.execute(f"PRAGMA max_page_count = {pages}")
+    refused = 0
+    for _ in range(40):  # enough windows to need a page more
+        assert agent.step()
+        refused = agent.counters.unsent_windows
+    assert refused > 0 and "the outbox refused it" in caplog.text
+    outbox.db.execute("PRAGMA max_page_count = 1073741823")
+    for _ in range(3):
+        assert agent.step()
+    assert agent.drain()
+    seqs = [w["seq"] for w in store.windows(DEVICE, limit=1000)]
+    assert seqs == list(range(1, len(seqs) + 1)) and len(seqs) == 46 - refused  # no seq skipped
+    agent.close()
+
+
+def test_a_resume_point_past_any_drive_clock_is_refused():
+    """A watermark reply naming a last window end of 1e12 s (windows end by 1e10) was taken, the held windows moved
+    past it and refused by the service for ever; it is refused as a bad resume point."""
+    reply = json.dumps({"device": DEVICE, "contiguous_seq": 3, "acked_version": 0, "max_seq": 3,
+                        "last_window_end": 1e12}).encode()  # fmt: skip
+    with pytest.raises(wire.WireError, match="bad resume point"):
+        wire.parse_resume_point(reply, DEVICE)
+    fine = json.dumps({"device": DEVICE, "contiguous_seq": 3, "max_seq": 3, "last_window_end": 5e4}).encode()
+    assert wire.parse_resume_point(fine, DEVICE) == (3, 5e4)
+
+
+def test_a_set_applied_just_before_the_process_ended_is_acknowledged_after_the_restart(setup):
+    """The agent applies v7 and ends before its next block, which would have sent the ack (a power cut; every time
+    when the set arrives in the step whose read ends the source). The restart resumes v7 silently; the watermark
+    then says the service has no ack for it, and the agent sends 'applied' for v7 (the service clears a step's alarm
+    on that ack, which never came)."""
+    store, router, client, factory, make_agent, _ = setup
+    agent = make_agent(client)
+    agent.start()
+    assert agent.step()
+    router.put(f"encoders/{DEVICE}/coefficients", wire.encode("coefficients", coefficient_set(factory, 7, 1.02)))
+    assert wait_for(lambda: agent.apply_inbox() or agent.version == 7)  # applied; its ack waits for a next block
+    assert agent.pending_ack == 7
+    agent.close()
+    assert store.acked_version(DEVICE) == 0
+    again = make_agent(client)
+    again.start()
+    assert again.version == 7
+    for _ in range(3):
+        assert again.step()
+    assert wait_for(lambda: store.acked_version(DEVICE) == 7)
+    assert [(a["version"], a["status"]) for a in store.acks(DEVICE)] == [(7, "applied")]
+    again.close()

@@ -417,3 +417,32 @@ def test_pki_commands_write_the_contract_files_with_private_keys_0600(tmp_path):
     assert main(["pki", "issue", str(d), "drive-x"]) == 2  # no silent overwrite
     assert main(["pki", "issue", str(d), "signing"]) == 2  # reserved: would clash with the signing key
     assert main(["pki", "init", str(d)]) == 2
+
+
+def test_a_signed_fleet_s_agent_announces_its_factory_set_until_the_service_has_it_not_at_every_window(
+    secured, tmp_path
+):
+    """The service keeps a drive's factory set (v0) as announced, unsigned; an agent that checks signatures took
+    that answer for no set at all and announced its factory set again at every window, until its first signed
+    refit, for ever on a drive whose refits changed nothing. The service's copy of the agent's own factory set
+    now counts as its set; a signed-looking copy of another set does not."""
+    agent = make_agent(secured, secured.client(A), tmp_path)
+    said = []
+    put = agent.put
+
+    def noted(key, payload):
+        said.append(key)
+        put(key, payload)
+
+    agent.put = noted
+    agent.start()
+    assert wait_for(lambda: secured.store.current_coefficients(A) is not None)  # its factory set, announced
+    announced = said.count(agent.keys["factory"])
+    for _ in range(6):
+        assert agent.step()
+    assert announced >= 1 and said.count(agent.keys["factory"]) == announced, said
+    assert agent.service_has_set
+    other = {**plausible_set(agent, 0), "basis": "factory"}
+    other["bands"][0]["w"][0] *= 1.5
+    assert not agent._is_own_factory(wire.encode("coefficients", other))
+    agent.close()
