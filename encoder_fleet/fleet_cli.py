@@ -163,13 +163,14 @@ def cmd_export(args) -> int:
     from service.mcap_export import export_mcap
     from service.store import Store
 
-    if not is_postgres(args.db) and not Path(sqlite_path(args.db)).exists():
+    db_file = None if is_postgres(args.db) else Path(sqlite_path(args.db))
+    if db_file is not None and not db_file.exists():
         raise InputError(f"--db {args.db}: no such database")
-    if not is_postgres(args.db) and Path(sqlite_path(args.db)).stat().st_size == 0:  # an export makes no database
+    if db_file is not None and db_file.stat().st_size == 0:  # an export makes no database
         raise InputError(f"--db {args.db}: an empty file, not the service's database")
     if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
-    if not is_postgres(args.db) and Path(args.out).resolve() in _database_files(Path(sqlite_path(args.db))):
+    if db_file is not None and Path(args.out).resolve() in _database_files(db_file):
         raise InputError(f"--out {args.out} is the database itself (or its WAL): name another file")
     store = Store.open(args.db)
     try:

@@ -65,7 +65,7 @@ def write_file(path: str | Path, data: str | bytes, *, perms: int | None = None)
 
 
 def _own_stream(path: Path):
-    """sys.stdout or sys.stderr when `path` is the same file as one of them (/dev/stdout, a file stdout goes to)."""
+    """sys.stdout or sys.stderr when the stream `path` names (/dev/stdout, /proc/self/fd/1) is the same file as one."""
     for std in (sys.stdout, sys.stderr):
         try:
             if os.path.samefile(path, f"/proc/self/fd/{std.fileno()}"):
