@@ -62,18 +62,28 @@ class Outbox:
     def add(self, seq: int, payload: bytes, *, window_end: float | None = None) -> None:
         with self.lock:
             self.db.execute("BEGIN")
-            self.db.execute("INSERT OR REPLACE INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", (seq, payload))
-            self._set_meta("last_seq", max(seq, int(self._meta("last_seq", 0))))
-            if window_end is not None:
-                self._set_meta("last_window_end", window_end)
-            over = self.db.execute("SELECT count(*) FROM outbox").fetchone()[0] - self.max_windows
-            if over > 0:
+            try:
                 self.db.execute(
-                    "DELETE FROM outbox WHERE seq IN (SELECT seq FROM outbox ORDER BY seq LIMIT ?)", (over,)
+                    "INSERT OR REPLACE INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", (seq, payload)
                 )
+                self._set_meta("last_seq", max(seq, int(self._meta("last_seq", 0))))
+                if window_end is not None:
+                    self._set_meta("last_window_end", window_end)
+                over = self.db.execute("SELECT count(*) FROM outbox").fetchone()[0] - self.max_windows
+                if over > 0:
+                    self.db.execute(
+                        "DELETE FROM outbox WHERE seq IN (SELECT seq FROM outbox ORDER BY seq LIMIT ?)", (over,)
+                    )
+                    self._set_meta("dropped", self.dropped + over)
+                self.db.execute("COMMIT")
+            except BaseException:
+                # a write refused (a full disk, a locked file) left the transaction open: every later BEGIN failed,
+                # and the outbox refused every window after it (SQLite may have ended it itself already)
+                if self.db.in_transaction:
+                    self.db.execute("ROLLBACK")
+                raise
+            if over > 0:
                 self.dropped += over
-                self._set_meta("dropped", self.dropped)
-            self.db.execute("COMMIT")
 
     def unresumed_after(self) -> int:
         """The seq after which windows were numbered with no word from the service yet (kept on disk, so that a
