@@ -92,6 +92,7 @@ class EdgeAgent:
         self.inbox: queue.Queue[bytes] = queue.Queue()
         self.pending_ack: int | None = None
         self.service_has_set = False  # until the service answers our question for a set (ask_for_set)
+        self.watermark = 0  # the service's contiguous watermark, as its last reply said
         # the statistics' normalisation stays fixed for the device's whole life: windows must merge
         self.scale = normalisation_scale(factory)
         self.die = DieTemperature()  # the die's temperature, lagged from what the drive reports (thermal_lag_s)
@@ -120,7 +121,7 @@ class EdgeAgent:
         first watermark reply answers it (`reply`), and the windows numbered meanwhile, kept back until then,
         are moved after the service's."""
         if reply is None:
-            replies = self._get(self.keys["received"])
+            replies = self._ask_received()
             if not replies:
                 return  # no service yet: the outbox is all we know (sync asks again)
             reply = replies[0]
@@ -308,7 +309,7 @@ class EdgeAgent:
     def sync(self) -> bool:
         """Ask the service how far it has stored us; forget what it has, resend what it lacks (windows and
         acks alike)."""
-        replies = self._get(self.keys["received"])
+        replies = self._ask_received()
         if not replies:
             self.counters.offline_syncs += 1
             return False
@@ -327,6 +328,7 @@ class EdgeAgent:
             # the set this agent runs was applied and never acknowledged (the process ended before its next block,
             # and a restart resumes it without a word): the service clears a step's alarm on that ack
             self.pending_ack = self.version
+        self.watermark = watermark
         self.outbox.confirm_through(watermark, acked)
         due = self.outbox.due(self.clock(), self.resend_after_s)
         for kind, _, payload in due:
@@ -349,9 +351,21 @@ class EdgeAgent:
         # windows are few and must arrive: wait for room rather than drop (Zenoh's default for put)
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
-    def _get(self, key: str) -> list[bytes] | None:
+    def _ask_received(self) -> list[bytes] | None:
+        """The watermark question. Once the outbox has dropped windows (full while the service was away) and the
+        service's watermark waits below what it still holds, it says that what the service lacks below is gone:
+        otherwise the watermark, and the drift monitor reading up to it, would wait at the first of them for ever.
+        Not before the windows' seqs are settled (`resumed`: held windows may still be moved)."""
+        gone = None
+        if self.resumed and self.outbox.dropped:
+            held_from = self.outbox.held_from()
+            if held_from > self.watermark + 1:
+                gone = wire.received_query(self.device, held_from)
+        return self._get(self.keys["received"], payload=gone)
+
+    def _get(self, key: str, payload: bytes | None = None) -> list[bytes] | None:
         try:
-            replies = self.session.get(key, timeout=self.query_timeout_s)
+            replies = self.session.get(key, payload=payload, timeout=self.query_timeout_s)
             return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
         except zenoh.ZError as exc:  # the session itself failed
             log.warning("%s: get %s failed: %s", self.device, key, exc)

@@ -85,6 +85,13 @@ class Outbox:
             if over > 0:
                 self.dropped += over
 
+    def held_from(self) -> int:
+        """The lowest seq the outbox holds (the next one to issue when it holds none): every window below it was
+        confirmed by the service or dropped while the outbox was full."""
+        with self.lock:
+            row = self.db.execute("SELECT min(seq) FROM outbox").fetchone()
+            return row[0] if row[0] is not None else self._last_seq() + 1
+
     def unresumed_after(self) -> int:
         """The seq after which windows were numbered with no word from the service yet (kept on disk, so that a
         restart before the service answers still knows which windows may have to move): set at first call."""

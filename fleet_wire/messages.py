@@ -892,6 +892,28 @@ def watermark_reply(
     return json.dumps(body).encode()
 
 
+def received_query(device: str, gone_below: int) -> bytes:
+    """The agent's question on `received` once its outbox has dropped windows (full while the service was away):
+    every window of `device` with a seq below `gone_below` that the service does not have is gone for good, so its
+    contiguous watermark steps over them instead of waiting at the first one for ever."""
+    return json.dumps({"device": device, "gone_below": int(gone_below)}).encode()
+
+
+def parse_received_query(payload: bytes | None, device: str) -> int | None:
+    """`gone_below` of an agent's question on `received`; None for a question without a payload (what agents ask
+    while their outbox has dropped nothing, and every agent before it); WireError when it is not one."""
+    if not payload:
+        return None
+    try:
+        body = json.loads(payload)
+        seq = body["gone_below"]
+        if body["device"] != device or not _count(seq) or set(body) != {"device", "gone_below"}:
+            raise TypeError
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        raise WireError("schema", f"not a received question for {device}: {bytes(payload)[:200]!r}") from None
+    return seq
+
+
 def parse_watermark_reply(payload: bytes, device: str) -> tuple[int, int]:
     """(contiguous_seq, acked_version) of a watermark reply for `device` (acked_version 0 from services that
     do not send it); WireError when it is not one."""

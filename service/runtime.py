@@ -708,8 +708,31 @@ class FleetService:
             device = wire.device_from_key(query.key_expr)
         except wire.WireError:
             return
+        self._take_gone_below(device, query)
         mark, acked, last = self.watermark(device), self.store.acked_version(device), self.store.last_window(device)
         query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last))
+
+    def _take_gone_below(self, device: str, query: zenoh.Query) -> None:
+        """An agent whose full outbox dropped windows names the seq below which what we lack is gone: without it the
+        watermark waits at the first of them for ever, and the drift monitor with it (it reads up to the mark). A
+        question that is not one is dead-lettered and counted, and answered all the same."""
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            gone_below = wire.parse_received_query(payload, device)
+        except wire.WireError as exc:
+            self.store.dead_letter(str(query.key_expr), exc.reason, str(exc), payload)
+            with self._lock:
+                self.counters.count(exc.reason)
+            return
+        if gone_below is not None and self.store.mark_gone_below(device, gone_below):
+            log.warning(
+                "windows below seq %d lost by the agent (its outbox full): the watermark steps over them",
+                gone_below,
+                extra={"device": device},
+            )
+            with self._lock:  # the monitor waited at the gap: it reads on now, with or without a new window
+                self._monitor_changed.add(device)
+            self._wake_monitor.set()
 
     def watermark(self, device: str) -> int:
         """Highest seq with every window up to it stored (so the agent may forget them)."""

@@ -1102,8 +1102,12 @@ class Store:
         return self._device_row(rows[0]) if rows else None
 
     def contiguous_seq(self, device: str, *, start: int = 0) -> int:
-        """Highest seq with every window from 1 up to it stored; `start` is a watermark known to hold."""
+        """Highest seq with every window from 1 up to it stored or gone (below the seq floor the agent named:
+        `gone_below`); `start` is a watermark known to hold. Never past the highest seq stored."""
         mark = start
+        floor = self._rows("SELECT seq_floor FROM devices WHERE id = ?", (device,))
+        if floor and floor[0]["seq_floor"] > mark + 1:
+            mark = max(mark, min(floor[0]["seq_floor"], self.max_seq(device) + 1) - 1)
         while True:
             rows = self._rows(
                 "SELECT seq FROM windows WHERE device = ? AND seq > ? ORDER BY seq LIMIT 512", (device, mark)
@@ -1114,6 +1118,15 @@ class Store:
                 mark += 1
             if len(rows) < 512:
                 return mark
+
+    def mark_gone_below(self, device: str, seq: int) -> bool:
+        """The agent says every window of it below `seq` that is not stored is gone (its outbox dropped them): raise
+        the device's seq floor to it. False when that changes nothing (a floor as high already, a device unseen)."""
+        with self._tx() as c:
+            cur = c.execute(
+                "UPDATE devices SET seq_floor = ? WHERE id = ? AND seq_floor < ?", (int(seq), device, int(seq))
+            )
+            return cur.rowcount > 0
 
     def acked_version(self, device: str) -> int:
         """Highest coefficient version the device has acknowledged, either way (0 when none)."""

@@ -329,6 +329,55 @@ def test_an_agent_that_lost_its_outbox_while_the_service_was_away_moves_what_it_
     assert agent.outbox.last_window_end() == stored[-1]["window_end"]
 
 
+def test_windows_a_full_outbox_dropped_are_stepped_over_by_the_watermark(setup, tmp_path):
+    """The service away for longer than the outbox holds: it dropped its oldest windows (4-6 of 4-9 here). The
+    service stored 1-3 and then 7-9, and its contiguous watermark waited at 3 for ever: the agent never forgot 7-9,
+    and the drift monitor, reading up to the watermark, went blind for that drive. Now the agent says that what
+    the service lacks below 7 is gone, and the watermark steps over it, after a restart of the service too."""
+    store, router, client, factory, _, service = setup
+    outbox = tmp_path / "small.sqlite"
+    _first_three_windows(store, client, factory, outbox)
+    service.stop()  # away for six windows; the outbox holds three
+    agent = EdgeAgent(DEVICE, _replay(SEED + 1, seconds=360.0)(), client, Outbox(outbox, max_windows=3), factory)
+    agent.start()
+    while agent.step():
+        pass
+    assert agent.seq == 9 and agent.outbox.dropped == 3 and agent.outbox.held_from() == 7
+    back = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        assert agent.drain(timeout_s=5.0)  # the outbox empties: the watermark passed 9
+        assert [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3, 7, 8, 9]
+        assert back.watermark(DEVICE) == 9
+        back.monitor_pass()
+        assert back.monitor.last_seq[DEVICE] == 9  # the monitor read past the gap
+    finally:
+        agent.close()
+        back.stop()
+    again = FleetService(store, router, refit_interval_s=0).start()  # the floor is kept in the database
+    try:
+        assert again.watermark(DEVICE) == 9
+    finally:
+        again.stop()
+    assert store.dead_letters() == []
+
+
+def test_a_bad_received_question_is_dead_lettered_and_answered_all_the_same(setup):
+    """A question on `received` whose payload is not one (a bug, a foreign client) moves no floor: it is kept as a
+    dead letter with its reason and counted, and the watermark is answered as for a question without one."""
+    store, _, client, factory, make_agent, service = setup
+    agent = make_agent(client)
+    agent.start()
+    while agent.step():
+        pass
+    assert wait_for(lambda: store.contiguous_seq(DEVICE) == agent.seq)
+    replies = list(client.get(agent.keys["received"], payload=b'{"device": "drive-t", "gone_below": -3}', timeout=2))
+    assert [wire.parse_watermark_reply(r.ok.payload.to_bytes(), DEVICE)[0] for r in replies] == [agent.seq]
+    (letter,) = store.dead_letters()
+    assert letter["reason"] == "schema" and "not a received question for drive-t" in letter["detail"]
+    assert letter["key_expr"] == agent.keys["received"] and service.counters.ingested["schema"] == 1
+    agent.close()
+
+
 def test_windows_numbered_before_the_service_answers_are_sent_once_it_has(setup, tmp_path):
     """An agent whose questions go unanswered keeps its windows back (their seq and time may still have to move)
     and sends them once the service has said where it stands: nothing is refused, nothing renumbered."""
@@ -337,7 +386,7 @@ def test_windows_numbered_before_the_service_answers_are_sent_once_it_has(setup,
     _first_three_windows(store, client, factory, outbox)
     agent = EdgeAgent(DEVICE, _replay()(), client, Outbox(outbox), factory)
     asked = agent._get
-    agent._get = lambda key: None  # the questions lost on the way
+    agent._get = lambda key, payload=None: None  # the questions lost on the way
     agent.start()
     while agent.step():
         pass
@@ -386,8 +435,8 @@ def test_a_watermark_with_a_bad_resume_point_still_lets_windows_go(setup, tmp_pa
     agent = EdgeAgent(DEVICE, _replay()(), client, Outbox(tmp_path / "o.sqlite"), factory)
     asked = agent._get
 
-    def spoiled(key):
-        replies = asked(key)
+    def spoiled(key, payload=None):
+        replies = asked(key, payload)
         if replies and key == agent.keys["received"]:
             body = json.loads(replies[0])
             replies = [json.dumps({**body, "max_seq": 1, "last_window_end": None}).encode()]

@@ -94,6 +94,22 @@ def test_reused_seq_with_other_content_is_a_conflict_not_a_duplicate(store):
     assert len(store.windows("drive-001")) == 1
 
 
+def test_a_seq_floor_steps_over_gone_windows_and_never_past_a_window_stored(store):
+    """Below the floor an agent names (`gone_below`: its full outbox dropped them), the windows the service lacks
+    are gone and the contiguous watermark steps over them; it never passes the highest seq stored, so a floor far
+    past what the agent sent (a bug, a lie) cannot make it forget windows the service does not have."""
+    for seq in (1, 2, 3, 7, 8):
+        store.insert_window(window(seq=seq))
+    assert store.contiguous_seq("drive-001") == 3
+    assert not store.mark_gone_below("drive-unseen", 7)  # no such device: nothing to raise
+    assert store.mark_gone_below("drive-001", 7) and not store.mark_gone_below("drive-001", 5)  # only raised
+    assert store.contiguous_seq("drive-001") == 8 and store.contiguous_seq("drive-001", start=3) == 8
+    assert store.mark_gone_below("drive-001", 10**6)
+    assert store.contiguous_seq("drive-001") == 8  # not past seq 8, the highest stored
+    store.insert_window(window(seq=10))
+    assert store.contiguous_seq("drive-001") == 10  # 9 lies below the floor too: gone
+
+
 def test_band_stats_equal_the_sum_of_windows(store):
     msgs = [window(seq=s, temp_c=t) for s, t in enumerate([21.0, 24.0, 35.0, 27.5, 22.0], start=1)]
     for m in reversed(msgs):  # arrival order does not matter

@@ -321,6 +321,20 @@ def test_errors_with_a_reason_survive_pickling():
         assert getattr(back, "status", None) == getattr(err, "status", None)
 
 
+def test_a_received_question_names_where_the_agent_s_lost_windows_end_and_refuses_a_bad_one():
+    """The agent's question on `received`: no payload (what every agent asks while its outbox dropped nothing), or
+    the seq below which what the service lacks is gone. Anything else is refused by name."""
+    assert wire.parse_received_query(wire.received_query("d-1", 7), "d-1") == 7
+    assert wire.parse_received_query(None, "d-1") is None and wire.parse_received_query(b"", "d-1") is None
+    for bad in (b"7", b"{", b"[]", b'{"device": "d-2", "gone_below": 7}', b'{"device": "d-1", "gone_below": -1}',
+                b'{"device": "d-1", "gone_below": true}', b'{"device": "d-1", "gone_below": 7.5}',
+                b'{"device": "d-1", "gone_below": 1e999}', b'{"device": "d-1"}',
+                b'{"device": "d-1", "gone_below": 7, "also": 1}',
+                b'{"device": "d-1", "gone_below": 99999999999999999999}', b"\xff\xfe"):  # fmt: skip
+        with pytest.raises(wire.WireError, match="not a received question for d-1"):
+            wire.parse_received_query(bad, "d-1")
+
+
 def test_a_watermark_reply_carries_the_resume_point_and_refuses_a_bad_one():
     """Where an agent that lost its outbox goes on (the service's last seq and its window's end): read back, absent
     from a service that has no window of the device, and a reply with a bad one refused by name."""
