@@ -708,7 +708,10 @@ class FleetService:
             device = wire.device_from_key(query.key_expr)
         except wire.WireError:
             return
-        self._take_gone_below(device, query)
+        try:
+            self._take_gone_below(device, query)
+        except Exception:  # a write the database refused: the watermark is still answered (reads work)
+            log.exception("%s: the received question's floor could not be stored", device)
         mark, acked, last = self.watermark(device), self.store.acked_version(device), self.store.last_window(device)
         query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last))
 

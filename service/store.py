@@ -1103,11 +1103,13 @@ class Store:
 
     def contiguous_seq(self, device: str, *, start: int = 0) -> int:
         """Highest seq with every window from 1 up to it stored or gone (below the seq floor the agent named:
-        `gone_below`); `start` is a watermark known to hold. Never past the highest seq stored."""
+        `gone_below`, the lowest seq it holds); `start` is a watermark known to hold. The mark may pass the highest
+        seq stored: an agent that numbers anew goes on from it, so nothing is ever numbered beneath the floor (where
+        a window lost on the way would count as gone, and the agent forget it unstored)."""
         mark = start
         floor = self._rows("SELECT seq_floor FROM devices WHERE id = ?", (device,))
-        if floor and floor[0]["seq_floor"] > mark + 1:
-            mark = max(mark, min(floor[0]["seq_floor"], self.max_seq(device) + 1) - 1)
+        if floor:
+            mark = max(mark, floor[0]["seq_floor"] - 1)
         while True:
             rows = self._rows(
                 "SELECT seq FROM windows WHERE device = ? AND seq > ? ORDER BY seq LIMIT 512", (device, mark)

@@ -361,6 +361,70 @@ def test_windows_a_full_outbox_dropped_are_stepped_over_by_the_watermark(setup, 
     assert store.dead_letters() == []
 
 
+def test_a_window_numbered_after_a_floor_and_lost_on_the_way_is_sent_again(setup, tmp_path):
+    """A second reader's case: the floor named (7, the outbox having dropped 4-6), the windows 7-9 never arriving
+    (the agent's disk dies), and the drive's agent back with a new, empty outbox. The first version capped the
+    watermark at the highest seq stored (3), so the new agent numbered on from 4, below the floor: its window 4,
+    dropped once on the way (an overloaded queue), counted as gone, and the agent forgot it unstored. Now the
+    watermark is 6 at once, the new agent numbers from 7, and the window lost once is sent again and stored."""
+    store, router, client, factory, _, service = setup
+    _first_three_windows(store, client, factory, tmp_path / "first.sqlite")
+    service.stop()
+    small = Outbox(tmp_path / "first.sqlite", max_windows=3)
+    dying = EdgeAgent(DEVICE, _replay(SEED + 1, seconds=360.0)(), client, small, factory)
+    while dying.step():
+        pass
+    back = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        dying.put = lambda key, payload: None  # its windows 7-9 never reach the service
+        assert dying.sync() and dying.sync()  # the first settles its seqs, the second names the floor
+        dying.close()
+        assert store.max_seq(DEVICE) == 3 and back.watermark(DEVICE) == 6
+        again = EdgeAgent(DEVICE, _replay(SEED + 2)(), client, Outbox(tmp_path / "new.sqlite"), factory)
+        put, lost = again.put, []
+
+        def lose_the_first_window(key, payload):
+            if key == again.keys["stats"] and not lost:
+                lost.append(wire.decode_window(payload, key_device=DEVICE).seq)
+                return
+            put(key, payload)
+
+        again.put = lose_the_first_window
+        again.start()
+        while again.step():
+            pass
+        assert again.drain(timeout_s=10.0)
+        again.close()
+    finally:
+        back.stop()
+    assert lost == [7] and [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3, 7, 8, 9]
+
+
+def test_a_received_question_is_answered_while_the_database_refuses_writes(setup):
+    """The floor and a bad question's dead letter are writes; a database that refuses them (another writer holds
+    its lock past the busy timeout, a full disk) must not leave the question unanswered: reads still work, and the
+    agent's windows wait for the watermark, not for the write (a second reader found no reply at all)."""
+    import sqlite3
+
+    store, _, client, factory, make_agent, _ = setup
+    agent = make_agent(client)
+    agent.start()
+    for _ in range(3):
+        agent.step()
+    assert wait_for(lambda: store.contiguous_seq(DEVICE) == 3)
+    store._conn.execute("PRAGMA busy_timeout = 50")  # the service waits 30 s; the test need not
+    other = sqlite3.connect(store.path, isolation_level=None)
+    other.execute("BEGIN IMMEDIATE")
+    try:
+        for payload in (wire.received_query(DEVICE, 9), b"junk"):
+            replies = list(client.get(agent.keys["received"], payload=payload, timeout=3))
+            assert [wire.parse_watermark_reply(r.ok.payload.to_bytes(), DEVICE)[0] for r in replies] == [3], payload
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    agent.close()
+
+
 def test_a_bad_received_question_is_dead_lettered_and_answered_all_the_same(setup):
     """A question on `received` whose payload is not one (a bug, a foreign client) moves no floor: it is kept as a
     dead letter with its reason and counted, and the watermark is answered as for a question without one."""

@@ -94,20 +94,23 @@ def test_reused_seq_with_other_content_is_a_conflict_not_a_duplicate(store):
     assert len(store.windows("drive-001")) == 1
 
 
-def test_a_seq_floor_steps_over_gone_windows_and_never_past_a_window_stored(store):
-    """Below the floor an agent names (`gone_below`: its full outbox dropped them), the windows the service lacks
-    are gone and the contiguous watermark steps over them; it never passes the highest seq stored, so a floor far
-    past what the agent sent (a bug, a lie) cannot make it forget windows the service does not have."""
+def test_a_seq_floor_steps_over_gone_windows(store):
+    """Below the floor an agent names (`gone_below`: the lowest seq it holds, its full outbox having dropped the
+    ones before), the windows the service lacks are gone and the contiguous watermark steps over them, also past
+    the highest seq stored (the agent holds nothing below the floor, and one that numbers anew goes on from the
+    mark, so no window is ever numbered where a loss on the way would count as gone)."""
     for seq in (1, 2, 3, 7, 8):
         store.insert_window(window(seq=seq))
     assert store.contiguous_seq("drive-001") == 3
     assert not store.mark_gone_below("drive-unseen", 7)  # no such device: nothing to raise
     assert store.mark_gone_below("drive-001", 7) and not store.mark_gone_below("drive-001", 5)  # only raised
     assert store.contiguous_seq("drive-001") == 8 and store.contiguous_seq("drive-001", start=3) == 8
-    assert store.mark_gone_below("drive-001", 10**6)
-    assert store.contiguous_seq("drive-001") == 8  # not past seq 8, the highest stored
-    store.insert_window(window(seq=10))
-    assert store.contiguous_seq("drive-001") == 10  # 9 lies below the floor too: gone
+    assert store.mark_gone_below("drive-001", 12)
+    assert store.contiguous_seq("drive-001") == 11  # 9-11 gone, nothing stored past 8
+    store.insert_window(window(seq=13))
+    assert store.contiguous_seq("drive-001") == 11  # 12 is held by the agent: waited for
+    store.insert_window(window(seq=12))
+    assert store.contiguous_seq("drive-001") == 13
 
 
 def test_band_stats_equal_the_sum_of_windows(store):
