@@ -12,6 +12,10 @@ for it, taken before its subscriptions are declared and let go only after they a
 batch being written is committed, so two processes never write one device's history at once (the store's
 in-memory band sums stay true). A window sent while nobody serves its partition stays in the agent's outbox
 (the watermark never covered it) and is sent again; one that reaches both is stored once (unique device, seq).
+The refit and monitor passes work on each device under its partition's hand-over guard (`Partitions.serving`):
+the lock is let go of only once the device work in hand on the partition has ended, and none starts meanwhile,
+so two processes never refit or monitor one device at once either (two sets for one refusal, a state written
+over the new owner's).
 """
 
 from __future__ import annotations
@@ -20,7 +24,9 @@ import hashlib
 import logging
 import re
 import threading
-from collections.abc import Iterable
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 
 import zenoh
 
@@ -46,7 +52,8 @@ def shares(member: str, members: Iterable[str]) -> set[int]:
 class Partitions:
     """The partitions this process serves and the Zenoh entities that serve them, kept in step with the live
     service processes. Standalone (member None, the embedded default): every partition, one wildcard entity per key.
-    `lock` is held by the writer while it stores a batch and by a hand-over, so neither cuts into the other."""
+    `lock` is held by the writer while it stores a batch and by a hand-over, so neither cuts into the other; work
+    on one device (a refit, the monitor) holds its partition's guard (`serving`), which a hand-over waits for."""
 
     def __init__(self, service, member: str | None):
         if member is not None and not MEMBER_RE.match(member):
@@ -62,6 +69,10 @@ class Partitions:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._cluster_entities: list = []
+        # the hand-over guard: device work in hand per partition, and the partitions being let go of (no new work)
+        self._work = threading.Condition()
+        self._working: Counter[int] = Counter()
+        self._handing: set[int] = set()
 
     @property
     def standalone(self) -> bool:
@@ -69,6 +80,41 @@ class Partitions:
 
     def serves(self, device: str) -> bool:
         return self.standalone or keys.partition(device) in self.held
+
+    @contextmanager
+    def serving(self, device: str) -> Iterator[bool]:
+        """Work on one device (a refit, the monitor's feed, an alarm's consequences): True while this process serves
+        it, and its partition is not let go of until the block ends; False (leave the device alone: its new owner
+        looks at it) when it serves it no more or is handing it over. It never waits; a thread inside the block must
+        not wait for a hand-over (rebalance, which waits for the block)."""
+        if self.standalone:
+            yield True
+            return
+        part = keys.partition(device)
+        with self._work:
+            mine = part in self.held and part not in self._handing
+            if mine:
+                self._working[part] += 1
+        try:
+            yield mine
+        finally:
+            if mine:
+                with self._work:
+                    self._working[part] -= 1
+                    self._work.notify_all()
+
+    @contextmanager
+    def _handing_over(self, part: int) -> Iterator[None]:
+        """A partition let go of: no device work starts on it, and the block begins once the work in hand has ended.
+        Taken before `lock` (the writer holds `lock`, never this guard), never inside a `serving` block."""
+        with self._work:
+            self._handing.add(part)
+            self._work.wait_for(lambda: self._working[part] == 0)
+        try:
+            yield
+        finally:
+            with self._work:
+                self._handing.discard(part)
 
     def leads(self) -> bool:
         """The one process that steps staged rollouts: the one serving partition 0."""
@@ -154,7 +200,9 @@ class Partitions:
         lost = sorted(self.held - want)
         for part in lost:
             self._undeclare(part)
-            with self.lock:  # after the batch in hand: what is still queued for it is dropped, and sent again
+            # after the device work in hand on it (a refit, a monitor page: the next owner would do it again, at the
+            # same time) and the batch in hand: what is still queued for it is dropped, and sent again
+            with self._handing_over(part), self.lock:
                 self.held = self.held - {part}
                 self.service.store.release_partition(part)
         if lost:

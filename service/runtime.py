@@ -410,21 +410,24 @@ class FleetService:
                 if owned(alarm["device"]) and (known is None or alarm["raised_at"] > known["raised_at"]):
                     newest[alarm["device"]] = alarm
         for device, alarm in newest.items():
-            since = self.store.versions_since(device, alarm["raised_at"])
-            if any(self._bands_made_at(device, v) >= alarm["raised_at"] for v in since):
-                with self._lock:  # its memory was restarted when the step was published, and a set made since
+            with self.partitions.serving(device) as mine:  # band memory restarted: not while handed over
+                if not mine:
+                    continue
+                since = self.store.versions_since(device, alarm["raised_at"])
+                if any(self._bands_made_at(device, v) >= alarm["raised_at"] for v in since):
+                    with self._lock:  # its memory was restarted when the step was published, and a set made since
+                        self._restarted_for[device] = alarm["raised_at"]
+                    continue  # a set with bands made since (the move, or a fit after the step; a rollback's are older)
+                # the process may have stopped between storing the alarm and publishing it (which restarts band
+                # memory): restart it here too (it keeps the same windows if it was)
+                self.store.restart_band_memory(device, after=alarm["raised_at"])
+                with self._lock:
                     self._restarted_for[device] = alarm["raised_at"]
-                continue  # a set with bands made since (the move, or a fit after the step; a rollback's are older)
-            # the process may have stopped between storing the alarm and publishing it (which restarts band
-            # memory): restart it here too (it keeps the same windows if it was)
-            self.store.restart_band_memory(device, after=alarm["raised_at"])
-            with self._lock:
-                self._restarted_for[device] = alarm["raised_at"]
-                pending = self._step_moves.get(device)
-                if pending is None or pending[2] < alarm["raised_at"]:  # the newest step's move, as _act_on_alarm
-                    self._step_moves[device] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
-                    self._changed.add(device)
-                    self._refit_now.add(device)
+                    pending = self._step_moves.get(device)
+                    if pending is None or pending[2] < alarm["raised_at"]:  # the newest step's move, as _act_on_alarm
+                        self._step_moves[device] = (alarm["cause"], alarm["parameters"], alarm["raised_at"])
+                        self._changed.add(device)
+                        self._refit_now.add(device)
 
     def checks(self) -> dict[str, str]:
         """Component -> 'ok' or what is wrong (for /healthz and /readyz)."""
@@ -586,6 +589,11 @@ class FleetService:
             return
         if self.guard is not None and not self.guard.admits(device):
             return
+        with self.partitions.serving(device) as mine:  # a token of a partition handed over is its new owner's
+            if mine:
+                self._alive(device, sample)
+
+    def _alive(self, device: str, sample: zenoh.Sample) -> None:
         online = sample.kind == zenoh.SampleKind.PUT
         if self.store.device(device) is None:
             # a token alone makes no device: it appears with its first valid message (_write_loop)
@@ -639,12 +647,15 @@ class FleetService:
         n = 0
         for device in filter(self.partitions.serves, changed):
             self._store_first()
-            try:
-                n += len(self.monitor.process(device))
-            except Exception:  # one device's failure must not stop the others; the next pass feeds it again
-                log.exception("%s: monitor failed", device)
-                with self._lock:
-                    self._monitor_changed.add(device)
+            with self.partitions.serving(device) as mine:  # as a refit: not handed over in the middle of a page
+                if not mine:
+                    continue
+                try:
+                    n += len(self.monitor.process(device))
+                except Exception:  # one device's failure must not stop the others; the next pass feeds it again
+                    log.exception("%s: monitor failed", device)
+                    with self._lock:
+                        self._monitor_changed.add(device)
         return n
 
     def _store_first(self) -> None:
@@ -778,48 +789,52 @@ class FleetService:
         published, later, done = [], set(), set()
         while (device := self._next_in_pass(pending, done)) is not None:
             self._store_first()
-            try:
-                drive_now = self._drive_now(device)
-            except Exception:  # a read the database refused (a dropped session): the device waits for the next pass
-                log.exception("%s: reading its drive time failed", device)
-                later.add(device)
-                continue
-            try:
-                version = self.answer_refusal(device)
-            except Exception:
-                log.exception("%s: answering a refused set failed", device)
-                version = None
-            try:
-                if version is None:
-                    version = self.deliver(device, drive_now)
-            except Exception:
-                log.exception("%s: delivering its set failed", device)
-                version = None
-            try:
-                if version is None and self._watch_due(device, drive_now):
-                    version = self.watch(device, drive_now)
-            except Exception:
-                log.exception("%s: watch failed", device)
-                version = None
-            if version is not None:
-                published.append(version)
-                continue
-            try:
-                due = self._refit_due(device, drive_now)
-            except Exception:  # as above: the refit thread died of this once (test_cluster, sessions dropped)
-                log.exception("%s: checking whether a refit is due failed", device)
-                due = False
-            if not due:
-                later.add(device)
-                continue
-            try:
-                with self.counters.refit_latency.time():
-                    version = self.refit(device)
-            except Exception:  # one bad device must not stop the others; the error is logged with its trace
-                log.exception("%s: refit failed", device)
-                continue
-            if version is not None:
-                published.append(version)
+            # the device's partition is not handed over while this works on it (a hand-over now: left to its new owner)
+            with self.partitions.serving(device) as mine:
+                if not mine:
+                    continue
+                try:
+                    drive_now = self._drive_now(device)
+                except Exception:  # a read the database refused (a dropped session): the device waits for the next pass
+                    log.exception("%s: reading its drive time failed", device)
+                    later.add(device)
+                    continue
+                try:
+                    version = self.answer_refusal(device)
+                except Exception:
+                    log.exception("%s: answering a refused set failed", device)
+                    version = None
+                try:
+                    if version is None:
+                        version = self.deliver(device, drive_now)
+                except Exception:
+                    log.exception("%s: delivering its set failed", device)
+                    version = None
+                try:
+                    if version is None and self._watch_due(device, drive_now):
+                        version = self.watch(device, drive_now)
+                except Exception:
+                    log.exception("%s: watch failed", device)
+                    version = None
+                if version is not None:
+                    published.append(version)
+                    continue
+                try:
+                    due = self._refit_due(device, drive_now)
+                except Exception:  # as above: the refit thread died of this once (test_cluster, sessions dropped)
+                    log.exception("%s: checking whether a refit is due failed", device)
+                    due = False
+                if not due:
+                    later.add(device)
+                    continue
+                try:
+                    with self.counters.refit_latency.time():
+                        version = self.refit(device)
+                except Exception:  # one bad device must not stop the others; the error is logged with its trace
+                    log.exception("%s: refit failed", device)
+                    continue
+                if version is not None:
+                    published.append(version)
         with self._lock:
             self._changed |= later
         return published

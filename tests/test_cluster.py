@@ -5,6 +5,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 
@@ -285,8 +286,6 @@ def test_sessions_dropped_by_the_database_mid_run_lose_and_double_nothing(tmp_pa
 def test_members_starting_together_migrate_a_new_database_once(postgres_url):
     """Several members start at once on an empty database (compose's scale profile, bench-scale): PostgreSQL's
     CREATE TABLE IF NOT EXISTS is not safe against itself, so migrating is serialised by an advisory lock."""
-    import threading
-
     opened, failed = [], []
 
     def open_store():
@@ -371,3 +370,142 @@ def test_members_with_embedded_routers_mesh_them_with_mesh(postgres_url):
             session.close()
         for store in stores:
             store.close()
+
+
+class HeldMidDevice:
+    """Wraps one of a service's methods: its first call for `device` stops in the middle of the pass (`inside` set)
+    until `go` is set, as a slow fit or a long page of windows would; `after`: once the real call has returned.
+    Every other call goes straight through."""
+
+    def __init__(self, obj, name, device, *, after=False):
+        self.inside, self.go, self.device, self.after = threading.Event(), threading.Event(), device, after
+        self._real, self._held = getattr(obj, name), False
+        setattr(obj, name, self)
+
+    def __call__(self, device, *args, **kwargs):
+        if device != self.device or self._held:
+            return self._real(device, *args, **kwargs)
+        self._held = True
+        result = self._real(device, *args, **kwargs) if self.after else None
+        self.inside.set()
+        assert self.go.wait(60), "the test never let the pass go on"
+        return result if self.after else self._real(device, *args, **kwargs)
+
+
+def handed_over_mid_device(postgres_url, setup, hold, work, more=None):
+    """svc-a serves every partition and is stopped in the middle of one of svc-b's devices (`hold(a, device)`, a
+    HeldMidDevice, inside `work(a)` on a thread of its own) when svc-b joins. If svc-b takes the device's partition
+    while svc-a is still there (the code before), svc-b's `work(b)` runs then; otherwise once svc-a let go of it.
+    `more(b, device)`, then `work(b)` again, after svc-b's first work. Returns (device, what work(a) returned, what
+    each work(b) returned, in order). `setup(store, device)` stores what the device has before svc-a starts."""
+    members = ["svc-a", "svc-b"]
+    device = devices_split(members, per_member=1)["svc-b"][0]
+    part = keys.partition(device)
+    endpoint = loopback_endpoint()
+    stores = [Store.open(postgres_url) for _ in members]
+    setup(stores[0], device)
+    sessions = [open_session(listen=[endpoint]), open_session(connect=[endpoint])]
+    a = FleetService(stores[0], sessions[0], refit_interval_s=0, monitor_interval_s=0, member="svc-a").start()
+    b, held, by_a, by_b = None, None, [], []
+    worker = threading.Thread(target=lambda: by_a.append(work(a)), name="svc-a's pass")
+
+    def b_works():
+        by_b.append(work(b))
+        if more is not None and len(by_b) == 1:
+            more(b, device)
+            by_b.append(work(b))
+
+    try:
+        wait_for(lambda: a.partitions.held == frozenset(range(keys.PARTITIONS)), 20, "svc-a to serve everything")
+        held = hold(a, device)
+        worker.start()
+        assert held.inside.wait(30), "svc-a's pass never reached the device"
+        b = FleetService(stores[1], sessions[1], refit_interval_s=0, monitor_interval_s=0, member="svc-b").start()
+        wait_for(lambda: a.cluster()["members"] == members, 20, "svc-a to see svc-b")
+        deadline = time.monotonic() + 5  # svc-a hands over at once; svc-b tries its claim again every 0.5 s
+        while time.monotonic() < deadline and part not in b.partitions.held:
+            time.sleep(0.1)
+        if part in b.partitions.held:  # while svc-a's pass is in the middle of the device
+            b_works()
+        held.go.set()
+        worker.join(60)
+        assert not worker.is_alive() and len(by_a) == 1, "svc-a's pass did not end"
+        wait_for(lambda: part in b.partitions.held, 30, "svc-b to take the device's partition")
+        if not by_b:
+            b_works()
+        return device, by_a[0], by_b
+    finally:
+        if held is not None:
+            held.go.set()
+        if worker.is_alive():
+            worker.join(60)
+        for service in (b, a):
+            if service is not None:
+                service.stop()
+        for session in sessions[::-1]:
+            session.close()
+        for store in stores:
+            store.close()
+
+
+def test_a_refit_in_the_middle_of_a_device_ends_before_its_partition_is_handed_over(postgres_url):
+    """The refit pass checked once that this process serves the device, then worked on it (read, decided, issued a
+    set): a hand-over in between let the new owner answer the same refused set as well, and the device got two
+    rollbacks for one refusal (or one version twice, a conflict). Now a partition is let go of only once the work in
+    hand on its devices is done, and the new owner finds the refusal answered."""
+    import wire_samples as ws
+
+    from fleet_wire import messages as wire
+
+    def refused_set(store, device):
+        factory = wire.coefficients_message(device, 0, 0.0, "factory", ws.coefficients(device)["bands"])
+        store.insert_coefficient_set(factory)
+        store.mark_published(device, 0)
+        store.insert_coefficient_set(ws.coefficients(device, 1, 100.0), state="trial")
+        store.mark_published(device, 1)
+        store.insert_ack(ws.ack(device, 1, at=160.0, status="rejected"))
+
+    device, by_a, by_b = handed_over_mid_device(
+        postgres_url,
+        refused_set,
+        hold=lambda a, device: HeldMidDevice(a, "_issue_set", device),  # decided: v1 is rolled back, v0 restored
+        work=lambda service: service.refit_all(),
+    )
+    with Store.open(postgres_url) as store:
+        history = {h["version"]: h for h in store.coefficient_history(device)}
+        rolled_back = [e for e in store.set_events(device) if e["version"] == 1 and e["state"] == "rolled_back"]
+    assert sorted(history) == [0, 1, 2]  # one answer to one refusal
+    assert history[2]["basis"] == "rollback" and history[2]["restores_version"] == 0
+    assert by_a == [2] and by_b == [[]]  # svc-a's, and svc-b found nothing to answer
+    assert len(rolled_back) == 1
+
+
+def test_a_monitor_pass_in_the_middle_of_a_device_ends_before_its_partition_is_handed_over(postgres_url):
+    """The monitor pass checked once that this process serves the device, then fed it a page of windows: a
+    hand-over in between let the new owner feed the same windows and the next ones, and the old owner then wrote
+    its state over the new owner's (from there a restart feeds windows a second time, an alarm among them raised
+    again). Now a partition is let go of only once the page in hand is fed and written."""
+    import wire_samples as ws
+
+    first, then = 20, 20
+
+    def store_windows(store, device, seqs):
+        with store.transaction():
+            for seq in seqs:
+                store.insert_window(ws.window(device, seq))
+
+    def monitor_pass(service):  # every device it serves has windows to feed, as after a batch stored
+        with service._lock:
+            service._monitor_changed.update(service.store.device_ids())
+        return service.monitor_pass()
+
+    device, _, by_b = handed_over_mid_device(
+        postgres_url,
+        lambda store, device: store_windows(store, device, range(1, first + 1)),
+        hold=lambda a, device: HeldMidDevice(a.store, "monitor_windows", device, after=True),  # a page read
+        work=monitor_pass,
+        more=lambda b, device: store_windows(b.store, device, range(first + 1, first + then + 1)),
+    )
+    with Store.open(postgres_url) as store:
+        _, last_seq = store.monitor_states(device)[device]
+    assert last_seq == first + then  # the newest state stands
