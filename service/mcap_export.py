@@ -26,6 +26,7 @@ from typing import BinaryIO
 
 from mcap.writer import Writer
 
+from encoder_core.monitor_causes import CAUSES
 from encoder_core.stats import BIN_COLUMNS, N_BINS
 from fleet_wire import keys
 
@@ -147,8 +148,9 @@ SCHEMAS = {
         "A log message",
     ),
 }
-ALARM_PARAMETERS = ("delta_d", "delta_q", "rate_per_day", "fleet_median_rate_per_day", "loss_per_day")
-ALARM_PARAMETERS += ("order", "amplitude_deg", "fraction", "since")  # every cause's parameters are numbers
+# every cause's parameters (the contract's, encoder_core/monitor_causes.py), all numbers: a list written out by
+# hand here once lacked gain_step's delta_imbalance and axis_step's delta_skew, and their alarms lost them
+ALARM_PARAMETERS = tuple(dict.fromkeys(p for cause in CAUSES.values() for p in cause.alarm_params))
 SCHEMAS["encoder_fleet.Alarm"] = _object(
     "encoder_fleet.Alarm",
     {
@@ -308,7 +310,7 @@ def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, st
         else:
             text, level = f"coefficient set v{ack['version']} refused by the agent: {ack.get('reason', '')}", WARNING
         yield ack["received_at"], "log", log_record(ack["received_at"], level, text, device)
-    for alarm in reversed(store.alarms(device, with_created_at=True)):  # oldest first
+    for alarm in reversed(store.alarms(device, with_created_at=True, limit=None)):  # oldest first
         if not _in_range(alarm["raised_at"], t_from, t_to):
             continue
         yield alarm["created_at"], "alarms", alarm_record(alarm)

@@ -1332,10 +1332,10 @@ class Store:
         open_: bool | None = None,
         *,
         ids: list[int] | None = None,
-        limit: int = 1000,
+        limit: int | None = 1000,
         with_created_at: bool = False,
     ) -> list[dict]:
-        """Alarms (the GET /alarms contract's objects), newest first."""
+        """Alarms (the GET /alarms contract's objects), newest first; limit None: every one."""
         where, args = [], []
         if device is not None:
             where.append("device = ?")
@@ -1349,7 +1349,8 @@ class Store:
             where.append(f"id IN ({', '.join('?' * len(ids))})")
             args += list(ids)
         sql = "SELECT * FROM alarms" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id DESC LIMIT ?"
-        return [self._alarm(r, with_created_at) for r in self._rows(sql, (*args, limit))]
+        bound = 2**62 if limit is None else limit  # no bound: SQLite reads -1 so, PostgreSQL does not
+        return [self._alarm(r, with_created_at) for r in self._rows(sql, (*args, bound))]
 
     def open_alarm_counts(self) -> dict[str, int]:
         """Open alarms per cause, fleet-wide."""

@@ -146,3 +146,42 @@ def test_unknown_device(store):
 def test_empty_range_is_a_valid_file(store):
     reader, messages = read(b"".join(iter_mcap(store, "drive-001", 1e6, 2e6)))
     assert messages == [] and len(reader.get_summary().channels) == len(TOPICS)
+
+
+def _alarms(data: bytes) -> list[dict]:
+    _, messages = read(data)
+    return [json.loads(m.data) for _, c, m in messages if c.topic.endswith("/alarms")]
+
+
+def test_every_alarm_of_the_device_is_exported_not_the_newest_thousand(store):
+    """A drive whose link flaps raises (and clears) many offline alarms; the audit must hold every one."""
+    for i in range(1005):
+        store.save_monitor(
+            "drive-001",
+            {},
+            6,
+            [
+                {"kind": "raise", "cause": "offline", "at": 400.0 + i, "parameters": {"since": 400.0 + i},
+                 "evidence": "gone"},
+                {"kind": "clear", "cause": "offline", "at": 400.5 + i, "parameters": {}, "evidence": "back"},
+            ],
+        )  # fmt: skip
+    alarms = _alarms(b"".join(iter_mcap(store, "drive-001")))
+    assert [a["id"] for a in alarms] == list(range(1, 1006))
+
+
+def test_every_cause_keeps_its_parameters(store):
+    from encoder_core.monitor_causes import CAUSES
+
+    events = []
+    for n, (name, cause) in enumerate(CAUSES.items()):
+        params = {p: 0.5 + n for p in cause.alarm_params}
+        events.append({"kind": "raise", "cause": name, "at": 400.0 + n, "parameters": params, "evidence": name})
+    store.save_monitor("drive-001", {}, 6, events)
+    reader, messages = read(b"".join(iter_mcap(store, "drive-001")))
+    for schema, channel, message in messages:
+        if channel.topic.endswith("/alarms"):
+            Draft202012Validator(json.loads(schema.data)).validate(json.loads(message.data))
+    for alarm in _alarms(b"".join(iter_mcap(store, "drive-001"))):
+        expected = CAUSES[alarm["cause"]].alarm_params
+        assert {p: alarm.get(p) for p in expected} == store.alarms("drive-001", ids=[alarm["id"]])[0]["parameters"]
