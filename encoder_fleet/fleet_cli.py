@@ -161,7 +161,7 @@ def cmd_export(args) -> int:
     from encoder_fleet.outputs import replaced
     from service.db import is_postgres, sqlite_path
     from service.mcap_export import export_mcap
-    from service.store import Store
+    from service.store import Store, unapplied_migrations
 
     db_file = None if is_postgres(args.db) else Path(sqlite_path(args.db))
     if db_file is not None and not db_file.exists():
@@ -172,6 +172,12 @@ def cmd_export(args) -> int:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
     if db_file is not None and Path(args.out).resolve() in _database_files(db_file):
         raise InputError(f"--out {args.out} is the database itself (or its WAL): name another file")
+    behind = [] if db_file is None else unapplied_migrations(db_file)
+    if behind and not args.migrate:  # the service's own start migrates it; an export changes no evidence unasked
+        raise InputError(
+            f"--db {args.db} was written by an older encoder-fleet (it lacks migration(s) {', '.join(behind)}): "
+            "exporting it would change the file. Start the service on it once, or pass --migrate to migrate it here"
+        )
     store = Store.open(args.db)
     try:
         if store.device(args.device) is None:
@@ -325,6 +331,12 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="the MCAP file to write")
     p.add_argument("--from", dest="t_from", type=finite_float, help="start, s on the drive's clock")
     p.add_argument("--to", dest="t_to", type=finite_float, help="end, s on the drive's clock")
+    p.add_argument(
+        "--migrate",
+        action="store_true",
+        help="migrate a database an older encoder-fleet wrote, in place, before exporting (without it such a "
+        "database is refused: the export changes no file it reads)",
+    )
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="a simulated fleet, the service and the rollout, with a summary")

@@ -11,11 +11,16 @@ per field, no nulls (a missing value is a missing field), no arrays of arrays):
 | /encoders/<device>/ack         | encoder_fleet.Ack             | ack                                      |
 | /encoders/<device>/log         | foxglove.Log                  | rollout decision, alarm raised           |
 | /encoders/<device>/alarms      | encoder_fleet.Alarm           | drift alarm, parameters flattened        |
+| /encoders/<device>/rollout     | encoder_fleet.RolloutDevice   | the device's part in a staged rollout    |
 
 log_time is Unix time in ns: when the service received the window or ack, or published the set. The
 drive's clock stays a field (window_end, created_at, at). The time range (from, to) selects by the drive's
-clock, as the REST API does. The file is produced as a stream of byte chunks, so the REST endpoint never
-holds it; messages are written in drive order and MCAP's index lets readers replay them by log_time.
+clock, as the REST API does, both ends included: windows by their start, acks by `at`, sets by `created_at`, and
+also the set published last before `from` (the one the drive ran when the range begins); alarms open at any time
+in the range (raised before `to`, not cleared before `from`); a staged rollout's record when the set it published
+is in the range (every record when no range is given: they carry the service's clock only). The file is produced
+as a stream of byte chunks, so the REST endpoint never holds it; messages are written kind by kind, and MCAP's index
+lets readers replay them by log_time.
 """
 
 from __future__ import annotations
@@ -159,12 +164,28 @@ SCHEMAS["encoder_fleet.Alarm"] = _object(
         "evidence": STRING,
         "raised_at": {**NUMBER, "description": "Drive clock, s: end of the window that made the alarm certain."},
         "cleared_at": {**NUMBER, "description": "Drive clock, s; absent while the alarm is open."},
+        "clear_evidence": {**STRING, "description": "What cleared it; absent while the alarm is open."},
         **{
             p: {**NUMBER, "description": "A parameter of the cause (present for its causes only)."}
             for p in ALARM_PARAMETERS
         },
     },
     "A drift alarm (GET /alarms), logged when the service raised it.",
+)
+SCHEMAS["encoder_fleet.RolloutDevice"] = _object(
+    "encoder_fleet.RolloutDevice",
+    {
+        "rollout": INTEGER,
+        "name": STRING,
+        "wave": INTEGER,
+        "state": {**STRING, "description": "pending, in_progress, succeeded, unchanged, rejected, timed_out, ..."},
+        "before_version": {**INTEGER, "description": "The confirmed set the device ran when the change reached it."},
+        "version": {**INTEGER, "description": "The set the change published to the device."},
+        "started_at": {**NUMBER, "description": "Service clock, unix s."},
+        "decided_at": {**NUMBER, "description": "Service clock, unix s; absent until its soak is decided."},
+        "reason": STRING,
+    },
+    "The device's part in a staged rollout (GET /rollouts/{id}), logged when it was decided (or started).",
 )
 INFO, WARNING = 2, 3
 TOPICS = {  # topic suffix -> schema
@@ -174,6 +195,7 @@ TOPICS = {  # topic suffix -> schema
     "ack": "encoder_fleet.Ack",
     "log": "foxglove.Log",
     "alarms": "encoder_fleet.Alarm",
+    "rollout": "encoder_fleet.RolloutDevice",
 }
 
 
@@ -233,8 +255,13 @@ def coefficient_set_record(entry: dict) -> dict:
 
 def alarm_record(alarm: dict) -> dict:
     params = {k: float(v) for k, v in alarm["parameters"].items() if k in ALARM_PARAMETERS}
-    fields = ("id", "cause", "evidence", "raised_at", "cleared_at")
-    return _present({**{k: alarm[k] for k in fields}, **params})
+    fields = ("id", "cause", "evidence", "raised_at", "cleared_at", "clear_evidence")
+    return _present({**{k: alarm.get(k) for k in fields}, **params})
+
+
+def rollout_record(row: dict) -> dict:
+    fields = ("rollout", "name", "wave", "state", "before_version", "version", "started_at", "decided_at", "reason")
+    return _present({k: row[k] for k in fields})
 
 
 def ack_record(ack: dict) -> dict:
@@ -287,14 +314,35 @@ def _in_range(t: float, t_from: float | None, t_to: float | None) -> bool:
 
 def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, str, dict]]:
     """(log time unix s, topic suffix, record): sets and acks with their log lines, then windows."""
-    for entry in reversed(store.coefficient_history(device)):  # oldest first
-        if entry["published_at"] is None or not _in_range(entry["created_at"], t_from, t_to):
-            continue
+    published = [e for e in reversed(store.coefficient_history(device)) if e["published_at"] is not None]
+    # the set the drive ran when the range begins: an audit of the range must see what was in force at its start
+    earlier = [e for e in published if t_from is not None and e["created_at"] < t_from]
+    in_force = earlier[-1]["message"]["version"] if earlier else None
+    versions = set()
+    for entry in published:  # oldest first
         msg = entry["message"]
+        if msg["version"] != in_force and not _in_range(entry["created_at"], t_from, t_to):
+            continue
+        versions.add(msg["version"])
         yield entry["published_at"], "coefficients", coefficient_set_record(entry)
         bands = ", ".join(str(b["band"]) for b in msg["bands"])
         text = f"coefficient set v{msg['version']} published (basis {msg['basis']}; bands {bands})"
+        if msg["version"] == in_force:
+            text += f"; the set in force when the range begins (drive clock {t_from:g} s)"
         yield entry["published_at"], "log", log_record(entry["published_at"], INFO, text, device)
+    for row in store.rollout_records(device):
+        if (t_from is not None or t_to is not None) and row["version"] not in versions:
+            continue
+        at = row["decided_at"] or row["started_at"] or row["created_at"]
+        yield at, "rollout", rollout_record(row)
+        if row["started_at"] is not None:
+            text = f"rollout {row['rollout']} ({row['name']}), wave {row['wave']}: v{row['version']} published"
+            text += f" (the drive ran v{row['before_version']})" if row["before_version"] is not None else ""
+            yield row["started_at"], "log", log_record(row["started_at"], INFO, text, device)
+        if row["decided_at"] is not None:
+            level = INFO if row["state"] in ("succeeded", "unchanged") else WARNING
+            text = f"rollout {row['rollout']} ({row['name']}): {row['state'].replace('_', ' ')}: {row['reason'] or ''}"
+            yield row["decided_at"], "log", log_record(row["decided_at"], level, text.rstrip(": "), device)
     for event in store.set_events(device):  # the guard: trial, confirmed, rolled_back
         if not _in_range(event["at"], t_from, t_to):
             continue
@@ -310,9 +358,11 @@ def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, st
         else:
             text, level = f"coefficient set v{ack['version']} refused by the agent: {ack.get('reason', '')}", WARNING
         yield ack["received_at"], "log", log_record(ack["received_at"], level, text, device)
-    for alarm in reversed(store.alarms(device, with_created_at=True, limit=None)):  # oldest first
-        if not _in_range(alarm["raised_at"], t_from, t_to):
-            continue
+    for alarm in reversed(store.alarms(device, audit=True, limit=None)):  # oldest first
+        if (t_to is not None and alarm["raised_at"] > t_to) or (
+            t_from is not None and alarm["cleared_at"] is not None and alarm["cleared_at"] < t_from
+        ):
+            continue  # open at no time of the range
         yield alarm["created_at"], "alarms", alarm_record(alarm)
         text = f"alarm {alarm['cause']} raised at {alarm['raised_at'] / 3600:.2f} h drive time: {alarm['evidence']}"
         yield alarm["created_at"], "log", log_record(alarm["created_at"], WARNING, text, device)

@@ -27,6 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -131,6 +132,20 @@ def migration_files(migrations_dir=MIGRATIONS_DIR) -> list[tuple[int, Traversabl
     if not found:
         raise StoreError("unavailable", f"no migration file (NNN_name.sql) found in {migrations_dir}")
     return sorted(found, key=lambda vf: vf[0])
+
+
+def unapplied_migrations(path, migrations_dir=MIGRATIONS_DIR) -> list[str]:
+    """The migration files a SQLite database of the service has not had applied, read without changing the file
+    (an export is no reason to rewrite the evidence); StoreError when the file is not the service's database."""
+    try:
+        conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True)
+        try:
+            applied = {r[0] for r in conn.execute("SELECT version FROM schema_migrations")}
+        finally:
+            conn.close()
+    except sqlite3.Error as exc:
+        raise StoreError("unavailable", f"database {path} is not the service's ({exc})") from None
+    return [f.name for version, f in migration_files(migrations_dir) if version not in applied]
 
 
 def _statements(sql: str) -> Iterator[str]:
@@ -963,6 +978,17 @@ class Store:
                 (device, version, state, at, time.time(), reason),
             )
 
+    def rollout_records(self, device: str) -> list[dict]:
+        """The device's part in every staged rollout (service/rollout.py), oldest first: the rollout's id and name,
+        its wave, outcome, the set it ran before and the one the change published, when (service clock) and why."""
+        rows = self._rows(
+            "SELECT d.rollout, r.name, d.wave, d.state, d.before_version, d.version, d.started_at, d.decided_at, "
+            "d.reason, r.created_at FROM rollout_devices d JOIN rollouts r ON r.id = d.rollout "
+            "WHERE d.device = ? ORDER BY d.rollout",
+            (device,),
+        )
+        return [dict(r) for r in rows]
+
     def set_events(self, device: str) -> list[dict]:
         """Every guard transition of the device's sets, oldest first."""
         return [
@@ -1312,8 +1338,9 @@ class Store:
         return [rows[i] if kind == "clear" else {**rows[i], "cleared_at": None} for i, kind in written]
 
     @staticmethod
-    def _alarm(r: sqlite3.Row, with_created_at: bool = False) -> dict:
-        extra = {"created_at": r["created_at"]} if with_created_at else {}
+    def _alarm(r: sqlite3.Row, audit: bool = False) -> dict:
+        # for the audit (the MCAP export): when the service raised it (its clock), and what cleared it
+        extra = {"created_at": r["created_at"], "clear_evidence": r["clear_evidence"]} if audit else {}
         return {
             **extra,
             "id": r["id"],
@@ -1333,9 +1360,10 @@ class Store:
         *,
         ids: list[int] | None = None,
         limit: int | None = 1000,
-        with_created_at: bool = False,
+        audit: bool = False,
     ) -> list[dict]:
-        """Alarms (the GET /alarms contract's objects), newest first; limit None: every one."""
+        """Alarms (the GET /alarms contract's objects), newest first; limit None: every one. audit: with when the
+        service raised each (`created_at`, its clock) and what cleared it (`clear_evidence`)."""
         where, args = [], []
         if device is not None:
             where.append("device = ?")
@@ -1350,7 +1378,7 @@ class Store:
             args += list(ids)
         sql = "SELECT * FROM alarms" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id DESC LIMIT ?"
         bound = 2**62 if limit is None else limit  # no bound: SQLite reads -1 so, PostgreSQL does not
-        return [self._alarm(r, with_created_at) for r in self._rows(sql, (*args, bound))]
+        return [self._alarm(r, audit) for r in self._rows(sql, (*args, bound))]
 
     def open_alarm_counts(self) -> dict[str, int]:
         """Open alarms per cause, fleet-wide."""

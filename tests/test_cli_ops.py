@@ -190,6 +190,42 @@ def test_export_refuses_to_write_over_its_own_database(tmp_path):
     assert done.returncode == 0 and (tmp_path / "drive-001.mcap").stat().st_size > 0, done.stderr
 
 
+def test_export_changes_no_file_it_reads(tmp_path):
+    """An export of a database an older encoder-fleet wrote migrated it in place (the audit's evidence rewritten,
+    and any SQLite file named by --db given the service's tables). Now such a database is refused in one line,
+    byte for byte as it was, unless --migrate is given; a file that is not the service's database is refused."""
+    import hashlib
+    import sqlite3
+
+    from fleet_wire import keys
+    from fleet_wire import messages as wire
+    from service.store import Store, migration_files
+    from tests.wire_samples import window
+
+    older = tmp_path / "migrations"  # the migrations of the version before the newest
+    older.mkdir()
+    for _, f in migration_files()[:-1]:
+        (older / f.name).write_text(f.read_text())
+    db = tmp_path / "old.sqlite"
+    with Store.open(db, migrations_dir=older) as store:
+        store.ingest_many([(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=1)))])
+    other = tmp_path / "notes.sqlite"
+    conn = sqlite3.connect(other)
+    conn.execute("CREATE TABLE notes (x)")
+    conn.commit()
+    conn.close()
+    digests = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in (db, other)}
+    export = [sys.executable, "-m", "encoder_fleet.cli", "export", "--device", "drive-001"]
+    for path, word in ((db, "written by an older encoder-fleet"), (other, "is not the service's")):
+        done = subprocess.run([*export, "--db", str(path), "--out", str(tmp_path / "x.mcap")], capture_output=True,
+                              text=True)  # fmt: skip
+        assert done.returncode == 2 and word in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == digests[path] and not (tmp_path / "x.mcap").exists()
+    done = subprocess.run([*export, "--db", str(db), "--out", str(tmp_path / "x.mcap"), "--migrate"],
+                          capture_output=True, text=True)  # fmt: skip
+    assert done.returncode == 0 and (tmp_path / "x.mcap").stat().st_size > 0, done.stderr
+
+
 def test_an_agent_refuses_a_factory_file_that_is_not_a_coefficient_set(tmp_path):
     """`agent --factory` checks the file as the wire checks a set (schema, types, finite numbers): null, a list, a
     set with a NaN weight, too few weights or no schema is one line naming the file and what is wrong, exit 2, and

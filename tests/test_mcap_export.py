@@ -117,13 +117,75 @@ def test_export_matches_the_database(store, tmp_path):
     assert summary.statistics.message_count == 2 * 6 + 2 * 2 + 2 * 2
 
 
-def test_time_range_selects_each_kind_by_its_drive_time(store):
-    data = b"".join(iter_mcap(store, "drive-001", 120.0, 300.0))
+def _topics(data: bytes) -> list[tuple[str, dict]]:
     _, messages = read(data)
-    got = [(c.topic.rsplit("/", 1)[1], json.loads(m.data)) for _, c, m in messages]
+    return [(c.topic.rsplit("/", 1)[1], json.loads(m.data)) for _, c, m in messages]
+
+
+def test_time_range_selects_each_kind_by_its_drive_time(store):
+    got = _topics(b"".join(iter_mcap(store, "drive-001", 120.0, 300.0)))
     assert [b["seq"] for t, b in got if t == "stats"] == [3, 4, 5, 6]  # window_start 120..300
     assert [b["version"] for t, b in got if t == "coefficients"] == [1]
     assert [b["version"] for t, b in got if t == "ack"] == [1]
+
+
+def test_a_range_holds_the_set_in_force_when_it_begins(store):
+    """An audit of 200..300 s must see what the drive ran then: v1, made at 150 s (before, the range held no set,
+    and the acks in it named a version the file did not carry)."""
+    got = _topics(b"".join(iter_mcap(store, "drive-001", 200.0, 300.0)))
+    assert [b["version"] for t, b in got if t == "coefficients"] == [1]
+    (line,) = [b["message"] for t, b in got if t == "log" and "v1 published" in b["message"]]
+    assert "in force when the range begins" in line
+    got = _topics(b"".join(iter_mcap(store, "drive-001", 331.0, 400.0)))
+    assert [b["version"] for t, b in got if t == "coefficients"] == [2]
+
+
+def test_a_range_holds_every_alarm_open_in_it_with_what_cleared_it(store):
+    """Alarms by the time they were open (raised before the range's end, not cleared before its start), not by when
+    they were raised alone: an alarm raised before `from` and cleared inside the range was left out."""
+    events = [  # (raised, cleared): before the range, across its start, inside, after
+        ("offline", 50.0, 100.0), ("offset_step", 150.0, 250.0), ("gain_step", 220.0, None), ("axis_step", 400.0, None)
+    ]  # fmt: skip
+    for cause, raised, cleared in events:
+        store.save_monitor("drive-001", {}, 6, [{"kind": "raise", "cause": cause, "at": raised,
+                                                "parameters": {}, "evidence": f"{cause} seen"}])  # fmt: skip
+        if cleared is not None:
+            store.save_monitor("drive-001", {}, 6, [{"kind": "clear", "cause": cause, "at": cleared,
+                                                    "parameters": {}, "evidence": f"{cause} gone"}])  # fmt: skip
+    got = [b for t, b in _topics(b"".join(iter_mcap(store, "drive-001", 200.0, 300.0))) if t == "alarms"]
+    assert [b["cause"] for b in got] == ["offset_step", "gain_step"]
+    assert got[0]["clear_evidence"] == "offset_step gone" and "clear_evidence" not in got[1]
+
+
+def test_the_device_s_part_in_staged_rollouts_is_exported(store):
+    """Every rollout record of the device (wave, outcome, the set before and the set published, why), on its own
+    channel and as log lines; a range keeps those whose published set is in it."""
+    with store._tx() as c:
+        for rollout, name in ((1, "winter refit"), (2, "spring")):
+            c.execute(
+                "INSERT INTO rollouts (id, name, spec_json, state, wave, counted_from, created_at, updated_at) "
+                "VALUES (?, ?, '{}', 'completed', 1, ?, ?, ?)",
+                (rollout, name, T0, T0 + rollout, T0 + rollout),
+            )
+        c.execute(
+            "INSERT INTO rollout_devices VALUES (1, 'drive-001', 0, 'succeeded', 0, 1, ?, ?, 'no worse after 1 h')",
+            (T0 + 150, T0 + 200),
+        )
+        c.execute(
+            "INSERT INTO rollout_devices VALUES (2, 'drive-001', 1, 'rejected', 1, 2, ?, ?, 'the agent refused it')",
+            (T0 + 330, T0 + 341),
+        )
+    got = _topics(b"".join(iter_mcap(store, "drive-001")))
+    rows = [b for t, b in got if t == "rollout"]
+    assert [(b["rollout"], b["state"], b["before_version"], b["version"]) for b in rows] == [
+        (1, "succeeded", 0, 1),
+        (2, "rejected", 1, 2),
+    ]
+    assert rows[1]["reason"] == "the agent refused it" and rows[0]["name"] == "winter refit"
+    lines = [b["message"] for t, b in got if t == "log" and b["message"].startswith("rollout")]
+    assert len(lines) == 4 and "rollout 2 (spring): rejected: the agent refused it" in lines
+    ranged = [b for t, b in _topics(b"".join(iter_mcap(store, "drive-001", 331.0, 400.0))) if t == "rollout"]
+    assert [b["rollout"] for b in ranged] == [2]
 
 
 def test_large_export_streams_in_several_chunks(tmp_path):
@@ -144,8 +206,10 @@ def test_unknown_device(store):
 
 
 def test_empty_range_is_a_valid_file(store):
+    """A range after every record: a valid file that holds only the set the drive runs then (and its log line)."""
     reader, messages = read(b"".join(iter_mcap(store, "drive-001", 1e6, 2e6)))
-    assert messages == [] and len(reader.get_summary().channels) == len(TOPICS)
+    assert [c.topic.rsplit("/", 1)[1] for _, c, _ in messages] == ["coefficients", "log"]
+    assert len(reader.get_summary().channels) == len(TOPICS)
 
 
 def _alarms(data: bytes) -> list[dict]:
