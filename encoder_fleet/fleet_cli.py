@@ -68,15 +68,15 @@ def cmd_agent(args) -> int:
         raise InputError("a replayed recording needs --factory FILE (a coefficient set as JSON)")
     identity, verifier = agent_security(args)
     outbox_path = args.outbox or Path("out") / "outbox" / f"{args.device}.sqlite"
+    try:  # the session first: a --connect that cannot be used leaves no outbox behind
+        session = zenoh.open(agent_session_config(args.connect, identity=identity))
+    except zenoh.ZError as exc:
+        raise InputError(f"cannot connect to {', '.join(args.connect)}: {error_line(exc)}") from None
     try:
         outbox = Outbox(outbox_path)
     except (sqlite3.Error, OSError) as exc:  # a directory there, another kind of file, no room
+        session.close()
         raise InputError(f"--outbox {outbox_path}: cannot be used as the agent's outbox: {exc}") from None
-    try:
-        session = zenoh.open(agent_session_config(args.connect, identity=identity))
-    except zenoh.ZError as exc:
-        outbox.close()
-        raise InputError(f"cannot connect to {', '.join(args.connect)}: {error_line(exc)}") from None
     agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s, verifier=verifier)
     stop = threading.Event()
     set_on_signals(stop, signal.SIGTERM)

@@ -54,7 +54,10 @@ CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 4000, "period_increase_
 def error_line(exc: zenoh.ZError) -> str:
     """Zenoh's error in one line for a person: its first line, without the Rust source file it came from."""
     first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-    return re.sub(r"\s+at /\S+\.rs:\d+\.?$", "", first) or type(exc).__name__
+    wrapped = re.match(r'^\w+Err\(Message \{ msg: "(.*?)", location', first)  # a config error: the message inside
+    if wrapped:
+        first = wrapped.group(1)
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?", "", first).strip() or type(exc).__name__
 
 
 def free_port() -> int:

@@ -138,6 +138,12 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
     assert not list(tmp_path.glob("mysql*")) and not list(Path().glob("mysql:*"))  # no file made of the URL
     assert empty.stat().st_size == 0 and not (tmp_path / "e.mcap").exists()  # an export made no database of it
     assert not (tmp_path / "s" / "f.sqlite").exists()  # a router that could not listen: no database made
+    outbox = str(tmp_path / "a" / "o.sqlite")
+    code, err = run_main(capsys, "agent", "--device", "d1", "--insecure", "--connect", "nonsense", "--outbox", outbox)
+    last = err.strip().splitlines()[-1]  # after the --insecure warning
+    assert code == 2 and "cannot connect to nonsense: Endpoints must be of the form <protocol>/<address>" in last, err
+    assert ".rs:" not in err and "Json5Err" not in err and "Traceback" not in err, err
+    assert not (tmp_path / "a").exists()  # an agent that could not connect: no outbox made (there was one)
 
 
 def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_from_the_first_put(tmp_path):
