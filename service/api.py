@@ -387,12 +387,26 @@ def _checks_response(request: Request, names: tuple[str, ...] | None) -> JSONRes
 _FAILING = {503: {"model": Checks, "description": "A check failed; `checks` says which and why."}}
 
 
-@operations.get("/healthz", response_model=Checks, responses=_FAILING, summary="Liveness: process, router, database")
+# GET and HEAD: a load balancer's or an uptime monitor's probe may ask with HEAD (FastAPI answers only the methods
+# named: 405 for HEAD on a GET route)
+@operations.api_route(
+    "/healthz",
+    methods=["GET", "HEAD"],
+    response_model=Checks,
+    responses=_FAILING,
+    summary="Liveness: process, router, database",
+)
 def healthz(request: Request):
     return _checks_response(request, LIVENESS)
 
 
-@operations.get("/readyz", response_model=Checks, responses=_FAILING, summary="Readiness: every part running")
+@operations.api_route(
+    "/readyz",
+    methods=["GET", "HEAD"],
+    response_model=Checks,
+    responses=_FAILING,
+    summary="Readiness: every part running",
+)
 def readyz(request: Request):
     return _checks_response(request, None)
 

@@ -195,6 +195,9 @@ def test_healthz_readyz_and_metrics_over_a_real_service(tmp_path):
             "checks": {"process": "ok", "database": "ok", "router": "ok", "storage": "ok"},
         }
         assert client.get("/readyz").status_code == 200
+        for path in ("/healthz", "/readyz"):  # a probe that asks with HEAD (was 405)
+            head = client.head(path)
+            assert head.status_code == 200 and head.content == b"", (path, head.status_code)
         store.ingest(keys.key("drive-001", keys.STATS), wire.encode("window", window()))
         service.counters.count("stored")
         service.counters.count("not_json")
