@@ -7,12 +7,15 @@ before it has soaked; an error threshold stops the rollout).
 - Wave k holds floor(base_per_minute * increment_factor**k) devices and starts at least a minute after wave
   k-1 started, and only once every device of wave k-1 has an outcome: so no more than the wave's rate starts
   per minute, and nothing new starts while the last wave is unproven.
-- A device's part: the change publishes a new set on trial; the soak is `soak_windows` windows the drive ran
-  on it (the agent labels each window with the set it ran). Then the guard's own judge (service/trial.py)
+- A device's part: the change publishes a new set on trial (a device with a set on trial waits for its verdict,
+  `timeout_s` at most from the wave's start: then its part ends timed_out, and no set of the rollout is
+  issued); the soak is `soak_windows` windows the drive ran on it (the agent labels each window with the set it
+  ran). Then the guard's own judge (service/trial.py)
   compares it with the set the device ran before on those windows: not worse -> succeeded, worse -> regressed
   and rolled back at once. An ack that refuses the set -> rejected; no soak within `timeout_s` -> timed_out
   and rolled back (never worse: an unproven change does not stay).
-- Abort criteria count outcomes decided since the rollout started or was last resumed. A criterion that
+- Abort criteria count outcomes decided since the rollout started or a criterion last paused it: the outcomes
+  decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
   trips pauses the rollout or aborts it; abort (tripped or asked for over REST) rolls the current wave back:
   every device of it still running the rollout's set gets the set it ran before again. Devices of later
   waves are never touched.
@@ -81,7 +84,13 @@ class RolloutSpec(BaseModel):
 
 
 class RolloutStopped(Exception):
-    """The rollout was paused or aborted while this process started one of its devices: the set is not issued."""
+    """The rollout was paused or aborted while this process started one of its devices, or another process issued
+    the device a set meanwhile: the rollout's set is not issued."""
+
+
+class DeviceHeld(Exception):
+    """A rollout started on the device while this process made it a set of its own (a refit, a rollback): that set
+    is not issued, the device is the rollout's (service processes share the fleet: one steps every rollout)."""
 
 
 class RolloutError(ValueError):
@@ -154,7 +163,9 @@ class Rollouts:
     def resume(self, rollout: int) -> dict:
         with self._lock:
             self._expect(rollout, ("paused",), "resume")
-            self._update(rollout, state="running", reason="resumed by an operator", counted_from=self.clock())
+            # counted_from is kept: the outcomes decided while paused count now (a criterion that paused it moved it
+            # past the outcomes that tripped it)
+            self._update(rollout, state="running", reason="resumed by an operator")
             return self.get(rollout)
 
     def abort(self, rollout: int, reason: str = "aborted by an operator") -> dict:
@@ -247,8 +258,8 @@ class Rollouts:
         tripped = self._tripped(spec, devices, r["counted_from"])
         if tripped is not None:
             criterion, reason = tripped
-            if criterion.action == "pause":
-                self._set_state(rollout, "paused", reason)
+            if criterion.action == "pause":  # the outcomes that tripped it are not counted again after a resume
+                self._update(rollout, state="paused", reason=reason, counted_from=math.nextafter(now, math.inf))
             else:
                 self._abort(rollout, reason)
             log.warning("rollout abort criterion tripped", extra={"rollout": rollout, "reason": reason})
@@ -258,9 +269,10 @@ class Rollouts:
         if r["wave_started_at"] is None or any(d["state"] == "pending" for d in in_wave):
             if r["wave_started_at"] is None:
                 self._update(rollout, wave_started_at=now)
+            wave_started_at = now if r["wave_started_at"] is None else r["wave_started_at"]
             for d in in_wave:
                 if d["state"] == "pending":
-                    self._start(rollout, spec, d["device"], now)
+                    self._start(rollout, spec, d["device"], now, wave_started_at)
             return
         if any(d["state"] not in OUTCOMES for d in in_wave):
             return  # the wave is soaking
@@ -273,10 +285,15 @@ class Rollouts:
             self._update(rollout, wave=wave + 1, wave_started_at=None)
             self._step_one(self.store._rows("SELECT * FROM rollouts WHERE id = ?", (rollout,))[0])
 
-    def _start(self, rollout: int, spec: RolloutSpec, device: str, now: float) -> None:
-        """Publish the change to one device, on trial; a device with a set already on trial waits for it."""
+    def _start(self, rollout: int, spec: RolloutSpec, device: str, now: float, wave_started_at: float) -> None:
+        """Publish the change to one device, on trial; a device with a set already on trial waits for it, timeout_s
+        from the wave's start at most (a drive gone offline before it ran its trial set keeps that trial for good:
+        the guard keeps no set on no evidence, and the wave would never end)."""
         store = self.store
-        if store.set_on_trial(device) is not None:
+        if (trial := store.set_on_trial(device)) is not None:
+            if now - wave_started_at >= spec.timeout_s:
+                reason = f"its set on trial v{trial['version']} was not judged within {spec.timeout_s:g} s: not started"
+                self._record(rollout, device, "timed_out", now, before=store.published_version(device), reason=reason)
             return  # the guard is judging a fit: the change starts after it, on a known-good base
         running = store.published_version(device)
         before = store.coefficient_set(device, running) if running is not None else None
@@ -291,7 +308,16 @@ class Rollouts:
                 # call on any member) between this step's read and here must not let its set out
                 cur = c.execute("UPDATE rollouts SET updated_at = ? WHERE id = ? AND state = 'running'", (now, rollout))
                 if cur.rowcount != 1:
-                    raise RolloutStopped(rollout)
+                    raise RolloutStopped(f"rollout {rollout} is no longer running")
+                # nothing issued to the device since `running` was read (another process serves it and may have
+                # refitted it meanwhile): two sets in flight for one drive could not be told apart
+                newer = c.execute(
+                    "SELECT version FROM coefficient_sets WHERE device = ? AND version > ? AND version < ? "
+                    "AND state != 'rolled_back' LIMIT 1",
+                    (device, running, version),
+                ).fetchone()
+                if newer is not None:
+                    raise RolloutStopped(f"v{newer[0]} was issued to {device} meanwhile: it starts after it")
                 c.execute(
                     "UPDATE rollout_devices SET state = 'in_progress', before_version = ?, version = ?, "
                     "started_at = ? WHERE rollout = ? AND device = ?",
@@ -313,8 +339,8 @@ class Rollouts:
                     self._record(rollout, device, "unchanged", now, before=running, reason=reason)
                     return
                 self.service.publish_fit(device, result, reason=why, then=started)
-        except RolloutStopped:
-            log.info("rollout stopped while it started a device", extra={"rollout": rollout, "device": device})
+        except RolloutStopped as stopped:
+            log.info("rollout set not issued: %s", stopped, extra={"rollout": rollout, "device": device})
 
     def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float) -> None:
         device, version = d["device"], d["version"]

@@ -33,7 +33,7 @@ from service.cluster import Partitions
 from service.db import is_postgres, redacted, sqlite_path
 from service.monitor import Monitor
 from service.refit import MIN_BAND_SAMPLES, STEP_CAUSES, STEP_OPEN_S, RefitResult, refit_device, step_moved_bands
-from service.rollout import Rollouts
+from service.rollout import DeviceHeld, Rollouts
 from service.store import Store
 from service.trial import WATCH_S, TrialEvidence, Verdict, changed_bands, watch_against_factory
 from service.trial import judge as default_judge
@@ -830,6 +830,9 @@ class FleetService:
                 try:
                     with self.counters.refit_latency.time():
                         version = self.refit(device)
+                except DeviceHeld as held:  # the rollout's now: its step judges it
+                    log.info("%s", held, extra={"device": device})
+                    continue
                 except Exception:  # one bad device must not stop the others; the error is logged with its trace
                     log.exception("%s: refit failed", device)
                     continue
@@ -1175,13 +1178,17 @@ class FleetService:
     ) -> int:
         """A new set in one transaction (`before(version, drive_now)` and `after(version)` run inside it, around
         the set's insert: what belongs with the set lands with it, or nothing does), then published. Every set
-        carries the die lag the device runs (a property of the drive, not of a fit) unless given a new one."""
+        carries the die lag the device runs (a property of the drive, not of a fit) unless given a new one. A set
+        that is not a rollout's own (`after` None) is refused with DeviceHeld when a rollout holds the device, as
+        checked inside the transaction: the rollouts' leader may have started it since this process read it."""
         drive_now = self._drive_now(device)
         lag = self._running_lag(device) if thermal_lag_s is None else thermal_lag_s
         if lag and self._lag_refused(device):
             lag = 0.0
         with self.store.transaction():
             version = self.store.next_version(device)
+            if after is None and self.rollouts.holds(device):
+                raise DeviceHeld(f"{device}: a staged rollout started on it meanwhile")
             if before is not None:
                 before(version, drive_now)
             msg = wire.coefficients_message(

@@ -466,3 +466,127 @@ def test_an_abort_by_another_process_while_a_device_starts_lets_no_set_out(fleet
     assert rollout["state"] == "aborted"
     assert store.published_version(DEVICE_0) == 1 and store.next_version(DEVICE_0) == 2  # nothing issued
     assert rollout["by_state"] == {"pending": 1} and not service.rollouts.holds(DEVICE_0)
+
+
+def test_failures_decided_while_paused_count_once_the_rollout_resumes(fleet, clock):
+    """A paused rollout still judges its soaks. The operator pauses wave 0 (three drives, the change makes the
+    drifted ones worse), the soaks end meanwhile, and the operator resumes: the regressions decided during the
+    pause must trip the abort criterion, not be forgotten by the resume and let the next, larger wave start."""
+    store, service = fleet
+    drifted = drifted_drives(0)
+    for device in DEVICES:  # as in the first test: a drifted drive's fleet set is the one right for it now
+        knocked = drive(device, 0.0, drifted[device]).knocked if device in drifted else None
+        right = factory_message(device, factory_calibration(knocked, DEVICES.index(device) + 1)) if knocked else None
+        install(store, service, device, right["bands"] if right else shifted(true_bands(device), 0.0),
+                knock=drifted.get(device, 0.0))  # fmt: skip
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, abort_criteria=REGRESSED_ABORTS, **POLICY)
+    )
+    service.rollouts.step()  # wave 0 starts
+    service.rollouts.pause(1)
+    for _ in range(12):
+        for device in DEVICES:
+            if service.rollouts.holds(device):
+                run_on(store, device, store.published_version(device), knock=drifted.get(device, 0.0))
+        clock.now += 61.0
+        service.rollouts.step()
+    paused = service.rollouts.get(1)
+    assert paused["state"] == "paused" and paused["by_state"].get("regressed", 0) >= 1, paused
+    clock.now += 61.0
+    service.rollouts.resume(1)
+    service.rollouts.step()
+    result = service.rollouts.get(1)
+    assert result["state"] == "aborted" and "regressed" in result["reason"], result
+    for device in DEVICES[3:]:  # the next wave never got the change
+        assert store.published_version(device) == 1 and store.next_version(device) == 2, device
+
+
+def test_a_device_whose_trial_never_ends_does_not_hold_the_rollout_for_ever(fleet, clock):
+    """A drive went offline with a fit on trial it never applied: the guard keeps that trial (it is not kept on no
+    evidence), so the rollout's part for the drive cannot start. The wave must still end within timeout_s."""
+    store, service = fleet
+    for device in DEVICES[:2]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    run_on(store, DEVICE_0, 1, hours=2.0)
+    drive_now = service._drive_now(DEVICE_0)
+    trial = wire.coefficients_message(DEVICE_0, 2, drive_now - 4000.0, "fit", shifted(true_bands(DEVICE_0), 0.01))
+    store.insert_coefficient_set(trial, state="trial")
+    service._publish(trial)  # the drive went offline before it applied v2
+    store.set_online(DEVICE_0, False)
+    service.rollouts.create(
+        RolloutSpec(
+            name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:2], base_per_minute=2,
+            soak_windows=60, timeout_s=600.0,
+        )
+    )  # fmt: skip
+    service.rollouts.step()
+    run_on(store, DEVICES[1], store.published_version(DEVICES[1]))
+    for _ in range(30):  # five hours of steps
+        clock.now += 601.0
+        assert service.refit(DEVICE_0) is None  # the guard waits: the drive never ran v2
+        service.rollouts.step()
+    result = service.rollouts.get(1)
+    assert store.state_of(DEVICE_0, 2) == "trial"
+    assert result["state"] == "completed", result
+
+
+def test_a_refit_and_a_rollouts_start_on_one_device_issue_one_set(fleet, clock):
+    """Service processes share the fleet: the leader steps every rollout, while the member serving the device
+    refits it. The member read the device as not held and fitted; meanwhile the leader started the rollout's set on
+    it. Two sets were then in flight for one drive (the rollout's v2 and the fit v3, both on trial)."""
+    from service.rollout import Rollouts
+
+    store, service = fleet
+    install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
+    run_on(store, DEVICE_0, 1, hours=2.0)
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=[DEVICE_0], base_per_minute=1,
+                    soak_windows=60)
+    )  # fmt: skip
+    leader = Rollouts(store, service, clock=clock)  # the process serving partition 0
+    fit = service.fit
+
+    def fit_while_the_leader_starts(device, **kwargs):
+        result = fit(device, **kwargs)
+        leader.step()
+        return result
+
+    service.fit = fit_while_the_leader_starts
+    try:
+        try:
+            service.refit(DEVICE_0)  # the member's refit pass
+        except Exception:
+            pass  # refused: the device is the rollout's now
+    finally:
+        service.fit = fit
+    on_trial = [h["version"] for h in store.coefficient_history(DEVICE_0) if h["state"] == "trial"]
+    assert len(on_trial) == 1, store.coefficient_history(DEVICE_0)
+    assert service.rollouts.get(1)["devices"][0]["version"] == on_trial[0]
+
+
+def test_a_rollouts_start_after_a_members_fit_on_one_device_issues_no_second_set(fleet, clock):
+    """The other order: the leader read the device (nothing on trial) and the member issued it a fit before the
+    leader's set was written. The rollout's set must wait for that trial instead of going out beside it."""
+    store, service = fleet
+    install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
+    run_on(store, DEVICE_0, 1, hours=2.0)
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=[DEVICE_0], base_per_minute=1,
+                    soak_windows=60)
+    )  # fmt: skip
+    publish_bands = service.publish_bands
+
+    def member_refits_meanwhile(*args, **kwargs):
+        result = service.fit(DEVICE_0)
+        assert result is not None and result.changed
+        service.publish_fit(DEVICE_0, result)  # the member serving the device: v2 on trial
+        return publish_bands(*args, **kwargs)
+
+    service.publish_bands = member_refits_meanwhile
+    try:
+        service.rollouts.step()
+    finally:
+        service.publish_bands = publish_bands
+    on_trial = [h["version"] for h in store.coefficient_history(DEVICE_0) if h["state"] == "trial"]
+    assert on_trial == [2] and store.next_version(DEVICE_0) == 3, store.coefficient_history(DEVICE_0)
+    assert service.rollouts.get(1)["by_state"] == {"pending": 1} and not service.rollouts.holds(DEVICE_0)
