@@ -9,6 +9,7 @@ COPY edge_agent edge_agent
 COPY service service
 COPY schemas schemas
 COPY migrations migrations
-# a real install (not -e): the schemas and migrations must travel as package data
-RUN pip install --no-cache-dir '.[service]'
+# a real install (not -e): the schemas and migrations must travel as package data; postgres: the scale profile's
+# members run on PostgreSQL (psycopg)
+RUN pip install --no-cache-dir '.[service,postgres]'
 ENTRYPOINT ["encoder-fleet"]

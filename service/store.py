@@ -202,6 +202,11 @@ class Store:
         if db.is_postgres(path):
             try:
                 conn = db.PgConnection(path)
+            except ModuleNotFoundError as exc:  # the postgres extra not installed (an image built with [service] alone)
+                raise StoreError(
+                    "unavailable",
+                    f"database {db.redacted(path)}: PostgreSQL needs {exc.name}: pip install 'encoder-fleet[postgres]'",
+                ) from None
             except db.database_errors() as exc:
                 raise StoreError("unavailable", f"database {db.redacted(path)} cannot be opened: {exc}") from None
             store = cls._migrated(conn, db.redacted(path), band_horizon_s, migrations)

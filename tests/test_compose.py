@@ -137,3 +137,31 @@ def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_expor
     dashboard = json.loads((ROOT / "ops" / "grafana" / "dashboards" / "encoder-fleet.json").read_text())
     drawn = {n for p in dashboard["panels"] for t in p["targets"] for n in re.findall(r"encoder_fleet_\w+", t["expr"])}
     assert drawn and drawn <= exported, drawn - exported
+
+
+def test_the_image_installs_the_extras_its_compose_commands_need(monkeypatch):
+    """The scale profile's members run on PostgreSQL: an image built with `.[service]` alone lacked psycopg, so each
+    member ended in a ModuleNotFoundError traceback at start, restarted for ever, and its drives never started."""
+    import re
+    import sys
+
+    import pytest
+
+    from service.store import Store, StoreError
+
+    extras = re.search(r"pip install [^\n]*'\.\[([\w,]+)\]'", (ROOT / "Dockerfile").read_text()).group(1).split(",")
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    parser = build_parser()
+    commands = [
+        parser.parse_args(s["command"])
+        for s in services.values()
+        if s.get("image") == "encoder-fleet" and s["command"][0] in ("service", "agent")
+    ]
+    if any(a.command == "service" for a in commands):
+        assert "service" in extras
+    if any(a.command == "service" and a.db.startswith("postgresql://") for a in commands):
+        assert "postgres" in extras, extras
+    # and where the extra is missing, the service says so in one line instead of a traceback
+    monkeypatch.setitem(sys.modules, "psycopg", None)
+    with pytest.raises(StoreError, match=r"encoder-fleet\[postgres\]"):
+        Store.open("postgresql://fleet@127.0.0.1:1/fleet")
