@@ -165,3 +165,42 @@ def test_the_image_installs_the_extras_its_compose_commands_need(monkeypatch):
     monkeypatch.setitem(sys.modules, "psycopg", None)
     with pytest.raises(StoreError, match=r"encoder-fleet\[postgres\]"):
         Store.open("postgresql://fleet@127.0.0.1:1/fleet")
+
+
+def test_the_compose_operator_gets_an_admin_token_and_prometheus_a_read_token(tmp_path):
+    """The pki job made Prometheus' read token in the service's database before the service first started; the
+    service writes its first admin token only into an empty token table, so /secrets/admin-token never appeared
+    and nobody could create tokens or stage a rollout. The job's token lines, then what the service does at start."""
+    import shlex
+
+    from encoder_fleet.cli import main
+    from service.auth import TokenAuth
+    from service.store import Store
+
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    script = services["pki"]["command"][0].replace("\\\n", " ")
+
+    def here(path):
+        return str(tmp_path / path.lstrip("/"))
+
+    for line in script.splitlines():
+        if line.strip().startswith("encoder-fleet token create"):
+            words = shlex.split(line)[1:]
+            assert main([here(w) if w.startswith(("/data/", "/secrets/")) else w for w in words]) == 0
+    service = build_parser().parse_args(services["service"]["command"])
+    store = Store.open(here(service.db))
+    try:
+        auth = TokenAuth(store)
+        auth.first_admin_token(here(service.admin_token_file))  # the service at first start (runtime.run_service)
+        admin = Path(here(service.admin_token_file))
+        assert admin.is_file(), "no admin token for the operator"
+        assert auth.scope_of(admin.read_text().strip()) == "admin"
+        credentials = yaml.safe_load((ROOT / "ops" / "prometheus.yml").read_text())["scrape_configs"][0]
+        scraper = Path(here(credentials["authorization"]["credentials_file"]))
+        assert auth.scope_of(scraper.read_text().strip()) == "read"
+    finally:
+        store.close()
+    # the scale members share one database: only the first to start writes a token, so they name one file
+    parser = build_parser()
+    members = [parser.parse_args(s["command"]) for s in services.values() if "--member" in s.get("command", [])]
+    assert len(members) == 3 and len({m.admin_token_file for m in members}) == 1
