@@ -137,6 +137,10 @@ def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_expor
     dashboard = json.loads((ROOT / "ops" / "grafana" / "dashboards" / "encoder-fleet.json").read_text())
     drawn = {n for p in dashboard["panels"] for t in p["targets"] for n in re.findall(r"encoder_fleet_\w+", t["expr"])}
     assert drawn and drawn <= exported, drawn - exported
+    # and the README's "ops/grafana draws every family": each family /metrics exports is in some panel
+    families = {f.name for f in text_string_to_metric_families(text) if not f.name.endswith("_created")}
+    drawn_families = {re.sub(r"_(total|bucket|count|sum)$", "", n) for n in drawn}
+    assert families <= drawn_families, families - drawn_families
 
 
 def test_the_image_installs_the_extras_its_compose_commands_need(monkeypatch):
