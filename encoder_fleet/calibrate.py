@@ -22,14 +22,25 @@ from encoder_core.samples import InputError, Samples, check_angle_coverage
 from encoder_fleet.outputs import write_file
 
 PLATEAU_GAP_C = 2.0  # a bench's temperature plateaus are separated by more than this
+# a bench holds each plateau while the shaft steps through its reference table, and ramps between them: the samples
+# of a plateau crowd into a few bins of PLATEAU_BIN_C, a ramp's spread thinly over all the bins it passes through
+PLATEAU_BIN_C = 0.5
+PLATEAU_SHARE = 0.05  # a plateau's bin holds at least this share of the fullest bin's samples
 
 
 def plateaus(temp_c: np.ndarray) -> np.ndarray:
-    """Plateau index of each sample: temperatures sorted, split where they jump by more than PLATEAU_GAP_C."""
-    order = np.argsort(temp_c)
-    jumps = np.concatenate(([0], np.cumsum(np.diff(temp_c[order]) > PLATEAU_GAP_C)))
-    out = np.empty(temp_c.size, int)
-    out[order] = jumps
+    """Plateau index of each sample, -1 for a ramp's samples between plateaus (left out of every band): the samples
+    in or next to a crowded temperature bin, sorted, split where their temperatures jump by more than PLATEAU_GAP_C.
+    A bench that records its ramps (the simulator's does) passes through every temperature between its plateaus, so
+    splitting at gaps alone made it one plateau: the whole bench fitted as one band at its mean temperature."""
+    bins = np.floor((temp_c - temp_c.min()) / PLATEAU_BIN_C).astype(int)
+    counts = np.bincount(bins)
+    crowded = np.concatenate(([False], counts >= PLATEAU_SHARE * counts.max(), [False]))
+    held = crowded[bins] | crowded[bins + 1] | crowded[bins + 2]  # the bin before, its own, the bin after
+    out = np.full(temp_c.size, -1)
+    idx = np.flatnonzero(held)
+    order = idx[np.argsort(temp_c[idx])]
+    out[order] = np.concatenate(([0], np.cumsum(np.diff(temp_c[order]) > PLATEAU_GAP_C)))
     return out
 
 
@@ -53,7 +64,7 @@ def calibrate(samples: Samples) -> BandedCorrection:
     if samples.temp_c is None:
         return BandedCorrection([calibrate_band(samples)])
     groups = plateaus(samples.temp_c)
-    bands = [calibrate_band(samples.subset(groups == g)) for g in np.unique(groups)]
+    bands = [calibrate_band(samples.subset(groups == g)) for g in np.unique(groups[groups >= 0])]
     return BandedCorrection(bands)
 
 

@@ -61,6 +61,27 @@ def test_calibrate_writes_the_factory_set_an_agent_reads(tmp_path):
     assert calibrate(bench).bands[0].harmonics.keys() == factory.bands[0].harmonics.keys()
 
 
+def test_calibrate_fits_each_plateau_of_a_bench_that_records_its_ramps(tmp_path):
+    """A bench holds its plateaus and records the ramps between them (`simulate --scenario bench` does): the ramps
+    pass through every temperature between the plateaus, so splitting at temperature gaps alone made the whole bench
+    one band at its mean temperature (+12.8 °C for -40, +20, +60: a user's second reader found it). Each plateau is
+    now a band at its own temperature, the ramps in none; on each plateau its band leaves what the noise leaves."""
+    from encoder_fleet.recording import read_recording
+
+    rec, out = tmp_path / "bench.csv", tmp_path / "factory.json"
+    for argv in (["simulate", "--scenario", "bench", "--out", str(rec), "--seed", "3", "--plateaus", "-40", "25", "70"],
+                 ["calibrate", str(rec), "--out", str(out)]):  # fmt: skip
+        done = subprocess.run([sys.executable, "-m", "encoder_fleet.cli", *argv], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+    factory = BandedCorrection.from_dict({"bands": json.loads(out.read_text())["bands"]})
+    assert [round(b.temp_c) for b in factory.bands] == [-40, 25, 70]
+    bench = read_recording(rec)
+    for band in factory.bands:
+        on = np.abs(bench.temp_c - band.temp_c) < 0.5
+        err = np.angle(np.exp(1j * (band.angle(bench.d[on], bench.q[on]) - bench.theta_ref[on])))
+        assert float(np.degrees(np.sqrt(np.mean(err**2)))) < 0.05, band.temp_c
+
+
 def step_follower_worse_hours(drive: dict, specs: list) -> set[int]:
     """The hours in which the factory set moved by the drive's planted offset step, from the step's time (what naming
     the step exactly gives), is itself worse than the factory set: the step had cancelled part of the drift there.
