@@ -388,25 +388,16 @@ _FAILING = {503: {"model": Checks, "description": "A check failed; `checks` says
 
 
 # GET and HEAD: a load balancer's or an uptime monitor's probe may ask with HEAD (FastAPI answers only the methods
-# named: 405 for HEAD on a GET route)
-@operations.api_route(
-    "/healthz",
-    methods=["GET", "HEAD"],
-    response_model=Checks,
-    responses=_FAILING,
-    summary="Liveness: process, router, database",
-)
+# named: 405 for HEAD on a GET route). HEAD is left out of the OpenAPI document: one route with both methods gives
+# both one operation id, and FastAPI warns on stderr when /docs loads it
+@operations.get("/healthz", response_model=Checks, responses=_FAILING, summary="Liveness: process, router, database")
+@operations.head("/healthz", include_in_schema=False)
 def healthz(request: Request):
     return _checks_response(request, LIVENESS)
 
 
-@operations.api_route(
-    "/readyz",
-    methods=["GET", "HEAD"],
-    response_model=Checks,
-    responses=_FAILING,
-    summary="Readiness: every part running",
-)
+@operations.get("/readyz", response_model=Checks, responses=_FAILING, summary="Readiness: every part running")
+@operations.head("/readyz", include_in_schema=False)
 def readyz(request: Request):
     return _checks_response(request, None)
 
