@@ -321,6 +321,7 @@ def format_summary(summary: dict) -> str:
             if summary.get("security") == "insecure"
             else f" --pki {Path(summary['database']).parent / 'pki'}"
         )
-        + " --http-port 8000, then http://127.0.0.1:8000/docs (REST token: admin-token beside the database)",
+        + " --http-port 8000, then http://127.0.0.1:8000/docs"
+        + ("" if summary.get("security") == "insecure" else " (REST token: admin-token beside the database)"),
     ]
     return "\n".join(lines)

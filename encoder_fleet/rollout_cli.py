@@ -39,7 +39,12 @@ def request(args, method: str, path: str, body: dict | None = None) -> dict | li
             detail = ""
         if isinstance(detail, list):  # FastAPI's validation errors: where and what
             detail = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', [])[1:])}: {d.get('msg')}" for d in detail)
-        raise InputError(f"{method} {path}: {exc.code} {detail or exc.reason}") from None
+        hint = (
+            " (pass --token-file FILE: a token of `encoder-fleet token create`)"
+            if exc.code == 401 and not args.token_file
+            else ""
+        )
+        raise InputError(f"{method} {path}: {exc.code} {detail or exc.reason}{hint}") from None
     except (urllib.error.URLError, OSError) as exc:
         raise InputError(f"{url}: cannot reach the service ({getattr(exc, 'reason', exc)})") from None
     except ValueError as exc:  # urllib's "unknown url type", or an answer that is not JSON

@@ -406,8 +406,8 @@ def test_the_rollout_command_drives_the_rest_api_as_an_operator_would(fleet, tmp
     http = HttpServer(store, port, service=service, auth=auth).start()
 
     def rollout(*args, token=admin):
-        cmd = [sys.executable, "-m", "encoder_fleet.cli", "rollout", *args]
-        cmd += ["--url", f"http://127.0.0.1:{port}", "--token-file", str(token)]
+        cmd = [sys.executable, "-m", "encoder_fleet.cli", "rollout", *args, "--url", f"http://127.0.0.1:{port}"]
+        cmd += [] if token is None else ["--token-file", str(token)]
         return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
 
     try:
@@ -436,6 +436,8 @@ def test_the_rollout_command_drives_the_rest_api_as_an_operator_would(fleet, tmp
         assert listed.returncode == 0 and listed.stdout.split()[:2] == ["1", "aborted"]
         missing = rollout("show", "9", token=reader)
         assert missing.returncode == 2 and "404 no rollout 9" in missing.stderr
+        tokenless = rollout("list", token=None)  # a user's first try: the error says which option gives the token
+        assert tokenless.returncode == 2 and "401" in tokenless.stderr and "--token-file" in tokenless.stderr
     finally:
         http.stop()
 
