@@ -113,7 +113,8 @@ def _arg(value):
 
 
 class Row(dict):
-    """A row readable as row["name"] and row[0], like sqlite3.Row."""
+    """A row readable as row["name"] and row[0], like sqlite3.Row; iterated (`(n,) = row`, `tuple(row)`), its values,
+    as sqlite3.Row's are (a dict's iteration gives its keys: `(count,) = row` read the column's name)."""
 
     __slots__ = ("_values",)
 
@@ -123,6 +124,9 @@ class Row(dict):
 
     def __getitem__(self, key):
         return self._values[key] if isinstance(key, int) else super().__getitem__(key)
+
+    def __iter__(self):
+        return iter(self._values)
 
     def keys(self):
         return list(super().keys())

@@ -650,3 +650,18 @@ def test_a_batch_with_an_ack_and_a_late_window_keeps_the_newest_windows_version(
     assert store.ingest_many([item(window(seq=6, version=3))]) == ["stored"]
     assert store.ingest_many([item(window(seq=5, version=2)), item(window(seq=4, version=2))]) == ["stored"] * 2
     assert store.device("drive-001")["current_version"] == 3
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+def test_band_sums_the_database_holds_in_step_with_their_windows_are_read_as_stored(backend, tmp_path, request, caplog):
+    """Reopened, a band sum that counts all its windows is read as it was written, on either database. On PostgreSQL
+    every sum was rebuilt from all its band's windows whenever it was read (each start, each partition taken, each
+    rolled-back batch): its rows unpacked into their column names (`(count,) = row` gave 'count'), never a count."""
+    target = tmp_path / "fleet.db" if backend == "sqlite" else request.getfixturevalue("postgres_url")
+    with Store.open(target) as s:
+        s.ingest_many([(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=i))) for i in (1, 2, 3)])
+    with Store.open(target) as s, caplog.at_level("INFO", logger="service.store"):
+        assert s.band_stats("drive-001")[2][1] == 3
+        assert s._dirty == set() and "rebuilt" not in caplog.text
+        row = s._conn.execute("SELECT count(*) AS n, 7 AS m FROM windows").fetchone()
+        assert tuple(row) == (3, 7) and dict(row) == {"n": 3, "m": 7} and row["n"] == row[0] == 3
