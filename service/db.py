@@ -109,7 +109,14 @@ def pg_statement(sql: str, placeholders: bool = True) -> str:
 
 
 def _arg(value):
-    return int(value) if isinstance(value, bool) else value
+    """An argument as PostgreSQL takes it: a bool as an integer; a string's NUL characters, which no PostgreSQL text
+    can hold (psycopg refuses the whole statement), as U+FFFD. Unchanged, one ack whose reason held a NUL (the wire
+    allows it) failed every batch it was in, and a NUL in a REST query (a device id, an alarm cause) answered 500."""
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, str) and "\x00" in value:
+        return value.replace("\x00", "\ufffd")
+    return value
 
 
 class Row(dict):

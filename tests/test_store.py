@@ -665,3 +665,20 @@ def test_band_sums_the_database_holds_in_step_with_their_windows_are_read_as_sto
         assert s._dirty == set() and "rebuilt" not in caplog.text
         row = s._conn.execute("SELECT count(*) AS n, 7 AS m FROM windows").fetchone()
         assert tuple(row) == (3, 7) and dict(row) == {"n": 3, "m": 7} and row["n"] == row[0] == 3
+
+
+def test_a_nul_character_in_a_message_or_a_query_fails_nothing_else(store):
+    """PostgreSQL's text holds no NUL (SQLite's does): an ack whose reason held one (the wire allows it) failed its
+    whole batch, so another drive's window beside it was not stored, each time the agent sent the ack again; a
+    look-up with one (a REST path or query) raised instead of finding nothing."""
+    refused = ack(status="rejected")
+    refused["reason"] = "gain\x00out of range"
+    items = [
+        (keys.key("drive-001", keys.ACK), wire.encode("ack", refused)),
+        (keys.key("drive-002", keys.STATS), wire.encode("window", window("drive-002", seq=1))),
+    ]
+    assert store.ingest_many(items) == ["stored", "stored"]
+    assert store.max_seq("drive-002") == 1
+    (reason,) = [r["reason"] for r in store.refusals("drive-001")]
+    assert reason in ("gain\x00out of range", "gain\ufffdout of range")  # SQLite keeps the NUL, PostgreSQL cannot
+    assert store.device("drive\x00002") is None and store.alarms(cause="\x00") == []
