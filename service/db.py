@@ -206,6 +206,14 @@ class PgConnection:
         # a lost connection has no transaction left to end: the server rolled it back
         return not self._conn.closed and self._conn.info.transaction_status != self._psycopg.pq.TransactionStatus.IDLE
 
+    @property
+    def aborted(self) -> bool:
+        """A statement failed inside the transaction: PostgreSQL refuses every statement until it is rolled back, and
+        turns its COMMIT into a ROLLBACK without saying so (SQLite's goes on, the failed statement alone undone)."""
+        if self._conn.closed:
+            return False
+        return self._conn.info.transaction_status == self._psycopg.pq.TransactionStatus.INERROR
+
     def _table_has_id(self, table: str) -> bool:
         if table not in self._has_id:
             row = self._conn.execute(

@@ -309,7 +309,10 @@ class Store:
                 if not self._depth:
                     self._writing = None
             try:
-                if not self._conn.in_transaction:  # said plainly, not as "cannot commit - no transaction is active"
+                # said plainly, not as "cannot commit - no transaction is active"; on PostgreSQL a transaction a failed
+                # statement aborted (its error caught, outside a savepoint) is still open, and its COMMIT rolls it back
+                # without an error: every write of it lost while the caller goes on as if stored
+                if not self._conn.in_transaction or getattr(self._conn, "aborted", False):
                     raise StoreError("unavailable", TRANSACTION_ENDED)
                 self._conn.execute(f"RELEASE sp{depth}" if depth else "COMMIT")
             except BaseException:

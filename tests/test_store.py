@@ -14,6 +14,7 @@ from wire_samples import ack, coefficients, window
 
 from fleet_wire import keys
 from fleet_wire import messages as wire
+from service import db
 from service.store import Store, StoreError
 
 
@@ -682,3 +683,22 @@ def test_a_nul_character_in_a_message_or_a_query_fails_nothing_else(store):
     (reason,) = [r["reason"] for r in store.refusals("drive-001")]
     assert reason in ("gain\x00out of range", "gain\ufffdout of range")  # SQLite keeps the NUL, PostgreSQL cannot
     assert store.device("drive\x00002") is None and store.alarms(cause="\x00") == []
+
+
+def test_a_transaction_a_failed_statement_ended_does_not_commit_as_if_stored(store):
+    """A statement that fails inside a transaction, its error caught outside a savepoint: SQLite undoes that statement
+    alone and commits the rest; PostgreSQL aborts the transaction, and its COMMIT rolled everything back without an
+    error, so the caller went on as if it were stored. Now it is said, as when SQLite ends a transaction itself."""
+    postgres = store.path.startswith("postgresql://")
+    try:
+        with store.transaction():
+            store.dead_letter("fleet/drive-001/x", "schema", "kept?", b"{}")
+            with pytest.raises(db.database_errors()):
+                store._conn.execute("SELECT * FROM nowhere")
+    except StoreError as exc:
+        assert postgres and exc.reason == "unavailable"
+    else:
+        assert not postgres
+    assert len(store.dead_letters()) == (0 if postgres else 1)
+    store.dead_letter("fleet/drive-001/x", "schema", "after", b"{}")  # the connection is usable again
+    assert [d["detail"] for d in store.dead_letters()][0] == "after"
