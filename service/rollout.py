@@ -83,6 +83,9 @@ class RolloutSpec(BaseModel):
     abort_criteria: list[AbortCriterion] = Field(default_factory=list, max_length=10)
 
 
+CREATE_LOCK = 0x454E4352  # the advisory lock ('ENCR') that makes a rollout's creation one step across processes
+
+
 class RolloutStopped(Exception):
     """The rollout was paused or aborted while this process started one of its devices, or another process issued
     the device a set meanwhile: the rollout's set is not issued."""
@@ -132,15 +135,18 @@ class Rollouts:
                 raise RolloutError(422, f"unknown devices: {', '.join(unknown[:10])}")
             if not devices:
                 raise RolloutError(422, "no devices to roll out to")
-            busy = self.store._rows(
-                "SELECT id, name FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id LIMIT 1"
-            )
-            if busy:  # one change at a time: outcomes of two changes on one drive could not be told apart
-                raise RolloutError(409, f"rollout {busy[0]['id']} ({busy[0]['name']!r}) is still running or paused")
             now = self.clock()
             sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
             waves = [wave for wave, size in enumerate(sizes) for _ in range(size)]
             with self.store._tx() as c:
+                # the check inside the insert's transaction, one process at a time: two members' REST each creating
+                # one (every member answers POST /rollouts) both found none running and both ran
+                self.store.serialise_transaction(CREATE_LOCK)
+                busy = c.execute(
+                    "SELECT id, name FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id LIMIT 1"
+                ).fetchone()
+                if busy:  # one change at a time: outcomes of two changes on one drive could not be told apart
+                    raise RolloutError(409, f"rollout {busy['id']} ({busy['name']!r}) is still running or paused")
                 cur = c.execute(
                     "INSERT INTO rollouts (name, spec_json, state, counted_from, created_at, updated_at) "
                     "VALUES (?, ?, 'running', ?, ?, ?)",

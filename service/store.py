@@ -383,6 +383,13 @@ class Store:
             row = self._conn.execute("SELECT pg_try_advisory_lock(?, ?) AS taken", (PARTITION_LOCKS, part)).fetchone()
             return bool(row["taken"])
 
+    def serialise_transaction(self, lock: int) -> None:
+        """Inside a transaction: wait for every other process's transaction that took the same lock to end (a
+        PostgreSQL advisory lock held to the transaction's end), so a check and the write it decides are one step
+        across service processes. SQLite's BEGIN IMMEDIATE serialises every writer already."""
+        if isinstance(self._conn, db.PgConnection):
+            self._conn.execute("SELECT pg_advisory_xact_lock(?)", (lock,))
+
     def release_partition(self, part: int) -> None:
         if isinstance(self._conn, db.PgConnection) and not self._conn.lost:  # a lost session took its locks along
             with self._lock:

@@ -592,3 +592,45 @@ def test_a_rollouts_start_after_a_members_fit_on_one_device_issues_no_second_set
     on_trial = [h["version"] for h in store.coefficient_history(DEVICE_0) if h["state"] == "trial"]
     assert on_trial == [2] and store.next_version(DEVICE_0) == 3, store.coefficient_history(DEVICE_0)
     assert service.rollouts.get(1)["by_state"] == {"pending": 1} and not service.rollouts.holds(DEVICE_0)
+
+
+def test_two_members_creating_a_rollout_at_once_make_one(postgres_url):
+    """Every service process answers POST /rollouts. The check for a running rollout came before the insert's
+    transaction, so two members' creations could both find none and both run (a second reader's interleaving on
+    PostgreSQL: rollouts 1 and 2 both running). Now the check and the insert are one transaction, one process at a
+    time: here another member holds the creation's lock and creates its rollout meanwhile, and this one's creation
+    waits for it, then answers 409."""
+    import threading
+
+    import psycopg
+    from wire_samples import window
+
+    from service.rollout import CREATE_LOCK, RolloutError, Rollouts
+
+    with Store.open(postgres_url) as store:
+        store.insert_window(window("drive-001", seq=1))
+        other = psycopg.connect(postgres_url)  # the other member, in the middle of its own creation
+        other.execute("SELECT pg_advisory_xact_lock(%s)", (CREATE_LOCK,))
+        outcome = []
+
+        def create():
+            try:
+                spec = {"name": "from A", "change": {"kind": "reset_to_factory"}, "base_per_minute": 1}
+                outcome.append(Rollouts(store).create(RolloutSpec.model_validate({**spec, "soak_windows": 1})))
+            except RolloutError as exc:
+                outcome.append(exc)
+
+        mine = threading.Thread(target=create)
+        mine.start()
+        mine.join(0.5)
+        assert mine.is_alive() and not outcome  # it waits for the other member's creation to end
+        other.execute(
+            "INSERT INTO rollouts (name, spec_json, state, counted_from, created_at, updated_at) "
+            "VALUES ('from B', '{}', 'running', 0, 0, 0)"
+        )
+        other.commit()
+        other.close()
+        mine.join(10)
+        assert isinstance(outcome[0], RolloutError) and outcome[0].status == 409, outcome
+        running = store._rows("SELECT name FROM rollouts WHERE state IN ('running', 'paused')")
+        assert [r["name"] for r in running] == ["from B"]
