@@ -22,7 +22,7 @@ from pydantic import BaseModel, Field
 
 from .auth import TokenAuth, authorize, require_admin, tokens
 from .mcap_export import iter_mcap
-from .monitor import device_state, fleet_health
+from .monitor import device_state, device_states, fleet_health
 from .observability import health_checks, metrics_registry
 from .rollout import OUTCOMES, RolloutError, Rollouts, RolloutSpec
 from .store import Store
@@ -92,6 +92,9 @@ class Device(BaseModel):
     online: bool = Field(description="Liveliness token held.")
     current_version: int | None = Field(description="Coefficient version the agent last reported using.")
     windows: int = Field(description="Windows stored.")
+    state: str = Field(
+        "unknown", description="Drift monitor: ok | watch | alarm | offline | unknown, as in /devices/{id}/health."
+    )
 
 
 class CoefficientsInUse(BaseModel):
@@ -238,13 +241,15 @@ page = APIRouter(tags=["page"])
 
 
 @devices.get("", response_model=list[Device], summary="All devices")
-def list_devices(store: StoreDep):
-    return store.devices()
+def list_devices(store: StoreDep, request: Request):
+    # the fleet page's "Devices by state" reads `state`: without it, it showed online/offline only, an alarm never
+    states = device_states(store, *_monitor_view(request))
+    return [{**d, "state": states.get(d["id"], "unknown")} for d in store.devices()]
 
 
 @devices.get("/{device_id}", response_model=Device, responses=_UNKNOWN_DEVICE, summary="One device")
-def get_device(device: DeviceDep):
-    return device
+def get_device(device: DeviceDep, store: StoreDep, request: Request):
+    return {**device, "state": device_state(store, device["id"], *_monitor_view(request))}
 
 
 @devices.get("/{device_id}/health", response_model=Health, responses=_UNKNOWN_DEVICE, summary="Health of one device")
@@ -279,14 +284,17 @@ def device_health(device: DeviceDep, store: StoreDep, request: Request):
         samples=summary["samples"],
         rejected=summary["rejected"],
         rejected_share=summary["rejected"] / seen if seen else None,
-        state=device_state(store, dev_id, _monitor(request)),
+        state=device_state(store, dev_id, *_monitor_view(request)),
         alarms=store.alarms(dev_id, open_=True),
     )
 
 
-def _monitor(request: Request):
+def _monitor_view(request: Request) -> tuple:
+    """(the running monitor, which devices it monitors): in a cluster only its own partitions' states are current
+    in memory; the other members' devices are read as stored (service/monitor.py, device_state)."""
     service = request.app.state.service
-    return getattr(service, "monitor", None)
+    partitions = getattr(service, "partitions", None)
+    return getattr(service, "monitor", None), getattr(partitions, "serves", None)
 
 
 @alarms.get("/alarms", response_model=AlarmList, summary="Drift alarms (times on the drive's clock)")
@@ -302,7 +310,7 @@ def list_alarms(
 
 @alarms.get("/fleet/health", response_model=FleetHealth, summary="Devices per state and open alarms per cause")
 def get_fleet_health(store: StoreDep, request: Request):
-    return fleet_health(store, _monitor(request))
+    return fleet_health(store, *_monitor_view(request))
 
 
 @devices.get(

@@ -216,7 +216,7 @@ class Monitor:
             {"kind": e.kind, "cause": e.cause, "at": e.at, "parameters": e.parameters, "evidence": e.evidence}
             for e in events
         ]
-        written = self.store.save_monitor(device, mon.to_dict(), last_seq, plain)
+        written = self.store.save_monitor(device, mon.to_dict(), last_seq, plain, device_state=mon.state())
         self.last_seq[device] = last_seq
         self._unsaved.pop(device, None)
         for a in written:
@@ -246,11 +246,7 @@ class Monitor:
             return mon.state()
 
 
-def device_state(store: Store, device: str, monitor: Monitor | None = None) -> str:
-    """ok | watch | alarm | offline | unknown: from the running monitor, else from its stored state."""
-    if monitor is not None:
-        return monitor.state(device)
-    saved = store.monitor_states(device).get(device)
+def _stored_state(saved: tuple[dict, int] | None) -> str:
     if saved is None:
         return "unknown"
     try:
@@ -259,19 +255,43 @@ def device_state(store: Store, device: str, monitor: Monitor | None = None) -> s
         return "unknown"
 
 
-def fleet_health(store: Store, monitor: Monitor | None = None) -> dict:
+def device_state(
+    store: Store, device: str, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None
+) -> str:
+    """ok | watch | alarm | offline | unknown: from the running monitor where this process monitors the device
+    (`serves`: its partitions; None, every device), else as stored. In a cluster the monitor in memory holds the
+    other members' devices as they stood when this process started (or last handed them over): read from it, GET
+    /devices/{id}/health said "unknown" or "ok" beside the open alarms the other member wrote."""
+    if monitor is not None and (serves is None or serves(device)):
+        return monitor.state(device)
+    return _stored_states(store, [device])[device]
+
+
+def device_states(
+    store: Store, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None
+) -> dict[str, str]:
+    """Every device's state (device_state)."""
+    ids = store.device_ids()
+    if monitor is None:
+        return _stored_states(store, ids)
+    others = _stored_states(store, [d for d in ids if serves is not None and not serves(d)])
+    return {d: others[d] if d in others else monitor.state(d) for d in ids}
+
+
+def _stored_states(store: Store, ids: list[str]) -> dict[str, str]:
+    """The states the monitors wrote (a ~36 KB state parsed only where written before migration 075)."""
+    if not ids:
+        return {}
+    written = store.monitor_device_states(ids[0] if len(ids) == 1 else None)
+    out = {d: written.get(d) or "unknown" for d in ids}
+    for d in [d for d in ids if d in written and written[d] is None]:
+        out[d] = _stored_state(store.monitor_states(d).get(d))
+    return out
+
+
+def fleet_health(store: Store, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None) -> dict:
     """Devices per state and open alarms per cause."""
     counts = dict.fromkeys(STATES, 0)
-    saved = store.monitor_states() if monitor is None else {}
-    for d in store.devices():
-        if monitor is not None:
-            state = monitor.state(d["id"])
-        elif d["id"] in saved:
-            try:
-                state = DeviceMonitor.from_dict(saved[d["id"]][0]).state()
-            except (KeyError, TypeError, ValueError):
-                state = "unknown"
-        else:
-            state = "unknown"
+    for state in device_states(store, monitor, serves).values():
         counts[state] += 1
     return {"devices": counts, "open_alarms": store.open_alarm_counts()}

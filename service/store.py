@@ -1308,8 +1308,19 @@ class Store:
             sql, args = sql + " WHERE device = ?", (device,)
         return {r["device"]: (json.loads(r["state_json"]), r["last_seq"]) for r in self._rows(sql, args)}
 
-    def save_monitor(self, device: str, state: dict, last_seq: int, events: list[dict]) -> list[dict]:
-        """The monitor's state and the alarms it raised or cleared, in one transaction. events: {"kind":
+    def monitor_device_states(self, device: str | None = None) -> dict[str, str | None]:
+        """device -> the state (ok | watch | ...) its monitor was in when last written (for every device the monitor
+        has seen, or for one); None: written before migration 075 (read it from monitor_states)."""
+        sql, args = "SELECT device, device_state FROM monitor_state", ()
+        if device is not None:
+            sql, args = sql + " WHERE device = ?", (device,)
+        return {r["device"]: r["device_state"] for r in self._rows(sql, args)}
+
+    def save_monitor(
+        self, device: str, state: dict, last_seq: int, events: list[dict], *, device_state: str | None = None
+    ) -> list[dict]:
+        """The monitor's state (and `device_state`, what it judges the device: DeviceMonitor.state) and the alarms
+        it raised or cleared, in one transaction. events: {"kind":
         "raise" | "clear", "cause", "at", "parameters", "evidence"}; returns one alarm (as listed) per event
         written, in order, as it stood after that event: an alarm raised and cleared in the same call is
         returned twice, open and then cleared, so its listeners hear both."""
@@ -1342,10 +1353,10 @@ class Store:
                     )
                     written += [(r["id"], "clear") for r in rows]
             c.execute(
-                "INSERT INTO monitor_state (device, state_json, last_seq, updated_at) VALUES (?, ?, ?, ?) "
-                "ON CONFLICT(device) DO UPDATE SET state_json = excluded.state_json, last_seq = excluded.last_seq,"
-                " updated_at = excluded.updated_at",
-                (device, _json(state), last_seq, now),
+                "INSERT INTO monitor_state (device, state_json, last_seq, updated_at, device_state)"
+                " VALUES (?, ?, ?, ?, ?) ON CONFLICT(device) DO UPDATE SET state_json = excluded.state_json,"
+                " last_seq = excluded.last_seq, updated_at = excluded.updated_at, device_state = excluded.device_state",
+                (device, _json(state), last_seq, now, device_state),
             )
         if not written:
             return []

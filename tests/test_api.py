@@ -65,6 +65,7 @@ def test_devices(client, history):
         "online": True,
         "current_version": 1,
         "windows": 5,
+        "state": "unknown",  # no window monitored yet
     }
     assert client.get(f"/devices/{DEVICE}").json() == d
 

@@ -33,7 +33,8 @@ def served(tmp_path):
         store.insert_ack(ack(device, version=1, at=210.0))
     # a planted alarm: what the drift monitor writes when drive-002's offsets jump
     step = {"kind": "raise", "cause": "offset_step", "at": 7200.0, "parameters": {"delta_d": 0.02, "delta_q": 0.0}}
-    store.save_monitor("drive-002", {}, 8, [{**step, "evidence": "the offsets jumped (planted by the test)"}])
+    planted = [{**step, "evidence": "the offsets jumped (planted by the test)"}]
+    store.save_monitor("drive-002", {}, 8, planted, device_state="alarm")
     spec = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 1, "soak_windows": 30}
     Rollouts(store).create(RolloutSpec(name="back to the bench", **spec))  # a rollout in progress
     port = free_port()
@@ -56,6 +57,9 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         page.wait_for_selector("#devices tbody tr[data-device='drive-002']")
         rows = page.locator("#devices tbody tr").all_inner_texts()
         assert [r.split("\t")[0] for r in rows] == ["drive-001", "drive-002"]
+        # the monitor's state, not the token's: the page showed "offline" for both (GET /devices sent no state)
+        assert [r.split("\t")[1] for r in rows] == ["unknown", "alarm"]
+        assert page.locator("#states span").all_inner_texts() == ["unknown: 1", "alarm: 1"]
         page.wait_for_selector("#angle-error .main-svg")  # Plotly drew the first drive
         assert page.locator("#device-name").inner_text() == "drive-001"
         page.click("#devices tbody tr[data-device='drive-002']")

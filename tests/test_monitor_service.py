@@ -248,3 +248,33 @@ def test_an_alarm_raised_and_cleared_in_one_pass_is_heard_twice(tmp_path):
         ("cleared", 100.0, 400.0),
     ]
     assert [(a["raised_at"], a["cleared_at"]) for a in listed] == [(100.0, 400.0)]  # one alarm, stored once
+
+
+def test_every_member_answers_a_devices_state_as_its_monitor_wrote_it(tmp_path, aging):
+    """Every service process answers REST for the whole fleet, but its monitor in memory is current for its own
+    partitions only: the other members' devices stood there as when it started. Read from it, GET /devices/{id}/health
+    said "unknown" beside the open alarms the other member wrote, /fleet/health counted the device unknown,
+    and GET /devices (which the fleet page's "Devices by state" reads) sent no state at all: the page showed
+    online/offline, never an alarm."""
+    from types import SimpleNamespace
+
+    spec, msgs = aging
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        insert(store, msgs)
+        here = Monitor(store)  # this member, started before the windows came; the device is another member's
+        there = Monitor(store)
+        assert [a["cause"] for a in there.process(spec.name)] == ["accelerated_aging"]
+        service = SimpleNamespace(monitor=here, partitions=SimpleNamespace(serves=lambda device: False))
+        api = TestClient(create_app(store, service))
+        health = api.get(f"/devices/{spec.name}/health").json()
+        assert [a["cause"] for a in health["alarms"]] == ["accelerated_aging"]
+        assert health["state"] == "alarm"
+        assert api.get("/fleet/health").json()["devices"]["alarm"] == 1
+        assert [(d["id"], d["state"]) for d in api.get("/devices").json()] == [(spec.name, "alarm")]
+        assert api.get(f"/devices/{spec.name}").json()["state"] == "alarm"
+        # the member that monitors it answers from memory, and so does a service alone (no partitions)
+        mine = TestClient(create_app(store, SimpleNamespace(monitor=there)))
+        assert [d["state"] for d in mine.get("/devices").json()] == ["alarm"]
+        (offline,) = there.set_online(spec.name, False)
+        assert [d["state"] for d in api.get("/devices").json()] == ["offline"]  # as written with the alarm
+        assert TestClient(create_app(store)).get("/fleet/health").json()["devices"]["offline"] == 1
