@@ -194,6 +194,15 @@ class Monitor:
                 msg = self.store.coefficient_set(device, ack["version"])
                 if msg is not None and msg["created_at"] >= alarm["raised_at"]:
                     why = f"coefficient set v{ack['version']}, made after the step, was applied by the agent."
+                    if msg["basis"] == "rollback" and msg.get("restores_version") == 0:
+                        # said as it is (a second reader: the clear read as if the drive were corrected for the
+                        # step): the clear lets the monitor name the next step, as with any set made since, and
+                        # bench-fleet-accuracy's loop judges the refit on that rule
+                        why = (
+                            f"coefficient set v{ack['version']}, the factory set again (its bands from the bench, "
+                            "before the step), was applied by the agent: the step is not corrected for until a "
+                            "refit measures it from the windows since."
+                        )
                     cleared += mon.clear(cause, ack["at"], why)
                     break
         return cleared

@@ -278,3 +278,31 @@ def test_every_member_answers_a_devices_state_as_its_monitor_wrote_it(tmp_path, 
         (offline,) = there.set_online(spec.name, False)
         assert [d["state"] for d in api.get("/devices").json()] == ["offline"]  # as written with the alarm
         assert TestClient(create_app(store)).get("/fleet/health").json()["devices"]["offline"] == 1
+
+
+def test_a_step_cleared_by_the_factory_set_again_says_so(tmp_path):
+    """The factory set published again after a step (basis rollback, restores v0: back_to_factory for a step the
+    monitor could not measure, a guard's rollback, a rollout's reset) clears the step once applied, as any set made
+    since does (the monitor can name the next step; bench-fleet-accuracy's loop judges the refit on that rule). Its
+    clear said "made after the step", which read as if the drive were corrected for it (a second reader); it now
+    says the factory set is back and the step not yet corrected for."""
+    from wire_samples import coefficients
+
+    spec = draw_drive(31, 2.5, "offset_step", onset_range_s=(ONSET, ONSET))
+    msgs = messages(spec)
+    dev = spec.name
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        bench = coefficients(dev, version=0, created_at=0.0)["bands"]
+        store.insert_coefficient_set(wire.coefficients_message(dev, 0, 0.0, "factory", bench))
+        monitor = Monitor(store)
+        k = next(i for i, m in enumerate(msgs) if m["window_end"] > ONSET + 3 * 3600)
+        insert(store, msgs[:k])
+        (step,) = [a for a in monitor.process(dev) if a["cause"] == "offset_step"]
+        t = msgs[k]["window_end"]
+        store.insert_coefficient_set(wire.coefficients_message(dev, 1, t, "rollback", bench, restores_version=0))
+        store.insert_ack(wire.ack_message(dev, 1, "applied", t + 60.0, angle_quality_deg=0.05))
+        insert(store, msgs[k : k + 5])
+        (cleared,) = monitor.process(dev)
+        assert (cleared["id"], cleared["cleared_at"]) == (step["id"], t + 60.0)
+        (stored,) = store.alarms(dev, ids=[step["id"]], audit=True)
+        assert "the factory set again" in stored["clear_evidence"] and "not corrected for" in stored["clear_evidence"]
