@@ -54,6 +54,10 @@ BURST_PER_KEY = 2_000.0  # … and at once (a catch-up resends at most 500 per s
 # liveliness, factory sets and queries waiting for the control thread: a process's whole share of tokens at
 # start (each item is a reference, not a payload)
 MAX_CONTROL = 200_000
+# after this process takes its partitions (a start, a hand-over): how long agents get to reconnect before a device
+# stored as online with no liveliness token is taken as gone (one that left while no process served it sends no
+# "left" event, and stayed online and ok for good)
+ONLINE_RECHECK_S = 60.0
 MAX_FACTORY_RUN = 100  # factory sets stored in one transaction: the writer waits for at most one such commit
 _NO_JOB = object()  # the control loop holds no job taken from its queue (None there means stop)
 LAG_RETRY_AFTER_S = 86_400.0  # a lag refused this long before the agent came back online is offered again
@@ -206,8 +210,12 @@ class FleetService:
         refit_every_s: float = REFIT_EVERY_S,
         member: str | None = None,
         resend_after_s: float = RESEND_AFTER_S,
+        online_recheck_s: float = ONLINE_RECHECK_S,
     ):
         self.store = store
+        self.online_recheck_s = online_recheck_s
+        self._online_recheck_at: float | None = None  # monotonic; set when partitions are taken
+        self._token_seen: dict[str, float] = {}  # device -> when (monotonic) its token last came or went
         self.judge = judge  # the guard's verdict on a set on trial (service/trial.py)
         self.signer = signer  # fleet_wire.security.SetSigner: every published set is signed
         self.guard = guard  # service.guard.IngestGuard: registry, forged and replayed acks
@@ -272,6 +280,7 @@ class FleetService:
             self._changed.update(d["id"] for d in self.store.devices())
             self._monitor_changed.update(self._changed)
             self._resume_step_moves(lambda device: True)
+            self._online_recheck_at = time.monotonic() + self.online_recheck_s
         if self.monitor_interval_s > 0:
             self._monitor_thread = threading.Thread(target=self._monitor_loop, name="monitor", daemon=True)
             self._monitor_thread.start()
@@ -397,6 +406,7 @@ class FleetService:
         with self._lock:
             self._changed.update(devices)
             self._monitor_changed.update(devices)
+            self._online_recheck_at = time.monotonic() + self.online_recheck_s
         self._resume_step_moves(lambda device: keys.partition(device) in parts)
 
     def _resume_step_moves(self, owned: Callable[[str], bool]) -> None:
@@ -589,12 +599,53 @@ class FleetService:
             return
         if self.guard is not None and not self.guard.admits(device):
             return
+        with self._lock:
+            self._token_seen[device] = time.monotonic()
         with self.partitions.serving(device) as mine:  # a token of a partition handed over is its new owner's
             if mine:
-                self._alive(device, sample)
+                self._alive(device, sample.kind == zenoh.SampleKind.PUT)
 
-    def _alive(self, device: str, sample: zenoh.Sample) -> None:
-        online = sample.kind == zenoh.SampleKind.PUT
+    def _recheck_online_if_due(self) -> None:
+        """Devices the database has online whose liveliness token is not there, ONLINE_RECHECK_S after this process
+        took their partitions: each is gone as if its token had left now (stored offline, the monitor's offline
+        alarm). A token that leaves while no process serves the device is heard by nobody, and the replay of the
+        tokens present at start names only those still there: a drive that stopped while the service was down was
+        online and ok for good (a second reader)."""
+        with self._lock:
+            due = self._online_recheck_at is not None and time.monotonic() >= self._online_recheck_at
+            if due:
+                self._online_recheck_at = None
+        if not due:
+            return
+        asked_at = time.monotonic()
+        try:
+            replies = self.session.liveliness().get(keys.every(keys.ALIVE), timeout=5.0)
+            alive = {str(r.ok.key_expr) for r in replies if r.ok is not None}
+        except zenoh.ZError:  # the session itself: asked again at the next pass
+            log.exception("asking which devices hold a liveliness token failed")
+            with self._lock:
+                self._online_recheck_at = time.monotonic()
+            return
+        for device in self.store.devices():
+            gone = device["online"] and keys.key(device["id"], keys.ALIVE) not in alive
+            if gone and self.partitions.serves(device["id"]):
+                try:
+                    self._control.put_nowait((self._gone_unheard, (device["id"], asked_at)))
+                except queue.Full:
+                    with self._lock:
+                        self._online_recheck_at = time.monotonic()  # the next pass asks again
+
+    def _gone_unheard(self, item: tuple[str, float]) -> None:
+        device, asked_at = item
+        with self._lock:
+            if self._token_seen.get(device, -math.inf) > asked_at:
+                return  # its token came (or went, heard) since the question: that event said it
+        with self.partitions.serving(device) as mine:
+            if mine:
+                log.warning("no liveliness token since the partitions were taken: offline", extra={"device": device})
+                self._alive(device, False)
+
+    def _alive(self, device: str, online: bool) -> None:
         if self.store.device(device) is None:
             # a token alone makes no device: it appears with its first valid message (_write_loop)
             with self._lock:
@@ -611,7 +662,7 @@ class FleetService:
         self.store.set_online(device, online)
         try:
             self.monitor.process(device)  # what it sent before it went (or came back) is judged first
-            self.monitor.set_online(device, sample.kind == zenoh.SampleKind.PUT)
+            self.monitor.set_online(device, online)
         except Exception:
             log.exception("monitor: liveliness of %s", device)
 
@@ -620,6 +671,10 @@ class FleetService:
     def _monitor_loop(self) -> None:
         for _ in self._paced(self._wake_monitor, self.monitor_interval_s):
             self._renew_if_lost()  # also when no window comes to make the writer notice
+            try:
+                self._recheck_online_if_due()
+            except Exception:  # a read the database refused: asked again after the next hand-over or start
+                log.exception("checking which stored-online devices hold a token failed")
             try:
                 self.monitor_pass()
             except Exception:  # the thread must outlive a pass: a dead one would never watch again

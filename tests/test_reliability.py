@@ -224,6 +224,34 @@ def test_liveliness_tokens_alone_make_no_devices(fleet):
         client.close()
 
 
+def test_a_drive_that_left_while_the_service_was_down_is_offline_once_it_is_back(tmp_path):
+    """Two drives online; the service (and its router) down; one drive's agent stops meanwhile. Nobody heard its
+    token go, and the tokens replayed at the next start name only the drive still there: the drive that left stayed
+    online and ok for good (a second reader). Now, ONLINE_RECHECK_S after the start, a device stored online with no
+    token is offline, with its alarm; the drive whose agent reconnected stays online, with none."""
+    fleet = Fleet(tmp_path, online_recheck_s=2.0)
+    fleet.start()
+    client = zenoh.open(agent_session_config([fleet.endpoint]))  # an agent's session: it reconnects by itself
+    tokens = {d: client.liveliness().declare_token(keys.key(d, keys.ALIVE)) for d in ("drive-001", "drive-002")}
+    try:
+        for d in tokens:
+            client.put(keys.key(d, keys.STATS), wire.encode("window", ws.window(d, seq=1)))
+        assert wait_for(lambda: all(fleet.store.device(d) and fleet.store.device(d)["online"] for d in tokens))
+        fleet.stop()
+        tokens.pop("drive-001").undeclare()  # its agent stops while nobody listens
+        fleet.start()
+        assert wait_for(lambda: fleet.store.device("drive-001")["online"] is False, timeout=20)
+        (alarm,) = fleet.store.alarms("drive-001", open_=True)
+        assert alarm["cause"] == "offline"
+        time.sleep(1.0)  # the recheck is done; the drive still there was not taken for gone
+        assert fleet.store.device("drive-002")["online"] is True and fleet.store.alarms("drive-002", open_=True) == []
+    finally:
+        for token in tokens.values():
+            token.undeclare()
+        client.close()
+        fleet.stop()
+
+
 def test_a_device_marked_online_late_survives_a_database_error_and_the_writer_goes_on(fleet, monkeypatch):
     """A token seen before the device's first window marks it online once that window is stored. A database error
     there killed the writer thread: nothing was stored after it. Now it is logged and retried with the next window."""
