@@ -2,13 +2,16 @@
 per external router), the service's Ed25519 key that signs coefficient sets. Private keys are written 0600.
 
     encoder-fleet pki init DIR                 -> DIR/ca.crt, DIR/ca.key
-    encoder-fleet pki issue DIR NAME           -> DIR/NAME.crt, DIR/NAME.key       (a device; CN = NAME)
+    encoder-fleet pki issue DIR NAME           -> DIR/NAME.crt, DIR/NAME.key       (a device; CN = NAME, NAME#N again)
     encoder-fleet pki issue DIR --service      -> DIR/service.crt, DIR/service.key, DIR/signing.key, DIR/signing.pub
     encoder-fleet pki issue DIR --router NAME  -> DIR/NAME.crt, DIR/NAME.key       (an external router, e.g. zenohd)
     encoder-fleet pki router-config DIR ...    -> a zenohd config: TLS, mTLS, the ACL of the registry, mesh links
 
 A certificate's role (device, service, router) is its organizational unit; the device registry is the set
-of device certificates in DIR (fleet_wire.security.registry).
+of device certificates in DIR (fleet_wire.security.registry). DIR/issued-devices.txt keeps every device
+certificate ever issued (name, generation, serial): a device issued again (`--force`, or after its NAME.crt was
+removed to revoke it) gets the common name NAME#N of a new generation N, and the router admits only the
+common name of NAME.crt, so the certificates issued before it (a stolen drive's) stay refused.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from encoder_fleet.outputs import write_file
 from fleet_wire import keys
 from fleet_wire.security import (
     CA_NAME,
+    GENERATION_SEP,
     RESERVED_NAMES,
     ROLE_DEVICE,
     ROLE_ROUTER,
@@ -34,11 +38,45 @@ from fleet_wire.security import (
     access_control,
     certificate_identity,
     registry,
+    registry_names,
 )
 
 CA_DAYS = 3650
 LEAF_DAYS = 825
 LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
+ISSUED = "issued-devices.txt"  # every device certificate issued: "NAME GENERATION SERIAL", one a line
+MAX_CN = 64  # X.509's upper bound on a common name
+
+
+def _generations(pki_dir: Path) -> dict[str, int]:
+    """The newest generation issued of each device, from the folder's ledger."""
+    newest: dict[str, int] = {}
+    try:
+        lines = (pki_dir / ISSUED).read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        return newest
+    for line in lines:
+        parts = line.split()
+        if len(parts) >= 2 and parts[1].isdigit():
+            newest[parts[0]] = max(newest.get(parts[0], -1), int(parts[1]))
+    return newest
+
+
+def _device_common_name(pki_dir: Path, name: str) -> tuple[str, int]:
+    """(common name, generation) of a new certificate for device `name`: NAME the first time, NAME#N once any
+    certificate was issued for it before (the ledger says so, or a NAME.crt of a folder older than the ledger):
+    every certificate of an earlier generation then names another subject than the one the router admits."""
+    before = _generations(pki_dir).get(name)
+    if before is None and (pki_dir / f"{name}.crt").exists():
+        before = 0
+    generation = 0 if before is None else before + 1
+    cn = name if generation == 0 else f"{name}{GENERATION_SEP}{generation}"
+    if len(cn) > MAX_CN:
+        raise SecurityError(
+            f"device {name!r}: generation {generation}'s common name {cn!r} is longer than {MAX_CN} characters; "
+            "a device id this long cannot be issued again (give the drive a new id, or make a new CA)"
+        )
+    return cn, generation
 
 
 def _write(path: Path, data: bytes, *, private: bool) -> None:
@@ -163,16 +201,18 @@ def issue(pki_dir, name: str, role: str = ROLE_DEVICE, *, hosts: tuple[str, ...]
         cn, old_role = certificate_identity(crt)
         raise SecurityError(f"{crt} already exists (issued to {cn!r} as {old_role!r}); use --force to replace it")
     ca_cert, ca_key = _load_ca(pki_dir)
+    cn, generation = _device_common_name(pki_dir, name) if role == ROLE_DEVICE else (name, None)
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.UTC)
     server = role in (ROLE_SERVICE, ROLE_ROUTER)
     usages = [ExtendedKeyUsageOID.CLIENT_AUTH] + ([ExtendedKeyUsageOID.SERVER_AUTH] if server else [])
+    serial = x509.random_serial_number()
     builder = (
         x509.CertificateBuilder()
-        .subject_name(_name(name, role))
+        .subject_name(_name(cn, role))
         .issuer_name(ca_cert.subject)
         .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
+        .serial_number(serial)
         .not_valid_before(now - datetime.timedelta(minutes=5))
         .not_valid_after(min(now + datetime.timedelta(days=LEAF_DAYS), ca_cert.not_valid_after_utc))
         .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
@@ -184,6 +224,10 @@ def issue(pki_dir, name: str, role: str = ROLE_DEVICE, *, hosts: tuple[str, ...]
         builder = builder.add_extension(x509.SubjectAlternativeName(_san((*LOCAL_HOSTS, *hosts))), critical=False)
     cert = builder.sign(ca_key, hashes.SHA256())
     _write(pki_dir / f"{name}.key", _pem_private(key), private=True)
+    if generation is not None:  # in the ledger before the certificate is in the folder: no generation is used twice
+        ledger = pki_dir / ISSUED
+        old = ledger.read_text(encoding="utf-8") if ledger.exists() else ""
+        write_file(ledger, old + f"{name} {generation} {serial:x}\n", perms=0o644)
     _write(crt, _pem_cert(cert), private=False)
     if role == ROLE_SERVICE:
         _signing_key(pki_dir, force=force)
@@ -230,7 +274,7 @@ def router_config(
         "listen": {"endpoints": listen},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"link": {"tls": tls}},
-        "access_control": access_control(registry(pki_dir), routers=list(peers)),
+        "access_control": access_control(registry_names(pki_dir), routers=list(peers)),
     }
     if connect:
         conf["connect"] = {"endpoints": list(connect)}
@@ -263,7 +307,9 @@ def cmd_pki(args) -> int:
             print(f"router certificate: {crt}")
         else:
             crt = issue(args.dir, args.name, ROLE_DEVICE, force=args.force)
-            print(f"device certificate: {crt} (CN {args.name}); restart the service so its router admits it")
+            cn, _ = certificate_identity(crt)
+            again = "" if cn == args.name else " (issued again: the certificates before it are refused)"
+            print(f"device certificate: {crt} (CN {cn}{again}); restart the service so its router admits it")
         return 0
     if args.pki_command == "router-config":
         conf = router_config(

@@ -2,7 +2,9 @@
 
 - Identity: mutual TLS. Every agent and the service present a certificate issued by the fleet's CA
   (`encoder-fleet pki`); a device's id is its certificate's common name, its role the certificate's
-  organizational unit ("device", "service" or "router").
+  organizational unit ("device", "service" or "router"). A device certificate issued again (replaced, or after
+  a revocation) names its generation, `NAME#N`: the router admits exactly the common name of the certificate in
+  the folder, so an earlier one (stolen with its drive) stays refused. There is no CRL to do it otherwise.
 - Access control: the router's `access_control` config, default deny, generated from the device registry
   (the device certificates in the PKI folder) by `access_control()`: a device speaks only on its own keys,
   only the service puts coefficients and answers queries.
@@ -30,6 +32,7 @@ SERVICE_NAME = "service"
 CA_NAME = "ca"
 SIGNING_KEY, SIGNING_PUB = "signing.key", "signing.pub"
 RESERVED_NAMES = {CA_NAME, SERVICE_NAME, "signing"}  # file names in the PKI folder no device may take
+GENERATION_SEP = "#"  # `drive-7#2`: drive-7's certificate of generation 2 ('#' is in no device id)
 
 
 class SecurityError(InputError):
@@ -53,16 +56,28 @@ def certificate_identity(path: Path) -> tuple[str, str]:
     return (str(cn[0].value) if cn else "", str(ou[0].value) if ou else "")
 
 
-def registry(pki_dir: Path) -> list[str]:
-    """The device registry: common names of the device certificates issued into the PKI folder."""
-    found = []
+def device_of(cn: str) -> str:
+    """The device id a certificate's common name stands for: `NAME` and `NAME#N` (its generation N) are NAME."""
+    name, sep, generation = cn.partition(GENERATION_SEP)
+    return name if not sep or generation.isdigit() else cn
+
+
+def registry_names(pki_dir: Path) -> dict[str, str]:
+    """The device registry: device id -> the common name of its certificate in the PKI folder (the only one the
+    router admits for it)."""
+    found = {}
     for path in sorted(Path(pki_dir).glob("*.crt")):
         if path.stem in RESERVED_NAMES:
             continue
         cn, role = certificate_identity(path)
-        if role == ROLE_DEVICE and cn == path.stem and keys.DEVICE_RE.match(cn):
-            found.append(cn)
+        if role == ROLE_DEVICE and device_of(cn) == path.stem and keys.DEVICE_RE.match(path.stem):
+            found[path.stem] = cn
     return found
+
+
+def registry(pki_dir: Path) -> list[str]:
+    """The device registry: ids of the devices whose certificates are issued into the PKI folder."""
+    return list(registry_names(pki_dir))
 
 
 @dataclass(frozen=True)
@@ -94,7 +109,7 @@ class Identity:
                     f"--pki {pki_dir}: {path.name} is missing (encoder-fleet pki init / pki issue make it)"
                 )
         cn, got_role = certificate_identity(ident.cert)
-        if cn != name or got_role != role:
+        if device_of(cn) != name or got_role != role:
             raise SecurityError(
                 f"{ident.cert}: issued to {cn!r} as {got_role or 'no role'!r}, not {name!r} as {role!r}"
             )
@@ -150,8 +165,11 @@ SERVICE_MESSAGES = [
 ]
 
 
-def access_control(devices: list[str], service: str = SERVICE_NAME, routers: list[str] = ()) -> dict:
+def access_control(devices, service: str = SERVICE_NAME, routers: list[str] = ()) -> dict:
     """The router's `access_control` config, default deny, generated from the device registry.
+
+    devices: device ids (each admitted by the common name equal to it), or {device id: certificate common name}
+    (`registry_names`: a re-issued device is admitted by its current certificate's name only, `NAME#N`).
 
     The service is a subject too (it needs rules when it is a client of an external router, as in compose);
     an embedded router's own session is not filtered. `routers`: the certificate names of the routers this one
@@ -168,12 +186,13 @@ def access_control(devices: list[str], service: str = SERVICE_NAME, routers: lis
     ]
     subjects = [{"id": service, "cert_common_names": [service, *routers]}]
     policies = [{"id": f"{service}/policy", "rules": [f"{service}/all"], "subjects": [service]}]
-    for device in sorted(set(devices)):
-        if not keys.DEVICE_RE.match(device) or device in RESERVED_NAMES:
+    names = dict(devices) if isinstance(devices, dict) else {d: d for d in devices}
+    for device in sorted(names):
+        if not keys.DEVICE_RE.match(device) or device in RESERVED_NAMES or device_of(names[device]) != device:
             raise SecurityError(f"device {device!r} cannot have access rules: not a valid device id")
         own = device_rules(device)
         rules += own
-        subjects.append({"id": device, "cert_common_names": [device]})
+        subjects.append({"id": device, "cert_common_names": [names[device]]})
         policies.append({"id": f"{device}/policy", "rules": [r["id"] for r in own], "subjects": [device]})
     return {
         "enabled": True,

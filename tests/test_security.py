@@ -115,6 +115,53 @@ def test_the_acl_is_generated_from_the_registry(pki):
     }
 
 
+def test_a_stolen_device_certificate_stays_refused_once_its_drive_is_issued_again(tmp_path):
+    """The drive's key is stolen; the operator replaces its certificate (`pki issue --force`), or revokes it (removes
+    NAME.crt, restarts) and later provisions the drive again under its id. Each time the new certificate speaks for
+    the drive and the stolen one speaks for nothing: before, both carried the common name the router admits."""
+    import shutil
+
+    from conftest import make_pki
+
+    from encoder_fleet.pki import issue
+    from fleet_wire.security import certificate_identity
+
+    pki = make_pki(tmp_path / "pki", [A])
+    stolen = tmp_path / "stolen"
+    stolen.mkdir()
+    for name in ("ca.crt", f"{A}.crt", f"{A}.key"):
+        shutil.copy(pki / name, stolen / name)
+
+    def stored_by(seq, folders):
+        (tmp_path / f"run{seq}").mkdir()
+        s = Secured(tmp_path / f"run{seq}", pki)
+        try:
+            for i, folder in enumerate(folders):
+                s.client(A, pki=folder).put(keys.key(A, keys.STATS), wire.encode("window", ws.window(A, seq + i)))
+            seqs = lambda: {w["seq"] for w in s.store.windows(A)}  # noqa: E731
+            wait_for(lambda: seq + len(folders) - 1 in seqs(), timeout=10)  # the last folder's is the drive's
+            time.sleep(0.5)
+            return [i for i in range(len(folders)) if seq + i in seqs()]
+        finally:
+            s.close()
+
+    assert stored_by(1, [stolen]) == [0]  # the attack: while its certificate is the drive's, it is the drive
+    issue(pki, A, force=True)  # replaced
+    assert stored_by(10, [stolen, pki]) == [1]  # before: [0, 1], the stolen certificate still spoke for the drive
+    assert certificate_identity(pki / f"{A}.crt") == (f"{A}#1", "device")
+    assert Identity.load(pki, A, ROLE_DEVICE).name == A
+    (pki / f"{A}.crt").unlink()  # revoked
+    (pki / f"{A}.key").unlink()
+    assert registry(pki) == []
+    issue(pki, A)  # the drive provisioned again under its id
+    assert stored_by(20, [stolen, pki]) == [1]
+    assert certificate_identity(pki / f"{A}.crt") == (f"{A}#2", "device")
+    from fleet_wire.security import registry_names
+
+    acl = access_control(registry_names(pki))
+    assert {s["id"]: s["cert_common_names"] for s in acl["subjects"]}[A] == [f"{A}#2"]
+
+
 # --- a device speaks only for itself ----------------------------------------------------------------
 
 
