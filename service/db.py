@@ -14,6 +14,7 @@ import queue
 import re
 import sqlite3
 import threading
+import urllib.parse
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -42,8 +43,15 @@ def sqlite_path(target) -> str:
 
 
 def redacted(url: str) -> str:
-    """The URL without its password, for messages and logs."""
-    return re.sub(r"//([^:/@]+):[^@]*@", r"//\1:***@", url)
+    """The URL without its password, for messages and logs: in the user part (`user:pw@`, `:pw@`, a password with
+    an @ in it) and in a `password=` parameter (a second reader found all three printed)."""
+    if "://" not in url:
+        return url
+    parts = urllib.parse.urlsplit(url)
+    user, at, host = parts.netloc.rpartition("@")
+    netloc = f"{user.split(':', 1)[0]}:***@{host}" if at and ":" in user else parts.netloc
+    query = re.sub(r"(?i)(^|&)(password=)[^&]*", r"\1\2***", parts.query)
+    return urllib.parse.urlunsplit(parts._replace(netloc=netloc, query=query))
 
 
 MIGRATION_LOCK = 0x454E4301  # the advisory lock held while a process migrates (PostgreSQL)

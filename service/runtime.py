@@ -774,6 +774,8 @@ class FleetService:
             device = wire.device_from_key(query.key_expr)
         except wire.WireError:
             return
+        if self.guard is not None and not self.guard.admits(device):
+            return  # as for its windows: an id out of the registry (revoked) gets no watermark and moves no floor
         try:
             self._take_gone_below(device, query)
         except Exception:  # a write the database refused: the watermark is still answered (reads work)

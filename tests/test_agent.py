@@ -10,10 +10,12 @@ import zenoh
 from edge_agent.agent import EdgeAgent, factory_message
 from edge_agent.outbox import Outbox
 from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
+from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import loopback_endpoint, session_config
 from service.runtime import FleetService, open_session
 from service.store import Store
+from tests.wire_samples import window as ws_window
 
 DEVICE = "drive-t"
 SEED = 4
@@ -398,6 +400,30 @@ def test_a_window_numbered_after_a_floor_and_lost_on_the_way_is_sent_again(setup
     finally:
         back.stop()
     assert lost == [7] and [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 3, 7, 8, 9]
+
+
+def test_a_device_out_of_the_registry_gets_no_watermark_and_moves_no_floor(tmp_path):
+    """The received question skipped the guard that windows, factory sets and tokens pass: behind a stale router
+    ACL a revoked id still had its watermark answered and could raise its stored seq floor (a second reader)."""
+    from service.guard import IngestGuard
+
+    endpoint = loopback_endpoint()
+    store = Store.open(tmp_path / "fleet.sqlite")
+    for device in ("drive-ok", "drive-revoked"):
+        store.insert_window(ws_window(device, seq=1))
+    router = open_session(listen=[endpoint])
+    service = FleetService(store, router, refit_interval_s=0, guard=IngestGuard(store, ["drive-ok"])).start()
+    client = zenoh.open(session_config("client", connect=[endpoint]))
+    try:
+        for device, answered in (("drive-ok", True), ("drive-revoked", False)):
+            got = list(client.get(keys.key(device, keys.RECEIVED), payload=wire.received_query(device, 50), timeout=2))
+            assert bool([r for r in got if r.ok is not None]) == answered, device
+        assert store.contiguous_seq("drive-ok") == 49 and store.contiguous_seq("drive-revoked") == 1
+    finally:
+        client.close()
+        service.stop()
+        router.close()
+        store.close()
 
 
 def test_a_received_question_is_answered_while_the_database_refuses_writes(setup):
