@@ -25,7 +25,9 @@ PLATEAU_GAP_C = 2.0  # a bench's temperature plateaus are separated by more than
 # a bench holds each plateau while the shaft steps through its reference table, and ramps between them: the samples
 # of a plateau crowd into a few bins of PLATEAU_BIN_C, a ramp's spread thinly over all the bins it passes through
 PLATEAU_BIN_C = 0.5
-PLATEAU_SHARE = 0.05  # a plateau's bin holds at least this share of the fullest bin's samples
+PLATEAU_SHARE = 0.05  # bins under this share of the fullest one are a ramp's (or a plateau's thin tails) ...
+PLATEAU_CONTRAST = 4.0  # ... and a bin this many times as full as they typically are is a plateau's
+PLATEAU_MIN_SAMPLES = 64  # and holds at least this many (what a band's fit needs)
 
 
 def plateaus(temp_c: np.ndarray) -> np.ndarray:
@@ -35,7 +37,11 @@ def plateaus(temp_c: np.ndarray) -> np.ndarray:
     splitting at gaps alone made it one plateau: the whole bench fitted as one band at its mean temperature."""
     bins = np.floor((temp_c - temp_c.min()) / PLATEAU_BIN_C).astype(int)
     counts = np.bincount(bins)
-    crowded = np.concatenate(([False], counts >= PLATEAU_SHARE * counts.max(), [False]))
+    # a plateau is crowded against the ramps, not against the fullest plateau: a short plateau beside a long one
+    # (400 samples at -40 °C, 10,000 at +20 °C) is a plateau still
+    thin = counts[(counts > 0) & (counts < PLATEAU_SHARE * counts.max())]
+    floor = max(PLATEAU_MIN_SAMPLES, PLATEAU_CONTRAST * float(np.median(thin))) if thin.size else PLATEAU_MIN_SAMPLES
+    crowded = np.concatenate(([False], counts >= min(floor, counts.max()), [False]))
     held = crowded[bins] | crowded[bins + 1] | crowded[bins + 2]  # the bin before, its own, the bin after
     out = np.full(temp_c.size, -1)
     idx = np.flatnonzero(held)
@@ -79,6 +85,10 @@ def cmd_calibrate(args) -> int:
 
     samples = read_recording(args.bench)
     factory = calibrate(samples)
+    if samples.temp_c is not None:
+        ramps = int((plateaus(samples.temp_c) < 0).sum())
+        if ramps:
+            print(f"{ramps} of {len(samples)} samples between plateaus (ramps) left out of every band")
     msg = factory_set(args.device, factory)
     write_file(args.out, json.dumps(msg, indent=1))
     for band in factory.bands:

@@ -82,6 +82,23 @@ def test_calibrate_fits_each_plateau_of_a_bench_that_records_its_ramps(tmp_path)
         assert float(np.degrees(np.sqrt(np.mean(err**2)))) < 0.05, band.temp_c
 
 
+def test_a_short_plateau_beside_a_long_one_is_a_plateau_still():
+    """Plateaus are told from ramps by how crowded their temperatures are against the ramps', not against the
+    fullest plateau: 400 samples at -40 °C beside 10,000 at +20 °C were all taken for a ramp (a second reader),
+    with or without recorded ramps; a plateau whose temperature wanders by ±1 °C keeps every sample."""
+    from encoder_fleet.calibrate import plateaus
+
+    rng = np.random.default_rng(5)
+    held = [np.full(400, -40.0), np.full(10_000, 20.0), np.full(3_000, 60.0)]
+    for ramps in (True, False):
+        parts = [held[0], np.linspace(-40, 20, 1200), held[1], np.linspace(20, 60, 800), held[2]] if ramps else held
+        temp = np.concatenate(parts) + rng.normal(0, 0.05, sum(p.size for p in parts))
+        groups = plateaus(temp)
+        sizes = [int((groups == g).sum()) for g in range(3)]
+        assert groups.max() == 2 and all(abs(n - h.size) <= 0.05 * h.size for n, h in zip(sizes, held)), (ramps, sizes)
+    assert (plateaus(20 + rng.uniform(-1, 1, 2000)) == 0).all()
+
+
 def step_follower_worse_hours(drive: dict, specs: list) -> set[int]:
     """The hours in which the factory set moved by the drive's planted offset step, from the step's time (what naming
     the step exactly gives), is itself worse than the factory set: the step had cancelled part of the drift there.
