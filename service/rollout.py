@@ -37,6 +37,8 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from fleet_wire import keys
 
+from .store import NothingWritten
+
 if TYPE_CHECKING:
     from .runtime import FleetService
     from .store import Store
@@ -86,12 +88,12 @@ class RolloutSpec(BaseModel):
 CREATE_LOCK = 0x454E4352  # the advisory lock ('ENCR') that makes a rollout's creation one step across processes
 
 
-class RolloutStopped(Exception):
+class RolloutStopped(NothingWritten):
     """The rollout was paused or aborted while this process started one of its devices, or another process issued
     the device a set meanwhile: the rollout's set is not issued."""
 
 
-class DeviceHeld(Exception):
+class DeviceHeld(NothingWritten):
     """A rollout started on the device while this process made it a set of its own (a refit, a rollback): that set
     is not issued, the device is the rollout's (service processes share the fleet: one steps every rollout)."""
 
@@ -105,6 +107,10 @@ class RolloutError(ValueError):
 
     def __reduce__(self):  # pickled with both arguments: a worker process's error reaches its pool intact
         return type(self), (self.status, str(self))
+
+
+class RolloutRefused(RolloutError, NothingWritten):
+    """A creation refused inside its transaction, before it wrote anything (service.store.NothingWritten)."""
 
 
 def wave_sizes(total: int, base: int, factor: float) -> list[int]:
@@ -141,12 +147,13 @@ class Rollouts:
             with self.store._tx() as c:
                 # the check inside the insert's transaction, one process at a time: two members' REST each creating
                 # one (every member answers POST /rollouts) both found none running and both ran
-                self.store.serialise_transaction(CREATE_LOCK)
+                if not self.store.serialise_transaction(CREATE_LOCK):
+                    raise RolloutRefused(409, "another service process is creating a rollout: try again")
                 busy = c.execute(
                     "SELECT id, name FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id LIMIT 1"
                 ).fetchone()
                 if busy:  # one change at a time: outcomes of two changes on one drive could not be told apart
-                    raise RolloutError(409, f"rollout {busy['id']} ({busy['name']!r}) is still running or paused")
+                    raise RolloutRefused(409, f"rollout {busy['id']} ({busy['name']!r}) is still running or paused")
                 cur = c.execute(
                     "INSERT INTO rollouts (name, spec_json, state, counted_from, created_at, updated_at) "
                     "VALUES (?, ?, 'running', ?, ?, ?)",

@@ -621,16 +621,16 @@ class FleetService:
         try:
             replies = self.session.liveliness().get(keys.every(keys.ALIVE), timeout=5.0)
             alive = {str(r.ok.key_expr) for r in replies if r.ok is not None}
-        except zenoh.ZError:  # the session itself: asked again at the next pass
+            online = self.store.online_device_ids()
+        except Exception:  # the session or the database: asked again at the next pass
             log.exception("asking which devices hold a liveliness token failed")
             with self._lock:
                 self._online_recheck_at = time.monotonic()
             return
-        for device in self.store.devices():
-            gone = device["online"] and keys.key(device["id"], keys.ALIVE) not in alive
-            if gone and self.partitions.serves(device["id"]):
+        for device in online:
+            if keys.key(device, keys.ALIVE) not in alive and self.partitions.serves(device):
                 try:
-                    self._control.put_nowait((self._gone_unheard, (device["id"], asked_at)))
+                    self._control.put_nowait((self._gone_unheard, (device, asked_at)))
                 except queue.Full:
                     with self._lock:
                         self._online_recheck_at = time.monotonic()  # the next pass asks again

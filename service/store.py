@@ -77,6 +77,13 @@ WINDOW_FIELDS = (
 )
 
 
+class NothingWritten(Exception):
+    """Raised inside a transaction by a check that refuses it before it wrote anything the band sums hold (a
+    rollout already running, a device a rollout holds): rolled back without dropping the sums kept in memory. Any
+    other error drops them (they may hold what the rollback took back), and the ingest rebuilds them from their
+    windows: a refused POST /rollouts did that to the whole fleet (a second reader)."""
+
+
 class StoreError(InputError):
     """A well-formed message the history cannot take (e.g. a seq reused with other content), or a database
     that cannot be used at all (reason 'unavailable')."""
@@ -294,8 +301,8 @@ class Store:
             self._writing = threading.get_ident()
             try:
                 yield self._conn
-            except BaseException:
-                if not depth:
+            except BaseException as exc:
+                if not depth and not isinstance(exc, NothingWritten):
                     self._forget_sums()  # they may hold what the rollback took back: read them again
                 # SQLite ends the transaction itself on some errors (a full disk, an I/O error): then there is
                 # nothing to roll back, and trying would hide the real error behind "no transaction is active"
@@ -383,12 +390,21 @@ class Store:
             row = self._conn.execute("SELECT pg_try_advisory_lock(?, ?) AS taken", (PARTITION_LOCKS, part)).fetchone()
             return bool(row["taken"])
 
-    def serialise_transaction(self, lock: int) -> None:
-        """Inside a transaction: wait for every other process's transaction that took the same lock to end (a
-        PostgreSQL advisory lock held to the transaction's end), so a check and the write it decides are one step
-        across service processes. SQLite's BEGIN IMMEDIATE serialises every writer already."""
-        if isinstance(self._conn, db.PgConnection):
-            self._conn.execute("SELECT pg_advisory_xact_lock(?)", (lock,))
+    def serialise_transaction(self, lock: int, wait_s: float = 2.0) -> bool:
+        """Inside a transaction: take a PostgreSQL advisory lock held to the transaction's end, so that a check and
+        the write it decides are one step across service processes; False when another process's transaction has
+        held it for wait_s (the wait holds this process's writer: a member stuck inside its transaction must not
+        stall this one's ingest for good). SQLite's BEGIN IMMEDIATE serialises every writer already."""
+        if not isinstance(self._conn, db.PgConnection):
+            return True
+        deadline = time.monotonic() + wait_s
+        while True:
+            row = self._conn.execute("SELECT pg_try_advisory_xact_lock(?) AS taken", (lock,)).fetchone()
+            if row["taken"]:
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
 
     def release_partition(self, part: int) -> None:
         if isinstance(self._conn, db.PgConnection) and not self._conn.lost:  # a lost session took its locks along
@@ -1129,6 +1145,10 @@ class Store:
 
     def devices(self) -> list[dict]:
         return [self._device_row(r) for r in self._rows(self._DEVICE_SQL + " ORDER BY d.id")]
+
+    def online_device_ids(self) -> list[str]:
+        """The devices marked online (their liveliness token last seen coming), without the devices' window counts."""
+        return [r["id"] for r in self._rows("SELECT id FROM devices WHERE online = 1 ORDER BY id")]
 
     def device_ids(self) -> list[str]:
         return [r["id"] for r in self._rows("SELECT id FROM devices ORDER BY id")]

@@ -634,3 +634,52 @@ def test_two_members_creating_a_rollout_at_once_make_one(postgres_url):
         assert isinstance(outcome[0], RolloutError) and outcome[0].status == 409, outcome
         running = store._rows("SELECT name FROM rollouts WHERE state IN ('running', 'paused')")
         assert [r["name"] for r in running] == ["from B"]
+
+
+def test_a_refused_creation_keeps_the_band_sums_in_memory(fleet, caplog):
+    """A creation refused with 409 inside its transaction (a rollout already running) rolled the transaction back as
+    a failed write, which drops every band sum kept in memory: the next window of each drive rebuilt its band from
+    all its windows (a second reader). Nothing of the sums was written in that transaction: they are kept."""
+    import logging
+
+    from service.rollout import RolloutError
+
+    store, service = fleet
+    install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
+    spec = RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, base_per_minute=1, soak_windows=60)
+    service.rollouts.create(spec)
+    with pytest.raises(RolloutError, match="still running"):
+        service.rollouts.create(spec)
+    caplog.set_level(logging.INFO, logger="service.store")
+    seq = store.max_seq(DEVICE_0) + 1
+    window = store.windows(DEVICE_0, stats=True)[-1]
+    store.insert_window({**window, "seq": seq, "window_start": window["window_end"] + 1.0,
+                         "window_end": window["window_end"] + 61.0})  # fmt: skip
+    assert "rebuilt" not in caplog.text
+
+
+def test_a_member_stuck_in_its_creation_does_not_stall_another_for_good(postgres_url):
+    """The creation's lock was waited for without a bound, holding this process's writer connection: a member stuck
+    inside its own creation's transaction stalled this one's ingest for as long (a second reader). Now the wait is
+    bounded, and the creation answers 409 saying another process is creating one."""
+    import time
+
+    import psycopg
+    from wire_samples import window
+
+    from service.rollout import CREATE_LOCK, RolloutError, Rollouts
+
+    with Store.open(postgres_url) as store:
+        store.insert_window(window("drive-001", seq=1))
+        stuck = psycopg.connect(postgres_url)
+        stuck.execute("SELECT pg_advisory_xact_lock(%s)", (CREATE_LOCK,))  # and never ends its transaction
+        try:
+            started = time.monotonic()
+            spec = {"name": "from A", "change": {"kind": "reset_to_factory"}, "base_per_minute": 1, "soak_windows": 1}
+            with pytest.raises(RolloutError, match="another service process is creating a rollout") as refused:
+                Rollouts(store).create(RolloutSpec.model_validate(spec))
+            assert refused.value.status == 409 and time.monotonic() - started < 10
+            assert store.insert_window(window("drive-001", seq=2))  # the writer goes on
+        finally:
+            stuck.close()
+        assert store._rows("SELECT count(*) AS n FROM rollouts")[0]["n"] == 0
