@@ -83,11 +83,19 @@ class TokenAuth:
             return None
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        _, token = self.create("admin", "first admin (written at first start)")
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as out:
-            out.write(token + "\n")
-        os.chmod(path, 0o600)
+        token_id, token = self.create("admin", "first admin (written at first start)")
+        # a new 0600 file renamed over the path: written into a file already there, the token was readable with that
+        # file's mode until the chmod, and through a symlink it went wherever the link pointed (a security review)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "w") as out:
+                out.write(token + "\n")
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            self.revoke(token_id)  # nobody holds it: the next start writes a first admin token again
+            raise
         return path
 
 

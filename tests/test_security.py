@@ -493,3 +493,30 @@ def test_a_signed_fleet_s_agent_announces_its_factory_set_until_the_service_has_
     other["bands"][0]["w"][0] *= 1.5
     assert not agent._is_own_factory(wire.encode("coefficients", other))
     agent.close()
+
+
+def test_the_first_admin_token_is_never_readable_by_others_nor_written_through_a_link(tmp_path):
+    """The first admin token was written into the file at --admin-token-file as it stood and made 0600 after: an
+    existing 0644 file held the token readable by anyone until the chmod, and a symlink there sent it wherever it
+    pointed (a security review). Now it is a new 0600 file renamed over the path; and a write that fails revokes
+    the token, so the next start writes one again (it had stayed live with nobody holding it, and no first token
+    was ever written again)."""
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        auth = TokenAuth(store)
+        elsewhere = tmp_path / "elsewhere"
+        elsewhere.write_text("not a token\n")
+        os.chmod(elsewhere, 0o644)
+        link = tmp_path / "admin-token"
+        link.symlink_to(elsewhere)
+        assert auth.first_admin_token(link) == link
+        assert not link.is_symlink() and stat.S_IMODE(link.stat().st_mode) == 0o600
+        assert elsewhere.read_text() == "not a token\n" and auth.scope_of(link.read_text().strip()) == "admin"
+    with Store.open(tmp_path / "other.sqlite") as store:
+        auth = TokenAuth(store)
+        blocked = tmp_path / "a-folder"  # a folder where the token file should go: the rename fails
+        blocked.mkdir()
+        (blocked / "kept").write_text("x")
+        with pytest.raises(OSError):
+            auth.first_admin_token(blocked)
+        assert auth.count() == 0 and not list(tmp_path.glob(".a-folder*"))  # revoked, no temporary file left
+        assert auth.first_admin_token(tmp_path / "ok-token") is not None
