@@ -532,19 +532,24 @@ def test_a_device_whose_trial_never_ends_does_not_hold_the_rollout_for_ever(flee
     assert result["state"] == "completed", result
 
 
-def test_a_refit_and_a_rollouts_start_on_one_device_issue_one_set(fleet, clock):
-    """Service processes share the fleet: the leader steps every rollout, while the member serving the device
-    refits it. The member read the device as not held and fitted; meanwhile the leader started the rollout's set on
-    it. Two sets were then in flight for one drive (the rollout's v2 and the fit v3, both on trial)."""
-    from service.rollout import Rollouts
-
-    store, service = fleet
+def reset_rollout_on_a_driven_device(store, service) -> None:
+    """DEVICE_0 off its truth and driven for two hours, and a reset-to-factory rollout created for it alone."""
     install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
     run_on(store, DEVICE_0, 1, hours=2.0)
     service.rollouts.create(
         RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=[DEVICE_0], base_per_minute=1,
                     soak_windows=60)
     )  # fmt: skip
+
+
+def test_a_refit_and_a_rollouts_start_on_one_device_issue_one_set(fleet, clock):
+    """Service processes share the fleet: the leader steps every rollout, while the member serving the device
+    refits it. The member read the device as not held and fitted; meanwhile the leader started the rollout's set on
+    it. Two sets were then in flight for one drive (the rollout's v2 and the fit v3, both on trial)."""
+    from service.rollout import DeviceHeld, Rollouts
+
+    store, service = fleet
+    reset_rollout_on_a_driven_device(store, service)
     leader = Rollouts(store, service, clock=clock)  # the process serving partition 0
     fit = service.fit
 
@@ -555,10 +560,8 @@ def test_a_refit_and_a_rollouts_start_on_one_device_issue_one_set(fleet, clock):
 
     service.fit = fit_while_the_leader_starts
     try:
-        try:
+        with pytest.raises(DeviceHeld):  # refused: the device is the rollout's now
             service.refit(DEVICE_0)  # the member's refit pass
-        except Exception:
-            pass  # refused: the device is the rollout's now
     finally:
         service.fit = fit
     on_trial = [h["version"] for h in store.coefficient_history(DEVICE_0) if h["state"] == "trial"]
@@ -570,12 +573,7 @@ def test_a_rollouts_start_after_a_members_fit_on_one_device_issues_no_second_set
     """The other order: the leader read the device (nothing on trial) and the member issued it a fit before the
     leader's set was written. The rollout's set must wait for that trial instead of going out beside it."""
     store, service = fleet
-    install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
-    run_on(store, DEVICE_0, 1, hours=2.0)
-    service.rollouts.create(
-        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=[DEVICE_0], base_per_minute=1,
-                    soak_windows=60)
-    )  # fmt: skip
+    reset_rollout_on_a_driven_device(store, service)
     publish_bands = service.publish_bands
 
     def member_refits_meanwhile(*args, **kwargs):
