@@ -390,11 +390,14 @@ def window_to_dict(win: Window) -> dict:
 
 
 def window_from_dict(msg: dict) -> Window:
-    """A wire-shaped window dict (arrays as lists) -> Window, checked by the same Structs as the wire."""
+    """A wire-shaped window dict (arrays as lists) -> Window, checked as the wire checks a window: the same
+    Structs, then the non-finite numbers and the relations a schema cannot state (a NaN in the statistics'
+    arrays passes the Structs' types, and a caller storing the window would keep it)."""
     try:
-        return msgspec.convert(msg, ArrayWindow).packed()
+        win = msgspec.convert(msg, ArrayWindow).packed()
     except msgspec.ValidationError as exc:
         raise WireError("schema", f"window message: {_where(exc)}") from None
+    return _check_window(win)
 
 
 def pack_stats(stats: PackedStats) -> bytes:
@@ -572,9 +575,9 @@ def decode_window(payload: bytes, *, key_device: str | None) -> Window:
             raise WireError("schema", f"window message: {_where(exc)}") from None
         except (msgspec.DecodeError, UnicodeDecodeError) as exc:  # msgspec raises the latter for a string not UTF-8
             raise WireError("not_json", f"window message: not MessagePack: {exc}") from None
+        _check_window(win)
     else:
         win = window_from_dict(_parse_json("window", payload))
-    _check_window(win)
     if key_device is not None and win.device != key_device:
         raise WireError(
             "device_mismatch", f"window message: $.device: {win.device!r} differs from the key's device {key_device!r}"
@@ -690,7 +693,7 @@ def check(kind: str, msg) -> dict:
         _find = _find_non_finite(msg)
         if _find:
             raise WireError("non_finite", f"window message: {_find[0]}: non-finite number {_find[1]}")
-        _check_window(window_from_dict(msg))
+        window_from_dict(msg)
         return msg
     text = _finite_json(msg)  # once: the finite check, and the compiled Struct's input
     found = None if text is not None else _walk_non_finite(msg, "$")

@@ -95,6 +95,31 @@ def test_reused_seq_with_other_content_is_a_conflict_not_a_duplicate(store):
     assert len(store.windows("drive-001")) == 1
 
 
+@pytest.mark.parametrize(
+    ("where", "path"),
+    [(("stats", "moments", 3), r"\$\.stats\.moments\[3\]"), (("stats", "bins", 5, 1), r"\$\.stats\.bins\[5\]\[1\]")],
+)
+def test_a_window_stored_directly_is_checked_as_the_wire_checks_it(store, where, path):
+    """insert_window (the replays', the imports' and the tests' way in) refuses what the wire refuses: a NaN in the
+    statistics' arrays passes their types, and stored it failed every later export of the device."""
+    store.insert_window(window(seq=1))
+    bad = window(seq=2)
+    *parents, last = where
+    target = bad
+    for p in parents:
+        target = target[p]
+    target[last] = float("nan")
+    with pytest.raises(wire.WireError, match=path) as err:
+        store.insert_window(bad)
+    assert err.value.reason == "non_finite"
+    inconsistent = window(seq=3)
+    inconsistent["samples"] += 1
+    with pytest.raises(wire.WireError, match=r"\$\.samples"):
+        store.insert_window(inconsistent)
+    assert [w["seq"] for w in store.windows("drive-001")] == [1]
+    assert store.band_stats("drive-001")[2][1] == 1
+
+
 def test_a_seq_floor_steps_over_gone_windows(store):
     """Below the floor an agent names (`gone_below`: the lowest seq it holds, its full outbox having dropped the
     ones before), the windows the service lacks are gone and the contiguous watermark steps over them, also past
