@@ -9,10 +9,12 @@ When the app is built without a TokenAuth (tests, `--insecure` without --admin-t
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import hmac
 import os
 import secrets
+import tempfile
 import time
 from pathlib import Path
 from typing import Annotated, Literal
@@ -81,22 +83,46 @@ class TokenAuth:
         """At first start (no token yet): an admin token written to `path`, 0600. None if tokens exist."""
         if self.count():
             return None
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         token_id, token = self.create("admin", "first admin (written at first start)")
-        # a new 0600 file renamed over the path: written into a file already there, the token was readable with that
-        # file's mode until the chmod, and through a symlink it went wherever the link pointed (a security review)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            with os.fdopen(fd, "w") as out:
-                out.write(token + "\n")
-            os.replace(tmp, path)
+            write_token_file(path, token)
         except BaseException:
-            tmp.unlink(missing_ok=True)
             self.revoke(token_id)  # nobody holds it: the next start writes a first admin token again
             raise
-        return path
+        return Path(path)
+
+    def id_of(self, token: str) -> int | None:
+        """The id of the live token `token`, or None (every live token's hash compared in constant time)."""
+        wanted = _digest(token)
+        found = None
+        for row in self.store._rows("SELECT id, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
+            if hmac.compare_digest(row["token_sha256"], wanted):
+                found = row["id"]
+        return found
+
+
+def write_token_file(path, token: str, *, replace: bool = True) -> None:
+    """`token` as a new 0600 file at `path` (its folder made if need be): a temporary file beside it, 0600 before a
+    byte is written, renamed onto the path. Written into a file already there, a token was readable with that file's
+    mode until a chmod, and through a symlink it went wherever the link pointed (a security review): a link at the
+    path is replaced, never followed. replace=False: anything at the path (a file, a link, a folder) is left as it
+    is and FileExistsError raised, checked in the same step as the file takes the name (a hard link)."""
+    path = Path(path)
+    if path.is_dir() and not path.is_symlink():
+        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")  # O_EXCL, 0600
+    try:
+        with os.fdopen(fd, "w") as out:
+            out.write(token + "\n")
+            out.flush()
+            os.fsync(out.fileno())
+        if replace:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)  # EEXIST if anything took the name meanwhile
+    finally:
+        Path(tmp).unlink(missing_ok=True)  # renamed: gone already; linked: its second name
 
 
 # --- FastAPI ----------------------------------------------------------------------------------------

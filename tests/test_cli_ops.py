@@ -293,6 +293,45 @@ def test_a_token_that_could_not_be_written_out_is_revoked(tmp_path):
     assert done.returncode == 0 and stat.S_IMODE(os.stat(good).st_mode) == 0o600 and len(good.read_text()) > 20
 
 
+def test_token_create_over_a_file_refuses_or_revokes_the_token_it_held(tmp_path):
+    """`token create --out FILE` where FILE holds a token: it was replaced without a word and the token in it stayed
+    live with nobody holding it; a symlink there had the token written where it pointed. Now a file there is refused
+    (one line, exit 2, no token made) unless --force, which replaces it and revokes the live token it held, and says
+    so; a link or a stream there is refused even with --force, and what it points to is left as it was."""
+    import os
+    import stat
+
+    from service.auth import TokenAuth
+    from service.store import Store
+
+    db, out = tmp_path / "fleet.sqlite", tmp_path / "admin.token"
+    token = [sys.executable, "-m", "encoder_fleet.cli", "token", "create", "--scope", "admin", "--db", str(db)]
+    run = lambda *args: subprocess.run([*token, *args], capture_output=True, text=True)  # noqa: E731
+    assert run("--create-db", "--out", str(out)).returncode == 0
+    first = out.read_text().strip()
+    refused = run("--out", str(out))
+    assert refused.returncode == 2 and "already exists" in refused.stderr and "--force" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1 and "Traceback" not in refused.stderr
+    assert out.read_text().strip() == first
+    replaced = run("--out", str(out), "--force")
+    assert replaced.returncode == 0 and "token 1, which it held, is revoked" in replaced.stdout, replaced.stdout
+    second = out.read_text().strip()
+    assert second != first and stat.S_IMODE(out.stat().st_mode) == 0o600
+    elsewhere, link = tmp_path / "elsewhere", tmp_path / "link.token"
+    elsewhere.write_text("not a token\n")
+    os.chmod(elsewhere, 0o644)
+    link.symlink_to(elsewhere)
+    os.mkfifo(tmp_path / "fifo")
+    for path in (link, tmp_path / "fifo"):
+        done = run("--out", str(path), "--force")
+        assert done.returncode == 2 and str(path) in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert link.is_symlink() and elsewhere.read_text() == "not a token\n"
+    with Store.open(db) as store:
+        auth = TokenAuth(store)
+        assert auth.scope_of(first) is None and auth.scope_of(second) == "admin"
+        assert auth.count() == 1 and len(auth.tokens()) == 2  # nothing made for the refusals
+
+
 def test_a_database_password_is_never_printed(tmp_path):
     """The password of a postgresql:// --db in any of its forms (user:pw@, :pw@, a password with an @ in it, a
     password= parameter) is starred in every message; the first three forms but one were printed as given."""
