@@ -446,6 +446,23 @@ def test_zenohd_config_from_pki_router_config_admits_the_service_and_confines_de
         store.close()
 
 
+def test_pki_router_config_refuses_an_endpoint_that_is_not_tls(tmp_path, pki):
+    """`pki router-config --listen tcp/...` (or a --connect mesh link over tcp/) wrote a config with that endpoint
+    beside the TLS one: a listener that takes clients without a certificate, in plain text, and a mesh link with no
+    certificate for the peer's ACL. Now it is refused as the service's own router refuses it: one line naming the
+    endpoint, exit 2, no config written."""
+    command = [sys.executable, "-m", "encoder_fleet.cli", "pki", "router-config", str(pki), "--name", "zenohd-test"]
+    out = tmp_path / "zenohd.json5"
+    for option, endpoint in (("--listen", "tcp/0.0.0.0:7448"), ("--connect", "tcp/zenohd-a:7447")):
+        args = [option, endpoint] + (["--listen", "tls/0.0.0.0:7447"] if option == "--connect" else [])
+        done = subprocess.run([*command, *args, "--out", str(out)], capture_output=True, text=True)
+        assert done.returncode == 2 and f"{option} {endpoint}: not TLS" in done.stderr, done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+        assert not out.exists()
+    done = subprocess.run([*command, "--connect", "tls/zenohd-a:7447", "--out", str(out)], capture_output=True)
+    assert done.returncode == 0 and json.loads(out.read_text())["connect"]["endpoints"] == ["tls/zenohd-a:7447"]
+
+
 def test_pki_commands_write_the_contract_files_with_private_keys_0600(tmp_path):
     from encoder_fleet.cli import main
     from fleet_wire.security import certificate_identity
