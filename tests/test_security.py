@@ -430,7 +430,10 @@ def test_zenohd_config_from_pki_router_config_admits_the_service_and_confines_de
     service_session = open_session(connect=[endpoint], pki=pki)
     service = FleetService(store, service_session, refit_interval_s=0, **service_security(store, pki)).start()
     a = zenoh.open(session_config("client", connect=[endpoint], identity=Identity.load(pki, A, ROLE_DEVICE)))
+    b = zenoh.open(session_config("client", connect=[endpoint], identity=Identity.load(pki, B, ROLE_DEVICE)))
     try:
+        # drive A's stolen key answers B's watermark question high: B's agent would drop windows never stored
+        a.declare_queryable(keys.key(B, keys.RECEIVED), lambda q: q.reply(q.key_expr, wire.watermark_reply(B, 10**9)))
         time.sleep(0.3)
         a.put(keys.key(B, keys.STATS), wire.encode("window", ws.window(B, 1)))
         a.put(keys.key(A, keys.STATS), wire.encode("window", ws.window(A, 1)))
@@ -438,12 +441,37 @@ def test_zenohd_config_from_pki_router_config_admits_the_service_and_confines_de
         replies = [r.ok.payload.to_bytes() for r in a.get(keys.key(A, keys.RECEIVED), timeout=2.0) if r.ok]
         assert [wire.parse_watermark(p, A) for p in replies] == [1]  # the service answers through zenohd
         assert store.device(B) is None
+        replies = [r.ok.payload.to_bytes() for r in b.get(keys.key(B, keys.RECEIVED), timeout=2.0) if r.ok]
+        assert [wire.parse_watermark(p, B) for p in replies] == [0]  # the service's answer only
     finally:
         a.close()
+        b.close()
         service.stop()
         service_session.close()
         router.close()
         store.close()
+
+
+def test_only_the_service_and_its_meshed_routers_may_answer_a_query_in_the_router_acl(pki):
+    """The watermark reply (`received`) is not signed, as coefficient sets are: what keeps a device's certificate (a
+    stolen drive key) from answering another drive's question, so that its agent drops windows never stored, is the
+    router's ACL, default deny: a device's rules allow `reply` only egress (the answers to its own questions) and
+    never `declare_queryable`; only the service's policy (the service and the meshed routers) may answer."""
+    from encoder_fleet.pki import router_config
+
+    acl = router_config(pki, "zenohd-a", listen=["tls/0.0.0.0:7447"], peers=["zenohd-b"])["access_control"]
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    rules = {r["id"]: r for r in acl["rules"]}
+    subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    answering = set()
+    for policy in acl["policies"]:
+        for rule in map(rules.get, policy["rules"]):
+            if rule["permission"] == "allow" and (
+                "declare_queryable" in rule["messages"] or ("reply" in rule["messages"] and "ingress" in rule["flows"])
+            ):
+                answering.update(name for s in policy["subjects"] for name in subjects[s])
+    assert answering == {"service", "zenohd-b"}
+    assert subjects[A] == [A]
 
 
 def test_pki_router_config_refuses_an_endpoint_that_is_not_tls(tmp_path, pki):
