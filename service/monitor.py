@@ -68,11 +68,32 @@ class Monitor:
                 try:
                     mon = DeviceMonitor.from_dict(state, self.settings)
                 except (KeyError, TypeError, ValueError) as exc:  # a state from an incompatible version: start over
-                    log.warning("monitor state unreadable, starting over", extra={"device": device, "error": str(exc)})
-                    mon = DeviceMonitor(device, self.settings)
+                    mon = self._start_over(device, last_seq)
+                    log.warning(
+                        "monitor state unreadable, starting over",
+                        extra={"device": device, "error": str(exc), "open": sorted(mon.open)},
+                    )
                 self.devices[device] = mon
                 self.last_seq[device] = last_seq
                 self.fleet.report(device, mon.rate_estimates())
+
+    def _start_over(self, device: str, last_seq: int) -> DeviceMonitor:
+        """A new monitor for a device whose saved state is lost, holding the alarms the lost one left open: a monitor
+        that did not know of them never cleared them (open in the store for good, the device's state "ok" beside
+        them, a later raise of the cause skipped as already open). Held, each is cleared by the rule that clears
+        it from any monitor (a refit applied, a rate back down, the token back), judged from the windows since."""
+        mon = DeviceMonitor(device, self.settings)
+        for alarm in self.store.alarms(device, open_=True, limit=None):
+            mon.open[alarm["cause"]] = {
+                "raised_at": alarm["raised_at"],
+                "parameters": alarm["parameters"],
+                "quiet_since": None,
+            }
+        mon.online = "offline" not in mon.open  # as the last token heard said
+        # the drive time it had reached (the last window fed): a clear dated 0 s would come before its raise
+        last = self.store.monitor_windows(device, last_seq - 1, last_seq, limit=1) if last_seq > 0 else []
+        mon.last_t = last[0]["window_end"] if last else None
+        return mon
 
     def _known(self, device: str) -> DeviceMonitor | None:
         """The device's monitor, read again as written last where it was dropped (see _forget); None if none."""

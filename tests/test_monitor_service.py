@@ -168,6 +168,34 @@ def test_a_state_the_database_refuses_to_write_is_fed_again_and_its_alarm_raised
         assert [a["cause"] for a in store.alarms(spec.name, cause="offline")] == ["offline"]
 
 
+def test_a_state_unreadable_at_start_is_started_over_holding_the_alarms_it_left_open(tmp_path, aging):
+    """A saved state this version cannot read (written by an incompatible one) is started over, and the alarms the
+    lost state had open in the store are held open by the new monitor: not knowing of them, it never cleared them
+    (the offline alarm stayed open with its token back) and said the device was ok beside its open drift alarm."""
+    import json
+    import sqlite3
+
+    spec, msgs = aging
+    path = tmp_path / "fleet.sqlite"
+    with Store.open(path) as store:
+        insert(store, msgs)
+        monitor = Monitor(store)
+        assert [a["cause"] for a in monitor.process(spec.name)] == ["accelerated_aging"]
+        (offline,) = monitor.set_online(spec.name, False)
+    with sqlite3.connect(path) as db:  # the state of another version: its fields are not this one's
+        db.execute("UPDATE monitor_state SET state_json = ?", (json.dumps({"device": spec.name, "v": 99}),))
+    with Store.open(path) as store:
+        monitor = Monitor(store)
+        assert monitor.last_seq[spec.name] == len(msgs)  # the windows already judged are not judged again
+        assert monitor.state(spec.name) == "offline"
+        assert monitor.set_online(spec.name, False) == []  # already open
+        (back,) = monitor.set_online(spec.name, True)
+        assert back["id"] == offline["id"] and back["cleared_at"] == msgs[-1]["window_end"] >= back["raised_at"]
+        assert monitor.state(spec.name) == "alarm"
+        assert [a["cause"] for a in store.alarms(spec.name, open_=True)] == ["accelerated_aging"]
+        assert TestClient(create_app(store)).get(f"/devices/{spec.name}/health").json()["state"] == "alarm"
+
+
 def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
     spec, msgs = aging
     with Store.open(tmp_path / "fleet.sqlite") as store:
