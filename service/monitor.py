@@ -61,11 +61,13 @@ class Monitor:
                 self._unsaved.pop(device, None)
             self._adopt({d: saved for d, saved in self.store.monitor_states().items() if which(d)})
 
-    def _adopt(self, states: dict[str, tuple[dict, int]]) -> None:
+    def _adopt(self, states: dict[str, tuple[dict | None, int]]) -> None:
         """Take saved states (Store.monitor_states) as the devices' monitors."""
         with self._lock:
             for device, (state, last_seq) in states.items():
                 try:
+                    if state is None:
+                        raise ValueError("its saved state is not a JSON object")
                     mon = DeviceMonitor.from_dict(state, self.settings)
                 except (KeyError, TypeError, ValueError) as exc:  # a state from an incompatible version: start over
                     mon = self._start_over(device, last_seq)
@@ -276,7 +278,7 @@ class Monitor:
             return mon.state()
 
 
-def _stored_state(saved: tuple[dict, int] | None) -> str:
+def _stored_state(saved: tuple[dict | None, int] | None) -> str:
     if saved is None:
         return "unknown"
     try:

@@ -1321,12 +1321,21 @@ class Store:
             for r in rows
         ]
 
-    def monitor_states(self, device: str | None = None) -> dict[str, tuple[dict, int]]:
-        """device -> (monitor state, last seq seen) for every device the monitor has seen (or for one)."""
+    def monitor_states(self, device: str | None = None) -> dict[str, tuple[dict | None, int]]:
+        """device -> (monitor state, last seq seen) for every device the monitor has seen (or for one); the state is
+        None where its JSON does not parse (the monitor starts that device over: one device's, it stopped every
+        device's monitor at start)."""
         sql, args = "SELECT device, state_json, last_seq FROM monitor_state", ()
         if device is not None:
             sql, args = sql + " WHERE device = ?", (device,)
-        return {r["device"]: (json.loads(r["state_json"]), r["last_seq"]) for r in self._rows(sql, args)}
+        out = {}
+        for r in self._rows(sql, args):
+            try:
+                state = json.loads(r["state_json"])
+            except ValueError:
+                state = None
+            out[r["device"]] = (state, r["last_seq"])
+        return out
 
     def monitor_device_states(self, device: str | None = None) -> dict[str, str | None]:
         """device -> the state (ok | watch | ...) its monitor was in when last written (for every device the monitor

@@ -168,22 +168,26 @@ def test_a_state_the_database_refuses_to_write_is_fed_again_and_its_alarm_raised
         assert [a["cause"] for a in store.alarms(spec.name, cause="offline")] == ["offline"]
 
 
-def test_a_state_unreadable_at_start_is_started_over_holding_the_alarms_it_left_open(tmp_path, aging):
-    """A saved state this version cannot read (written by an incompatible one) is started over, and the alarms the
-    lost state had open in the store are held open by the new monitor: not knowing of them, it never cleared them
-    (the offline alarm stayed open with its token back) and said the device was ok beside its open drift alarm."""
-    import json
+@pytest.mark.parametrize("saved", ['{"device": "drive", "v": 99}', '{"device": "drive", "ban'])
+def test_a_state_unreadable_at_start_is_started_over_holding_the_alarms_it_left_open(tmp_path, aging, saved):
+    """A saved state this version cannot read (written by an incompatible one, or cut short) is started over, and
+    the alarms the lost state had open in the store are held open by the new monitor: not knowing of them, it never
+    cleared them (the offline alarm stayed open with its token back) and said the device was ok beside its open
+    drift alarm. A state that is not JSON at all stopped the start of every device's monitor; the others' go on."""
     import sqlite3
 
     spec, msgs = aging
     path = tmp_path / "fleet.sqlite"
     with Store.open(path) as store:
         insert(store, msgs)
+        insert(store, [{**m, "device": "other"} for m in msgs[:20]])
         monitor = Monitor(store)
         assert [a["cause"] for a in monitor.process(spec.name)] == ["accelerated_aging"]
         (offline,) = monitor.set_online(spec.name, False)
-    with sqlite3.connect(path) as db:  # the state of another version: its fields are not this one's
-        db.execute("UPDATE monitor_state SET state_json = ?", (json.dumps({"device": spec.name, "v": 99}),))
+        assert monitor.process("other") == []
+        other = monitor.devices["other"].to_dict()
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE monitor_state SET state_json = ? WHERE device = ?", (saved, spec.name))
     with Store.open(path) as store:
         monitor = Monitor(store)
         assert monitor.last_seq[spec.name] == len(msgs)  # the windows already judged are not judged again
@@ -194,6 +198,7 @@ def test_a_state_unreadable_at_start_is_started_over_holding_the_alarms_it_left_
         assert monitor.state(spec.name) == "alarm"
         assert [a["cause"] for a in store.alarms(spec.name, open_=True)] == ["accelerated_aging"]
         assert TestClient(create_app(store)).get(f"/devices/{spec.name}/health").json()["state"] == "alarm"
+        assert monitor.devices["other"].to_dict() == other and monitor.last_seq["other"] == 20
 
 
 def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
