@@ -132,6 +132,8 @@ class Alarm(BaseModel):
 
 class AlarmList(BaseModel):
     alarms: list[Alarm] = Field(description="Newest first.")
+    truncated: bool = Field(description="More alarms match: ask for the next page with `before` = `next`.")
+    next: int | None = Field(description="`before` of the next page (the last alarm's id) when truncated, else null.")
 
 
 class FleetHealth(BaseModel):
@@ -303,9 +305,15 @@ def list_alarms(
     device: Annotated[str | None, Query(description="Only this device's alarms.")] = None,
     cause: Annotated[str | None, Query(description="Only alarms of this cause.")] = None,
     open: Annotated[bool | None, Query(description="true: open alarms only; false: cleared ones only.")] = None,
+    before: Annotated[
+        int | None, Query(ge=1, le=2**63 - 1, description="Only alarms of a lower id: the `next` of the page before.")
+    ] = None,
     limit: Annotated[int, Query(ge=1, le=10000, description="Most alarms listed.")] = 1000,
 ):
-    return AlarmList(alarms=store.alarms(device, cause, open, limit=limit))
+    # paged by id, newest first: an alarm raised meanwhile has a higher id and moves no page after the first
+    found = store.alarms(device, cause, open, before=before, limit=limit + 1)
+    truncated = len(found) > limit
+    return AlarmList(alarms=found[:limit], truncated=truncated, next=found[limit - 1]["id"] if truncated else None)
 
 
 @alarms.get("/fleet/health", response_model=FleetHealth, summary="Devices per state and open alarms per cause")

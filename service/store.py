@@ -1414,12 +1414,17 @@ class Store:
         open_: bool | None = None,
         *,
         ids: list[int] | None = None,
+        before: int | None = None,
         limit: int | None = 1000,
         audit: bool = False,
     ) -> list[dict]:
-        """Alarms (the GET /alarms contract's objects), newest first; limit None: every one. audit: with when the
-        service raised each (`created_at`, its clock) and what cleared it (`clear_evidence`)."""
+        """Alarms (the GET /alarms contract's objects), newest first; before: only those of a lower id (the next
+        page's); limit None: every one. audit: with when the service raised each (`created_at`, its clock) and what
+        cleared it (`clear_evidence`)."""
         where, args = [], []
+        if before is not None:
+            where.append("id < ?")
+            args.append(before)
         if device is not None:
             where.append("device = ?")
             args.append(device)

@@ -118,6 +118,43 @@ def test_windows_range_and_stats(client, history, store):
     assert [w["seq"] for w in page["windows"]] == [1, 2] and page["truncated"]
 
 
+def _offline(store, device, at):
+    (alarm,) = store.save_monitor(
+        device,
+        {},
+        0,
+        [{"kind": "raise", "cause": "offline", "at": at, "parameters": {"since": at}, "evidence": "gone"}],
+    )
+    return alarm["id"]
+
+
+def test_alarms_are_paged_newest_first_and_say_when_cut(client, store):
+    """More alarms than a page: each page says it was cut and where the next begins, and the pages together are
+    every alarm once (the list stopped at `limit` and said nothing: a fleet past it could not see the older ones)."""
+    ids = [_offline(store, f"drive-{i:03d}", float(i)) for i in range(7)]
+    got, before, pages = [], None, 0
+    while True:
+        params = {"limit": 3, **({"before": before} if before is not None else {})}
+        page = client.get("/alarms", params=params).json()
+        pages += 1
+        got += [a["id"] for a in page["alarms"]]
+        if pages == 1:
+            _offline(store, "drive-new", 99.0)  # raised between two pages: moves no page after the first
+        assert page["truncated"] == (page["next"] is not None)
+        if not page["truncated"]:
+            break
+        assert page["next"] == page["alarms"][-1]["id"]
+        before = page["next"]
+    assert got == sorted(ids, reverse=True) and pages == 3
+    whole = client.get("/alarms", params={"limit": 8}).json()
+    assert len(whole["alarms"]) == 8 and not whole["truncated"] and whole["next"] is None
+    mine = client.get("/alarms", params={"device": "drive-003", "limit": 1}).json()
+    assert [a["id"] for a in mine["alarms"]] == [ids[3]] and not mine["truncated"]
+    for bad in ({"before": 0}, {"before": "newest"}, {"before": 2**63}):
+        r = client.get("/alarms", params=bad)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "before"], r.text
+
+
 @pytest.mark.parametrize(
     "params",
     [{"from": "yesterday"}, {"to": "nan"}, {"from": "inf"}, {"from": 10, "to": 5}, {"limit": 0}, {"stats": "maybe"}],

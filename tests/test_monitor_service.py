@@ -216,7 +216,11 @@ def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
         for a in body["alarms"]:
             assert set(a) == {"id", "device", "cause", "parameters", "evidence", "raised_at", "cleared_at"}
         assert api.get("/alarms", params={"cause": "offline"}).json()["alarms"][0]["cleared_at"] is None
-        assert api.get("/alarms", params={"device": "nobody"}).json() == {"alarms": []}
+        assert api.get("/alarms", params={"device": "nobody"}).json() == {
+            "alarms": [],
+            "truncated": False,
+            "next": None,
+        }
         health = api.get(f"/devices/{spec.name}/health").json()
         assert health["state"] == "offline" and len(health["alarms"]) == 2
         fleet = api.get("/fleet/health").json()
