@@ -2007,6 +2007,9 @@ class DeviceMonitor:
 # --- the fleet ------------------------------------------------------------------------------------
 
 
+SHARED_NORM_OTHERS = 100  # from this many other devices on, one device moves the median by 1 % of its ranks at most
+
+
 class FleetRates:
     """Every device's current rates; the fleet's median and robust spread of each (cached)."""
 
@@ -2034,7 +2037,10 @@ class FleetRates:
         others = [r[kind] for d, r in self.rates.items() if d != exclude]
         if len(others) < s.min_fleet:
             return prior, prior_spread
-        key = (kind, len(others) // 10)  # the distribution of a large fleet moves slowly: cache it
+        # the distribution of a large fleet moves slowly: cache it. In a small one a device's own rate moves it (one
+        # of five others ageing is the median's neighbour): its norm is cached apart, or the one computed leaving
+        # another device out held its own rate, and an ageing drive was judged against itself
+        key = (kind, len(others) // 10, exclude if len(others) < SHARED_NORM_OTHERS else None)
         if key not in self._cache:
             v = np.array(others)
             med = float(np.median(v))

@@ -222,6 +222,21 @@ def test_cusum_and_fleet_norm():
     assert median == pytest.approx(0.001) and spread < 0.001
 
 
+def test_a_small_fleets_norm_leaves_out_the_device_it_is_asked_for():
+    """The cached norm of a small fleet was one for every device left out: a device judged after another had it
+    with its own rate in (here its fleet's median became its own rate, half the fleet ageing), never without."""
+    rates = [0.001, 0.0011, 0.0009, 0.02, 0.021, 0.019]
+    fleet = FleetRates()
+    for i, r in enumerate(rates):
+        fleet.report(f"d{i}", {"offset": r, "amplitude": 0.0})
+    for i in range(len(rates)):
+        alone = FleetRates()
+        for j, r in enumerate(rates):
+            alone.report(f"d{j}", {"offset": r, "amplitude": 0.0})
+        assert fleet.norm("offset", exclude=f"d{i}") == alone.norm("offset", exclude=f"d{i}"), i
+    assert fleet.norm("offset", exclude="d3")[0] == pytest.approx(0.0011)
+
+
 def test_clipping_is_recognised_from_the_data_at_any_rail():
     rng = np.random.default_rng(1)
     theta = rng.uniform(0, 2 * np.pi, 2000)
