@@ -1294,20 +1294,24 @@ class DeviceMonitor:
         del self.open[cause]
         return [AlarmEvent("clear", cause, at, evidence=why)]
 
-    def set_online(self, online: bool) -> list[AlarmEvent]:
-        """From the agent's liveliness; `offline` is raised at the device's last window end."""
+    def set_online(self, online: bool, last_stored_end: float | None = None) -> list[AlarmEvent]:
+        """From the agent's liveliness; `offline` is raised at the device's last window end: of the last window fed,
+        or where none was fed yet (its first windows not all stored), `last_stored_end`, of the last one stored."""
         events: list[AlarmEvent] = []
         self.online = online
-        at = self.last_t or 0.0
+        at = self.last_t if self.last_t is not None else last_stored_end
         if not online:
-            self._raise(
-                events,
-                "offline",
-                at,
-                {"since": at},
-                f"the agent's liveliness token is gone; its last window ended at {at / HOUR_S:.2f} h drive time.",
+            # no window of it stored: no drive time to tell (dated 0 s, and said so, not "its last window ended at 0")
+            seen = (
+                "no window of it is stored"
+                if at is None
+                else f"its last window ended at {at / HOUR_S:.2f} h drive time"
             )
+            at = at or 0.0
+            self._raise(events, "offline", at, {"since": at}, f"the agent's liveliness token is gone; {seen}.")
         elif "offline" in self.open:
+            # never before its raise (dated at a window stored but not yet fed)
+            at = max(at or 0.0, self.open["offline"]["raised_at"])
             events += self.clear("offline", at, "the agent's liveliness token is back.")
         return events
 

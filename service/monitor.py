@@ -234,7 +234,9 @@ class Monitor:
         """From the liveliness token: offline raised when it goes, cleared when it is back."""
         with self._lock:
             mon = self._device(device)
-            events = mon.set_online(online)
+            # none of its windows fed yet (a gap before them): its offline alarm is dated at the last one stored
+            last = self.store.last_window(device) if mon.last_t is None else None
+            events = mon.set_online(online, last[1] if last else None)
             try:
                 written = self._save(device, mon, self.last_seq[device], events) if events else []
             except BaseException:  # the state as written stands (this change of the token is lost, and logged)

@@ -201,6 +201,26 @@ def test_a_state_unreadable_at_start_is_started_over_holding_the_alarms_it_left_
         assert monitor.devices["other"].to_dict() == other and monitor.last_seq["other"] == 20
 
 
+def test_offline_before_any_window_is_fed_is_dated_at_the_last_one_stored(tmp_path, aging):
+    """A drive whose first window is not stored yet (the monitor waits for it, having fed none) goes offline: its
+    alarm is dated at the end of its last window stored, not at drive time 0 "its last window ended at 0.00 h";
+    a drive with no window stored at all says so. Its clear is never dated before its raise."""
+    spec, msgs = aging
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        insert(store, msgs[1:40])
+        monitor = Monitor(store)
+        assert monitor.process(spec.name) == []  # seq 1 missing: nothing fed
+        (offline,) = monitor.set_online(spec.name, False)
+        assert offline["raised_at"] == offline["parameters"]["since"] == msgs[39]["window_end"]
+        assert f"ended at {msgs[39]['window_end'] / 3600:.2f} h" in offline["evidence"]
+        (back,) = monitor.set_online(spec.name, True)
+        assert back["cleared_at"] == back["raised_at"]
+        insert(store, msgs[:1])
+        assert monitor.process(spec.name) == [] and monitor.last_seq[spec.name] == 40
+        (ghost,) = monitor.set_online("drive-unseen", False)
+        assert ghost["raised_at"] == 0.0 and "no window of it is stored" in ghost["evidence"]
+
+
 def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
     spec, msgs = aging
     with Store.open(tmp_path / "fleet.sqlite") as store:
