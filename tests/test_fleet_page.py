@@ -71,6 +71,7 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         # the planted alarm: listed among the open ones, and on drive-002's timeline
         open_alarms = page.locator("#open-alarms tbody tr").all_inner_texts()
         assert [a.split("\t")[:3] for a in open_alarms] == [["drive-002", "offset_step", "2.00"]]
+        assert page.locator("#more-alarms").is_hidden()  # all of them listed
         timeline = page.evaluate("document.getElementById('alarm-timeline').data.map(t => [t.name, t.x])")
         assert timeline == [["offset_step (open)", [2.0, 3.0]]]
         rollouts = page.locator("#rollouts tbody tr").all_inner_texts()
@@ -78,6 +79,40 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
             ["1", "back to the bench", "reset_to_factory", "running", "1 of 2", "0 %"]
         ]
         browser.close()
+    assert problems == []
+
+
+def test_fleet_page_says_when_more_alarms_are_open_than_it_lists(tmp_path):
+    """A fleet with more open alarms than the page lists (its first 200, GET /alarms being paged): the page says
+    that more are open; it had listed the first page as if it were all."""
+    store = Store.open(tmp_path / "fleet.sqlite")
+    causes = ("offset_step", "gain_step", "offline")
+    for i in range(67):  # 201 open alarms
+        device = f"drive-{i:03d}"
+        store.insert_window(window(device, seq=1))
+        raised = [
+            {"kind": "raise", "cause": c, "at": 60.0 * (i * 3 + k), "parameters": {}, "evidence": "planted"}
+            for k, c in enumerate(causes)
+        ]
+        store.save_monitor(device, {}, 1, raised, device_state="alarm")
+    port = free_port()
+    http = HttpServer(store, port).start()
+    problems = []
+    try:
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_page()
+            page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+            page.goto(f"http://127.0.0.1:{port}/")
+            page.wait_for_selector("#more-alarms:not([hidden])")
+            assert page.locator("#open-alarms tbody tr").count() == 200
+            assert "more are open" in page.locator("#more-alarms").inner_text()
+            newest = page.locator("#open-alarms tbody tr").first.inner_text().split("\t")[:2]
+            assert newest == ["drive-066", "offline"]
+            browser.close()
+    finally:
+        http.stop()
+        store.close()
     assert problems == []
 
 

@@ -62,9 +62,17 @@ async function showFleet() {
   if (devices.length) await showDevice(devices[0].id);
 }
 
+// the newest open alarms, a glance's worth: the device table's states say which drives hold the rest
+const OPEN_ALARMS_SHOWN = 200;
+
 async function showOpenAlarms() {
-  const { alarms } = await getJson("/alarms?open=true");
+  const { alarms, truncated } = await getJson(`/alarms?open=true&limit=${OPEN_ALARMS_SHOWN}`);
   document.getElementById("no-alarms").hidden = alarms.length > 0;
+  const more = document.getElementById("more-alarms");
+  more.hidden = !truncated;
+  more.textContent = truncated
+    ? `The newest ${alarms.length} open alarms; more are open (GET /alarms?open=true pages through them all).`
+    : "";
   const body = document.querySelector("#open-alarms tbody");
   body.replaceChildren();
   for (const a of alarms) {
