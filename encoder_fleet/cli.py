@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 
 import numpy as np
@@ -165,11 +166,30 @@ def main(argv=None) -> int:
     except InputError as exc:
         print(f"encoder-fleet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError as exc:
+        if not _stdout_reader_gone():  # a socket's or another pipe's: an error like any other
+            print(f"encoder-fleet {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+        # `... | head`: the reader has what it wanted; no error, and nothing left to flush at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # what a shell reports for a writer stopped by SIGPIPE
     except OSError as exc:  # a path or the machine, not the code: a file that cannot be written, a full disk, ...
         print(f"encoder-fleet {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _stdout_reader_gone() -> bool:
+    """stdout is a pipe whose reading end is closed (poll says POLLERR for it)."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no poll here, or stdout is not a file
+        return False
 
 
 if __name__ == "__main__":

@@ -474,6 +474,19 @@ def test_only_the_service_and_its_meshed_routers_may_answer_a_query_in_the_route
     assert subjects[A] == [A]
 
 
+def test_a_command_whose_reader_has_gone_stops_quietly(pki):
+    """`encoder-fleet pki router-config ... | head`: stdout's reader closed, the command ends with no error line (it
+    printed "error: [Errno 32] Broken pipe") and SIGPIPE's exit status, as a shell tool does."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader gone before the first byte: every write breaks
+    try:
+        command = [sys.executable, "-m", "encoder_fleet.cli", "pki", "router-config", str(pki), "--name", "zenohd"]
+        done = subprocess.run(command, stdout=write_end, stderr=subprocess.PIPE, text=True)
+    finally:
+        os.close(write_end)
+    assert done.returncode == 141 and done.stderr == "", done.stderr
+
+
 def test_pki_router_config_refuses_an_endpoint_that_is_not_tls(tmp_path, pki):
     """`pki router-config --listen tcp/...` (or a --connect mesh link over tcp/) wrote a config with that endpoint
     beside the TLS one: a listener that takes clients without a certificate, in plain text, and a mesh link with no
