@@ -12,8 +12,11 @@ before it has soaked; an error threshold stops the rollout).
   issued); the soak is `soak_windows` windows the drive ran on it (the agent labels each window with the set it
   ran). Then the guard's own judge (service/trial.py)
   compares it with the set the device ran before on those windows: not worse -> succeeded, worse -> regressed
-  and rolled back at once. An ack that refuses the set -> rejected; no soak within `timeout_s` -> timed_out
-  and rolled back (never worse: an unproven change does not stay).
+  and rolled back at once. An ack that refuses the set -> rejected, unless the drive overruled it before the part
+  was decided (an ack 'applied' for the set, or windows run on it: it soaks as any other); the first outcome decided
+  is final (a later 'applied' is answered by the rollback's set, delivered again while the drive's windows show an
+  older one). No soak within `timeout_s` -> timed_out and rolled back (never worse: an unproven change does not
+  stay).
 - Abort criteria count outcomes decided since the rollout started or a criterion last paused it: the outcomes
   decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
   trips pauses the rollout or aborts it; abort (tripped or asked for over REST) rolls the current wave back:
@@ -357,16 +360,15 @@ class Rollouts:
 
     def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float) -> None:
         device, version = d["device"], d["version"]
-        refused = self.store._rows(
-            "SELECT reason FROM acks WHERE device = ? AND version = ? AND status = 'rejected' LIMIT 1",
-            (device, version),
-        )
-        if refused:  # the drive still runs the set before: the service's record says so again
-            self._revert(rollout, d, "rejected", f"the agent refused v{version}: {refused[0]['reason']}", now)
-            return
         soaked = self.store._rows(
             "SELECT count(*) AS n FROM windows WHERE device = ? AND coefficients_version = ?", (device, version)
         )[0]["n"]
+        # a refusal the drive overruled (an ack 'applied' for the set after it: store.refusals leaves those out, or
+        # windows run on it) is none: rolling back then would revert a set the drive runs, and count it a failure
+        refused = [r for r in self.store.refusals(device) if r["version"] == version] if not soaked else []
+        if refused:  # the drive still runs the set before: the service's record says so again
+            self._revert(rollout, d, "rejected", f"the agent refused v{version}: {refused[0]['reason']}", now)
+            return
         late = now - d["started_at"] >= spec.timeout_s
         if soaked < spec.soak_windows:
             if late:

@@ -681,3 +681,32 @@ def test_a_member_stuck_in_its_creation_does_not_stall_another_for_good(postgres
         finally:
             stuck.close()
         assert store._rows("SELECT count(*) AS n FROM rollouts")[0]["n"] == 0
+
+
+def test_a_set_refused_and_then_applied_is_soaked_and_judged_not_rolled_back(fleet, clock):
+    """The agent refused the rollout's set (a damaged copy, a check the operator then fixed) and then applied it: an
+    ack 'applied' for the same version, or windows run on it whose applied ack has not arrived yet. The rollout took
+    the refusal alone: the part ended rejected and the drive was rolled back from the set it runs, counted a failure.
+    A refusal the drive's own reports overrule is none (as store.refusals, which the guard answers, has it)."""
+    store, service = fleet
+    applied, ran = DEVICES[:2]
+    for device in (applied, ran):  # the fleet sets are off: the reset to factory is better on both
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=[applied, ran], base_per_minute=2,
+                    soak_windows=60)
+    )  # fmt: skip
+    service.rollouts.step()
+    for device in (applied, ran):
+        store.insert_ack(wire.ack_message(device, 2, "rejected", 99_999.0, reason="signature does not verify"))
+    store.insert_ack(wire.ack_message(applied, 2, "applied", 99_999.5, angle_quality_deg=0.1))
+    for device in (applied, ran):
+        run_on(store, device, 2)
+    clock.now += 61.0
+    service.rollouts.step()
+    result = service.rollouts.get(1)
+    assert {d["device"]: d["state"] for d in result["devices"]} == {applied: "succeeded", ran: "succeeded"}, result
+    assert result["state"] == "completed" and result["by_state"] == {"succeeded": 2}
+    for device in (applied, ran):  # nothing rolled back: the record is the set the drive runs
+        assert store.published_version(device) == 2 and store.next_version(device) == 3
+        assert store.state_of(device, 2) == "confirmed"
