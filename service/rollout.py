@@ -17,7 +17,8 @@ before it has soaked; an error threshold stops the rollout).
   is final (a later 'applied' is answered by the rollback's set, delivered again while the drive's windows show an
   older one). No soak within `timeout_s` -> timed_out and rolled back (never worse: an unproven change does not
   stay).
-- Abort criteria count outcomes decided since the rollout started or a criterion last paused it: the outcomes
+- Abort criteria count outcomes decided since the rollout started or a criterion last paused it (executed: every
+  outcome but `unchanged`, where no set of the rollout went out): the outcomes
   decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
   trips pauses the rollout or aborts it; abort (tripped or asked for over REST) rolls the current wave back:
   every device of it still running the rollout's set gets the set it ran before again. Devices of later
@@ -51,6 +52,8 @@ log = logging.getLogger("service.rollout")
 FAILURE_TYPES = ("rejected", "timed_out", "regressed")
 ROLLOUT_STATES = ("running", "paused", "aborted", "completed")
 OUTCOMES = ("succeeded", "unchanged", *FAILURE_TYPES, "rolled_back")  # a device's part, once decided
+# outcomes of parts where no set of the rollout went out: done, but not executed (the abort criteria's denominator)
+NOT_EXECUTED = ("unchanged",)
 WAVE_SPACING_S = 60.0  # the rate is per minute: wave k+1 starts no sooner than a minute after wave k
 
 
@@ -58,7 +61,9 @@ class AbortCriterion(BaseModel):
     model_config = ConfigDict(extra="forbid")
     failure_type: Literal["rejected", "timed_out", "regressed"]
     threshold_percentage: float = Field(gt=0, le=100, description="Trips when failures / executed reach this.")
-    min_executed: int = Field(ge=1, le=10_000_000, description="Outcomes needed before the criterion may trip.")
+    min_executed: int = Field(
+        ge=1, le=10_000_000, description="Executed outcomes (all but unchanged) needed before it may trip."
+    )
     action: Literal["abort", "pause"] = Field("abort", description="abort rolls the current wave back.")
 
 
@@ -393,7 +398,12 @@ class Rollouts:
             self._record(rollout, device, "succeeded", now, reason=reason)
 
     def _tripped(self, spec: RolloutSpec, devices: list[dict], counted_from: float):
-        decided = [d for d in devices if d["state"] in OUTCOMES and d["decided_at"] >= counted_from]
+        # a no-op is not an execution: counted, 3 unchanged beside 1 regressed read as 25 % failed, not 100 %
+        decided = [
+            d
+            for d in devices
+            if d["state"] in OUTCOMES and d["state"] not in NOT_EXECUTED and d["decided_at"] >= counted_from
+        ]
         executed = len(decided)
         for criterion in spec.abort_criteria:
             failures = sum(d["state"] == criterion.failure_type for d in decided)

@@ -710,3 +710,28 @@ def test_a_set_refused_and_then_applied_is_soaked_and_judged_not_rolled_back(fle
     for device in (applied, ran):  # nothing rolled back: the record is the set the drive runs
         assert store.published_version(device) == 2 and store.next_version(device) == 3
         assert store.state_of(device, 2) == "confirmed"
+
+
+def test_devices_the_change_leaves_unchanged_are_not_counted_as_executed(fleet, clock):
+    """Three drives already run their factory sets (a reset is a no-op there: unchanged), the fourth refuses the
+    reset. The abort criteria counted the unchanged parts as executed: 1 rejected of 4 executed (25 %) stayed under
+    a 50 % threshold, and the next wave started, while the change had failed on every drive it was made on."""
+    store, service = fleet
+    for device in DEVICES[:3]:
+        install(store, service, device, true_bands(device))
+    for device in DEVICES[3:5]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    criteria = [{"failure_type": "rejected", "threshold_percentage": 50, "min_executed": 1}]
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:5], base_per_minute=4,
+                    soak_windows=60, abort_criteria=criteria)
+    )  # fmt: skip
+    service.rollouts.step()
+    store.insert_ack(wire.ack_message(DEVICES[3], 2, "rejected", 99_999.0, reason="signature does not verify"))
+    for _ in range(3):
+        clock.now += 61.0
+        service.rollouts.step()
+    result = service.rollouts.get(1)
+    assert result["by_state"] == {"pending": 1, "rejected": 1, "unchanged": 3}, result
+    assert result["state"] == "aborted" and "1 of 1 executed rejected" in result["reason"], result
+    assert store.published_version(DEVICES[4]) == 1 and store.next_version(DEVICES[4]) == 2  # wave 1: untouched
