@@ -35,6 +35,7 @@ from encoder_core.monitor_causes import CAUSES
 from encoder_core.stats import BIN_COLUMNS, N_BINS
 from fleet_wire import keys
 
+from .rollout import OUTCOMES
 from .store import Store
 
 NUMBER, INTEGER, STRING = {"type": "number"}, {"type": "integer"}, {"type": "string"}
@@ -178,7 +179,7 @@ SCHEMAS["encoder_fleet.RolloutDevice"] = _object(
         "rollout": INTEGER,
         "name": STRING,
         "wave": INTEGER,
-        "state": {**STRING, "description": "pending, in_progress, succeeded, unchanged, rejected, timed_out, ..."},
+        "state": {**STRING, "description": "pending, in_progress or an outcome: " + ", ".join(OUTCOMES)},
         "before_version": {**INTEGER, "description": "The confirmed set the device ran when the change reached it."},
         "version": {**INTEGER, "description": "The set the change published to the device."},
         "started_at": {**NUMBER, "description": "Service clock, unix s."},
@@ -340,7 +341,7 @@ def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, st
             text += f" (the drive ran v{row['before_version']})" if row["before_version"] is not None else ""
             yield row["started_at"], "log", log_record(row["started_at"], INFO, text, device)
         if row["decided_at"] is not None:
-            level = INFO if row["state"] in ("succeeded", "unchanged") else WARNING
+            level = INFO if row["state"] in ("succeeded", "unchanged", "offline") else WARNING  # offline: untouched
             text = f"rollout {row['rollout']} ({row['name']}): {row['state'].replace('_', ' ')}: {row['reason'] or ''}"
             yield row["decided_at"], "log", log_record(row["decided_at"], level, text.rstrip(": "), device)
     for event in store.set_events(device):  # the guard: trial, confirmed, rolled_back

@@ -7,7 +7,10 @@ before it has soaked; an error threshold stops the rollout).
 - Wave k holds floor(base_per_minute * increment_factor**k) devices and starts at least a minute after wave
   k-1 started, and only once every device of wave k-1 has an outcome: so no more than the wave's rate starts
   per minute, and nothing new starts while the last wave is unproven.
-- A device's part: the change publishes a new set on trial (a device with a set on trial waits for its verdict,
+- A device's part: an offline device (no liveliness token) waits for its token, `timeout_s` at most from the wave's
+  start: then its part ends offline, no set issued and no failure counted (a drive that was not there says nothing
+  of the change; one that goes away after its set went out does: timed_out, below).
+  The change publishes a new set on trial (a device with a set on trial waits for its verdict,
   `timeout_s` at most from the wave's start: then its part ends timed_out, and no set of the rollout is
   issued); the soak is `soak_windows` windows the drive ran on it (the agent labels each window with the set it
   ran). Then the guard's own judge (service/trial.py)
@@ -18,12 +21,13 @@ before it has soaked; an error threshold stops the rollout).
   older one). No soak within `timeout_s` -> timed_out and rolled back (never worse: an unproven change does not
   stay).
 - Abort criteria count outcomes decided since the rollout started or a criterion last paused it (executed: every
-  outcome but `unchanged`, where no set of the rollout went out): the outcomes
+  outcome but `unchanged` and `offline`, where no set of the rollout went out): the outcomes
   decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
   trips pauses the rollout or aborts it; abort (tripped or asked for over REST) rolls the current wave back:
   every device of it still running the rollout's set gets the set it ran before again. Devices of later
   waves are never touched.
-- All state is in SQLite (migrations/060_rollouts.sql): a restarted service resumes where it was.
+- All state is in the database (migrations/060_rollouts.sql, 080_rollout_offline.sql): a restarted service resumes
+  where it was.
 """
 
 from __future__ import annotations
@@ -51,9 +55,9 @@ log = logging.getLogger("service.rollout")
 
 FAILURE_TYPES = ("rejected", "timed_out", "regressed")
 ROLLOUT_STATES = ("running", "paused", "aborted", "completed")
-OUTCOMES = ("succeeded", "unchanged", *FAILURE_TYPES, "rolled_back")  # a device's part, once decided
+OUTCOMES = ("succeeded", "unchanged", "offline", *FAILURE_TYPES, "rolled_back")  # a device's part, once decided
 # outcomes of parts where no set of the rollout went out: done, but not executed (the abort criteria's denominator)
-NOT_EXECUTED = ("unchanged",)
+NOT_EXECUTED = ("unchanged", "offline")
 WAVE_SPACING_S = 60.0  # the rate is per minute: wave k+1 starts no sooner than a minute after wave k
 
 
@@ -62,7 +66,7 @@ class AbortCriterion(BaseModel):
     failure_type: Literal["rejected", "timed_out", "regressed"]
     threshold_percentage: float = Field(gt=0, le=100, description="Trips when failures / executed reach this.")
     min_executed: int = Field(
-        ge=1, le=10_000_000, description="Executed outcomes (all but unchanged) needed before it may trip."
+        ge=1, le=10_000_000, description="Executed outcomes (all but unchanged, offline) needed before it may trip."
     )
     action: Literal["abort", "pause"] = Field("abort", description="abort rolls the current wave back.")
 
@@ -307,10 +311,19 @@ class Rollouts:
             self._step_one(self.store._rows("SELECT * FROM rollouts WHERE id = ?", (rollout,))[0])
 
     def _start(self, rollout: int, spec: RolloutSpec, device: str, now: float, wave_started_at: float) -> None:
-        """Publish the change to one device, on trial; a device with a set already on trial waits for it, timeout_s
-        from the wave's start at most (a drive gone offline before it ran its trial set keeps that trial for good:
-        the guard keeps no set on no evidence, and the wave would never end)."""
+        """Publish the change to one device, on trial. An offline device (no liveliness token) waits for its token,
+        and a device with a set already on trial waits for that trial's verdict, timeout_s from the wave's start at
+        most (a drive gone offline before it ran its trial set keeps that trial for good: the guard keeps no set on
+        no evidence, and the wave would never end)."""
         store = self.store
+        online = store._rows("SELECT online FROM devices WHERE id = ?", (device,))
+        if not (online and online[0]["online"]):
+            # no liveliness token: a set issued now would time out unsoaked and count as a failure of the change,
+            # and roll back, for a drive that was not there. It waits; not back in time, it ends offline, untouched.
+            if now - wave_started_at >= spec.timeout_s:
+                reason = f"offline from its wave's start for {spec.timeout_s:g} s: no set issued"
+                self._record(rollout, device, "offline", now, before=store.published_version(device), reason=reason)
+            return
         if (trial := store.set_on_trial(device)) is not None:
             if now - wave_started_at >= spec.timeout_s:
                 reason = f"its set on trial v{trial['version']} was not judged within {spec.timeout_s:g} s: not started"

@@ -98,8 +98,10 @@ def run_on(store, device: str, version: int, hours: float = 1.0, knock: float = 
 
 
 def install(store, service, device: str, running: list[dict], knock: float = 0.0) -> None:
-    """The factory set from the drive's bench (v0, with its bench locus) and a confirmed fleet set (v1)."""
+    """The factory set from the drive's bench (v0, with its bench locus) and a confirmed fleet set (v1); its agent
+    holds a liveliness token (online)."""
     seed = DEVICES.index(device) + 1
+    store.set_online(device, True)
     store.insert_coefficient_set(factory_message(device, factory_calibration(drive_model(seed), seed)))
     store.mark_published(device, 0)
     run_on(store, device, 0, hours=0.25, knock=knock)
@@ -735,3 +737,69 @@ def test_devices_the_change_leaves_unchanged_are_not_counted_as_executed(fleet, 
     assert result["by_state"] == {"pending": 1, "rejected": 1, "unchanged": 3}, result
     assert result["state"] == "aborted" and "1 of 1 executed rejected" in result["reason"], result
     assert store.published_version(DEVICES[4]) == 1 and store.next_version(DEVICES[4]) == 2  # wave 1: untouched
+
+
+def test_a_drive_offline_when_its_wave_starts_waits_and_ends_offline_not_as_a_failure(fleet, clock):
+    """A drive with no liveliness token when its wave starts was issued the set all the same, timed out unsoaked and
+    was rolled back, counted a failure of the change (here it tripped the abort: 1 of 2 executed timed_out) for a
+    drive that was not there. Now an offline drive waits for its token, timeout_s from its wave's start at most: one
+    back in time gets its part (drive-03), one that is not ends offline (drive-01), no set issued, no failure."""
+    store, service = fleet
+    for device in DEVICES[:4]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    gone, back = DEVICES[0], DEVICES[2]
+    for device in (gone, back):
+        store.set_online(device, False)
+    criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
+                    soak_windows=60, timeout_s=600.0, abort_criteria=criteria)
+    )  # fmt: skip
+    for _ in range(40):
+        parts = {d["device"]: d for d in service.rollouts.get(1)["devices"]}
+        if parts[back]["state"] == "pending" and service.rollouts.get(1)["wave"] == 1:
+            clock.now += 120.0  # its wave has started without it; the drive comes back within timeout_s
+            store.set_online(back, True)
+        for device in DEVICES[:4]:  # a drive gone sends no windows
+            if service.rollouts.holds(device) and store.device(device)["online"]:
+                run_on(store, device, store.published_version(device))
+        clock.now += 61.0
+        service.rollouts.step()
+        if service.rollouts.get(1)["state"] != "running":
+            break
+    result = service.rollouts.get(1)
+    assert result["state"] == "completed" and result["by_state"] == {"offline": 1, "succeeded": 3}, result
+    part = {d["device"]: d for d in result["devices"]}[gone]
+    assert part["version"] is None and part["before_version"] == 1 and "offline" in part["reason"]
+    assert store.published_version(gone) == 1 and store.next_version(gone) == 2  # nothing issued, nothing rolled back
+    assert store.published_version(back) == 2 and store.state_of(back, 2) == "confirmed"
+
+
+def test_the_offline_outcome_migration_keeps_every_rollout_record(tmp_path):
+    """Migration 080 makes rollout_devices again (its state's CHECK now takes 'offline'): a database written before
+    it keeps every device's part, and takes the new outcome."""
+    from service.store import migration_files
+
+    older = tmp_path / "migrations"
+    older.mkdir()
+    for version, f in migration_files():
+        if version < 80:
+            (older / f.name).write_text(f.read_text())
+    path = tmp_path / "fleet.sqlite"
+    with Store.open(path, migrations_dir=older) as store:
+        store.set_online(DEVICE_0, True)  # the device row
+        with store._tx() as c:
+            c.execute(
+                "INSERT INTO rollouts (id, name, spec_json, state, counted_from, created_at, updated_at) "
+                "VALUES (1, 'reset', '{}', 'aborted', 0, 0, 0)"
+            )
+            c.execute("INSERT INTO rollout_devices VALUES (1, ?, 0, 'rolled_back', 1, 2, 5.0, 6.0, 'wave rolled back')",
+                      (DEVICE_0,))  # fmt: skip
+    with Store.open(path) as store:
+        assert [dict(r) for r in store._rows("SELECT * FROM rollout_devices")] == [
+            {"rollout": 1, "device": DEVICE_0, "wave": 0, "state": "rolled_back", "before_version": 1, "version": 2,
+             "started_at": 5.0, "decided_at": 6.0, "reason": "wave rolled back"}
+        ]  # fmt: skip
+        with store._tx() as c:
+            c.execute("UPDATE rollout_devices SET state = 'offline'")
+        assert store.rollout_records(DEVICE_0)[0]["state"] == "offline"
