@@ -48,7 +48,8 @@ class AgentCounters:
     resent: int = 0
     applied: list[int] = field(default_factory=list)
     refused: list[tuple[int, str]] = field(default_factory=list)
-    offline_syncs: int = 0  # watermark queries nobody answered: the service was away
+    offline_syncs: int = 0  # watermark queries nobody answered (or only replies refused below): the service was away
+    refused_watermarks: dict[str, int] = field(default_factory=dict)  # watermark replies refused, by reason
     bad_signatures: int = 0  # sets refused as unsigned or not signed by the service's key
     bad_messages: int = 0  # every payload on the coefficients key refused, whatever the reason
 
@@ -78,7 +79,7 @@ class EdgeAgent:
         self.window_s = window_s
         self.resend_after_s = resend_after_s
         self.query_timeout_s = query_timeout_s
-        self.verifier = verifier  # fleet_wire.security.SetVerifier: sets must carry the service's signature
+        self.verifier = verifier  # fleet_wire.security.SetVerifier: sets and watermark replies must be the service's
         self.clock = clock  # paces resends only: nothing the agent keeps depends on it
         self.time_offset: float | None = None  # added to the drive clock so it never runs back (set at first block)
         self.resume_end: float | None = None  # the service's last window end, when it is past the outbox's
@@ -355,13 +356,35 @@ class EdgeAgent:
         """The watermark question. Once the outbox has dropped windows (full while the service was away) and the
         service's watermark waits below what it still holds, it says that what the service lacks below is gone:
         otherwise the watermark, and the drift monitor reading up to it, would wait at the first of them for ever.
-        Not before the windows' seqs are settled (`resumed`: held windows may still be moved)."""
+        Not before the windows' seqs are settled (`resumed`: held windows may still be moved).
+
+        With security on, the question carries a fresh nonce, and only replies the service signed for it are
+        returned: a forged one (whoever else can answer: a meshed router's stolen key), an old one replayed (after
+        an outbox lost and renumbered, its higher watermark would drop windows never stored) or an unsigned one (a
+        service before signed replies) is logged and counted, and the outbox keeps everything, as with no reply."""
         gone = None
         if self.resumed and self.outbox.dropped:
             held_from = self.outbox.held_from()
             if held_from > self.watermark + 1:
-                gone = wire.received_query(self.device, held_from)
-        return self._get(self.keys["received"], payload=gone)
+                gone = held_from
+        nonce = wire.new_nonce() if self.verifier is not None else None
+        replies = self._get(self.keys["received"], payload=wire.received_query(self.device, gone, nonce))
+        if nonce is None or not replies:
+            return replies
+        trusted = []
+        for reply in replies:
+            try:
+                wire.parse_watermark_reply(reply, self.device, verifier=self.verifier, nonce=nonce)
+            except wire.WireError as exc:
+                self.counters.refused_watermarks[exc.reason] = self.counters.refused_watermarks.get(exc.reason, 0) + 1
+                hint = " (a service before signed watermark replies? upgrade it)" if exc.reason == "unsigned" else ""
+                log.warning(
+                    "%s: refused a watermark reply, the outbox keeps its windows (asked again later): %s%s",
+                    self.device, exc, hint,
+                )  # fmt: skip
+                continue
+            trusted.append(reply)
+        return trusted
 
     def _get(self, key: str, payload: bytes | None = None) -> list[bytes] | None:
         try:

@@ -85,7 +85,8 @@ def cmd_agent(args) -> int:
         c = agent.run(real_time_factor=args.real_time_factor, stop=stop)
         print(
             f"{args.device}: {c.windows} windows, {c.resent} resent, {c.offline_syncs} times without the service, "
-            f"versions applied {c.applied}, refused {[v for v, _ in c.refused]}, {len(outbox)} left in outbox",
+            f"versions applied {c.applied}, refused {[v for v, _ in c.refused]}, {len(outbox)} left in outbox"
+            + (f", watermark replies refused {c.refused_watermarks}" if c.refused_watermarks else ""),
             flush=True,
         )
     finally:

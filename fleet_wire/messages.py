@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import math
 import operator
+import re
+import secrets
 from functools import cache
 from importlib import resources
 from typing import Annotated, Literal
@@ -35,9 +37,10 @@ MAX_PAYLOAD = 256 * 1024
 class WireError(InputError):
     """A message that cannot be accepted. `reason` is a short code, the message says what and where
     (a JSON path). Codes: too_large, too_deep (nested past MAX_DEPTH), not_json (neither JSON nor MessagePack),
-    non_finite, schema, inconsistent, device_mismatch, bad_key, unknown_kind. service.store.Store.ingest adds
-    unexpected_kind, seq_conflict, clock_backwards and normalisation_mismatch for well-formed messages it
-    cannot take."""
+    non_finite, schema, inconsistent, device_mismatch, bad_key, unknown_kind; with security on, unsigned and
+    bad_signature (fleet_wire.security), and wrong_nonce (a watermark reply to another question).
+    service.store.Store.ingest adds unexpected_kind, seq_conflict, clock_backwards and normalisation_mismatch for
+    well-formed messages it cannot take."""
 
     def __init__(self, reason: str, message: str):
         super().__init__(message)
@@ -180,6 +183,8 @@ Temp = Annotated[float, msgspec.Meta(ge=-273.15, le=300)]
 MAX_TIME_S = 1e10  # a drive clock in seconds: 300 years
 Time = Annotated[float, msgspec.Meta(ge=0, le=MAX_TIME_S)]
 Device = Annotated[str, msgspec.Meta(pattern=keys.DEVICE_RE.pattern)]
+NONCE_BYTES = 16  # a question's nonce on `received`: 32 hex characters
+NONCE_RE = re.compile(f"[0-9a-f]{{{2 * NONCE_BYTES}}}")
 
 
 class RejectedByReason(msgspec.Struct, forbid_unknown_fields=True):
@@ -884,42 +889,72 @@ def ack_message(
 
 
 def watermark_reply(
-    device: str, contiguous_seq: int, acked_version: int = 0, last: tuple[int, float] | None = None
+    device: str,
+    contiguous_seq: int,
+    acked_version: int = 0,
+    last: tuple[int, float] | None = None,
+    *,
+    nonce: str | None = None,
+    signer=None,
 ) -> bytes:
     """The service's answer on `received`: every window of `device` with seq <= contiguous_seq is stored, and
     an ack for every coefficient version <= acked_version (the agent stops resending those). `last`: the highest
-    seq stored and that window's end (drive clock), where an agent that lost its outbox resumes."""
+    seq stored and that window's end (drive clock), where an agent that lost its outbox resumes. `nonce`: the one
+    the question carried; `signer` (fleet_wire.security.SetSigner, security on) signs the reply with it, so an
+    agent takes it for its own question only."""
     body = {"device": device, "contiguous_seq": int(contiguous_seq), "acked_version": int(acked_version)}
     if last is not None:
         body.update(max_seq=int(last[0]), last_window_end=float(last[1]))
+    if nonce is not None:
+        body["nonce"] = nonce
+    if signer is not None:
+        body = signer.sign(body)
     return json.dumps(body).encode()
 
 
-def received_query(device: str, gone_below: int) -> bytes:
-    """The agent's question on `received` once its outbox has dropped windows (full while the service was away):
-    every window of `device` with a seq below `gone_below` that the service does not have is gone for good, so its
-    contiguous watermark steps over them instead of waiting at the first one for ever."""
-    return json.dumps({"device": device, "gone_below": int(gone_below)}).encode()
+def new_nonce() -> str:
+    """A fresh nonce for one question on `received` (128 random bits, hex)."""
+    return secrets.token_hex(NONCE_BYTES)
 
 
-def parse_received_query(payload: bytes | None, device: str) -> int | None:
-    """`gone_below` of an agent's question on `received`; None for a question without a payload (what agents ask
-    while their outbox has dropped nothing, and every agent before it); WireError when it is not one."""
+def received_query(device: str, gone_below: int | None = None, nonce: str | None = None) -> bytes | None:
+    """The agent's question on `received`, None when it has nothing to say (no payload). `gone_below`: once its
+    outbox has dropped windows (full while the service was away), every window of `device` with a seq below it that
+    the service does not have is gone for good, so its contiguous watermark steps over them instead of waiting at
+    the first one for ever. `nonce` (security on): the signed reply must carry it."""
+    body: dict = {"device": device}
+    if gone_below is not None:
+        body["gone_below"] = int(gone_below)
+    if nonce is not None:
+        body["nonce"] = nonce
+    return json.dumps(body).encode() if len(body) > 1 else None
+
+
+def parse_received_query(payload: bytes | None, device: str) -> tuple[int | None, str | None]:
+    """(gone_below, nonce) of an agent's question on `received`, each None when it carries none (a question without
+    a payload: what agents asked before either); WireError when it is not one."""
     if not payload:
-        return None
+        return None, None
     try:
         body = json.loads(payload)
-        seq = body["gone_below"]
-        if body["device"] != device or not _count(seq) or set(body) != {"device", "gone_below"}:
+        seq, nonce = body.get("gone_below"), body.get("nonce")
+        if (
+            body["device"] != device
+            or not {"device"} < set(body) <= {"device", "gone_below", "nonce"}
+            or ("gone_below" in body and not _count(seq))
+            or ("nonce" in body and not (isinstance(nonce, str) and NONCE_RE.fullmatch(nonce)))
+        ):
             raise TypeError
     except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
         raise WireError("schema", f"not a received question for {device}: {bytes(payload)[:200]!r}") from None
-    return seq
+    return seq, nonce
 
 
-def parse_watermark_reply(payload: bytes, device: str) -> tuple[int, int]:
+def parse_watermark_reply(payload: bytes, device: str, *, verifier=None, nonce: str | None = None) -> tuple[int, int]:
     """(contiguous_seq, acked_version) of a watermark reply for `device` (acked_version 0 from services that
-    do not send it); WireError when it is not one."""
+    do not send it); WireError when it is not one. With `verifier` (fleet_wire.security.SetVerifier, security on)
+    also 'unsigned' or 'bad_signature' unless the service signed it, and 'wrong_nonce' unless it answers the
+    question asked with `nonce` (a reply recorded earlier, or for another drive, is not this question's)."""
     try:
         body = json.loads(payload)
         seq, acked = body["contiguous_seq"], body.get("acked_version", 0)
@@ -927,6 +962,11 @@ def parse_watermark_reply(payload: bytes, device: str) -> tuple[int, int]:
             raise TypeError
     except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
         raise WireError("schema", f"not a watermark reply for {device}: {bytes(payload)[:200]!r}") from None
+    if verifier is not None:
+        what = f"watermark reply for {device} (contiguous_seq {seq})"
+        verifier.verify(body, what)
+        if body.get("nonce") != nonce:
+            raise WireError("wrong_nonce", f"{what}: signed for another question, not the one just asked (replayed?)")
     return seq, acked
 
 

@@ -9,7 +9,8 @@
   (the device certificates in the PKI folder) by `access_control()`: a device speaks only on its own keys,
   only the service puts coefficients and answers queries.
 - Coefficient sets are signed by the service (Ed25519 over `canonical()` of the set without its
-  "signature") and verified by the agent with the public key from provisioning (`signing.pub`).
+  "signature") and verified by the agent with the public key from provisioning (`signing.pub`). So are the
+  watermark replies on `received`, each bound to its question (the device, and the nonce the agent asked with).
 
 The PKI folder (contract): ca.crt, ca.key, NAME.crt + NAME.key per device, service.crt + service.key,
 signing.key (the service's Ed25519 key) and signing.pub (what the agents verify with).
@@ -214,7 +215,7 @@ def canonical(msg: dict) -> bytes:
 
 
 class SetSigner:
-    """The service's side: adds "signature" to a coefficient set."""
+    """The service's side: adds "signature" to a coefficient set, or to a watermark reply."""
 
     def __init__(self, private_key):
         self._key = private_key
@@ -258,19 +259,19 @@ class SetVerifier:
             raise SecurityError(f"{path}: not an Ed25519 public key")
         return cls(key)
 
-    def verify(self, msg: dict) -> None:
-        """WireError('unsigned' | 'bad_signature') unless the set carries the service's valid signature."""
+    def verify(self, msg: dict, what: str | None = None) -> None:
+        """WireError('unsigned' | 'bad_signature') unless the message (a set; `what` names another kind) carries
+        the service's valid signature."""
         from cryptography.exceptions import InvalidSignature
 
         from .messages import WireError  # here, not at the top: `encoder-fleet diagnose` loads no wire code
 
+        what = what or f"coefficient set {msg.get('version')}"
         signature = msg.get("signature")
         if not signature:
-            raise WireError("unsigned", f"coefficient set {msg.get('version')}: not signed by the service")
-        try:
+            raise WireError("unsigned", f"{what}: not signed by the service")
+        try:  # TypeError: a signature that is no string (a set's schema says string, a watermark reply has none)
             raw = base64.b64decode(signature, validate=True)
             self._key.verify(raw, canonical(msg))
-        except (binascii.Error, ValueError, InvalidSignature):
-            raise WireError(
-                "bad_signature", f"coefficient set {msg.get('version')}: signature does not verify (tampered?)"
-            ) from None
+        except (binascii.Error, ValueError, TypeError, InvalidSignature):
+            raise WireError("bad_signature", f"{what}: signature does not verify (tampered?)") from None

@@ -780,8 +780,14 @@ class FleetService:
             self._take_gone_below(device, query)
         except Exception:  # a write the database refused: the watermark is still answered (reads work)
             log.exception("%s: the received question's floor could not be stored", device)
+        try:
+            nonce = wire.parse_received_query(query.payload.to_bytes() if query.payload is not None else b"", device)[1]
+        except wire.WireError:  # dead-lettered above; answered with no nonce (an agent checking signatures refuses it)
+            nonce = None
         mark, acked, last = self.watermark(device), self.store.acked_version(device), self.store.last_window(device)
-        query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last))
+        # signed for this question (security on): whoever else can answer it (a meshed router's stolen key) cannot forge
+        # a higher watermark, nor replay an old or another drive's reply, to make the agent drop windows never stored
+        query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last, nonce=nonce, signer=self.signer))
 
     def _take_gone_below(self, device: str, query: zenoh.Query) -> None:
         """An agent whose full outbox dropped windows names the seq below which what we lack is gone: without it the
@@ -789,7 +795,7 @@ class FleetService:
         question that is not one is dead-lettered and counted, and answered all the same."""
         payload = query.payload.to_bytes() if query.payload is not None else b""
         try:
-            gone_below = wire.parse_received_query(payload, device)
+            gone_below = wire.parse_received_query(payload, device)[0]
         except wire.WireError as exc:
             self.store.dead_letter(str(query.key_expr), exc.reason, str(exc), payload)
             with self._lock:

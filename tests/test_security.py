@@ -1,6 +1,6 @@
 """Issue 10 with the real router: mutual TLS, the access control generated from the registry, signed coefficient
-sets, the service's own checks, REST tokens. Each attack here worked before the security model (a plain
-client could connect, speak for any device, publish sets and answer the watermark)."""
+sets and watermark replies, the service's own checks, REST tokens. Each attack here worked before the security model
+(a plain client could connect, speak for any device, publish sets and answer the watermark)."""
 
 from __future__ import annotations
 
@@ -303,6 +303,124 @@ def test_signature_is_over_the_canonical_set():
             verifier.verify({**round_trip, **change})
 
 
+# --- signed watermark replies ----------------------------------------------------------------------
+
+
+class RouterOnly:
+    """A secure router with no service behind drive-a's `received`: what answers there is the test's queryable, on
+    the router's own session, which the ACL does not filter (a meshed router whose key was stolen: its certificate
+    is trusted as the service's, and the ACL lets it answer any question)."""
+
+    def __init__(self, pki):
+        self.pki = pki
+        self.endpoint = loopback_endpoint().replace("tcp/", "tls/")
+        self.router = open_session(listen=[self.endpoint], pki=pki)
+        self.answer = lambda nonce: None  # the reply's body for the question's nonce (None: no reply)
+        self.asked = []
+        self.router.declare_queryable(keys.key(A, keys.RECEIVED), self._on_query)
+        self.sessions = []
+
+    def _on_query(self, query):
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        nonce = json.loads(payload).get("nonce") if payload else None  # by hand: agents before nonces send none
+        self.asked.append(nonce)
+        body = self.answer(nonce)
+        if body is not None:
+            query.reply(query.key_expr, json.dumps(body).encode())
+
+    def client(self, name):
+        identity = Identity.load(self.pki, name, ROLE_DEVICE)
+        session = zenoh.open(session_config("client", connect=[self.endpoint], identity=identity))
+        self.sessions.append(session)
+        return session
+
+    def close(self):
+        for session in self.sessions:
+            session.close()
+        self.router.close()
+
+
+def test_agent_keeps_its_windows_on_a_forged_unsigned_or_replayed_watermark_reply(pki, foreign_pki, tmp_path, caplog):
+    """The watermark reply tells the agent which windows it may drop from its outbox. It was unsigned, and whoever
+    may answer a question (the service's policy in the ACL: the service and its meshed routers) could forge one; a
+    meshed router's stolen key answered drive-a with a watermark of 10**9 and the agent dropped windows the service
+    never stored. Now the service signs each reply, with the nonce of the question it answers: forged, unsigned,
+    tampered, another drive's, or a genuine one recorded for an earlier question (after an outbox lost and
+    renumbered, its higher watermark drops windows never stored) are refused, counted and logged, and the outbox
+    keeps everything; the service's reply to this question still trims it."""
+    import logging
+
+    service_key, foreign_key = SetSigner.load(pki), SetSigner.load(foreign_pki)
+
+    def body(nonce, seq, device=A):  # what wire.watermark_reply says for a question with a nonce, before signing
+        return {"device": device, "contiguous_seq": seq, "acked_version": 0, "nonce": nonce}
+
+    r = RouterOnly(pki)
+    try:
+        r.answer = lambda nonce: service_key.sign(body(nonce, 0))  # the service, which has nothing of drive-a yet
+        agent = make_agent(r, r.client(A), tmp_path)
+        agent.start()
+        assert agent.resumed
+        for _ in range(3):
+            assert agent.step()
+        assert len(agent.outbox) == 3
+        recorded = service_key.sign(body(r.asked[-1], 10**9))  # as if the service had said so to an earlier question
+
+        def tampered(nonce):
+            genuine = service_key.sign(body(nonce, 0))
+            return {**genuine, "contiguous_seq": 10**9}
+
+        forged = {
+            "signed by another key": lambda nonce: foreign_key.sign(body(nonce, 10**9)),
+            "unsigned": lambda nonce: body(nonce, 10**9),
+            "tampered": tampered,
+            "recorded for another question": lambda nonce: recorded,
+            "another drive's": lambda nonce: service_key.sign(body(nonce, 10**9, device=B)),
+            "a signature that is no string": lambda nonce: {**body(nonce, 10**9), "signature": 7},
+        }
+        offline = agent.counters.offline_syncs
+        with caplog.at_level(logging.WARNING, logger="edge_agent"):
+            for what, answer in forged.items():
+                r.answer = answer
+                synced = agent.sync()
+                assert len(agent.outbox) == 3 and agent.watermark == 0, what  # before: emptied, watermark 10**9
+                assert not synced and agent.counters.offline_syncs == offline + 1, what  # as with no reply
+                offline += 1
+        assert agent.counters.refused_watermarks == {"bad_signature": 3, "unsigned": 1, "wrong_nonce": 1, "schema": 1}
+        assert "refused a watermark reply, the outbox keeps its windows" in caplog.text
+        assert "not signed by the service (a service before signed watermark replies? upgrade it)" in caplog.text
+        assert "signed for another question" in caplog.text
+        assert len(set(r.asked)) == len(r.asked) and None not in r.asked  # a fresh nonce at every question
+        r.answer = lambda nonce: service_key.sign(body(nonce, 2))
+        assert agent.sync()
+        assert len(agent.outbox) == 1 and agent.watermark == 2
+        agent.close()
+    finally:
+        r.close()
+
+
+def test_the_service_signs_its_watermark_reply_for_the_question_and_the_agent_takes_it(secured, tmp_path):
+    """The service's side: its reply carries the question's nonce and its signature over the reply (the signing key
+    of its sets, `fleet_wire.security.canonical`), so an agent that checks takes it and drops what it stored."""
+    agent = make_agent(secured, secured.client(A), tmp_path)
+    agent.start()
+    for _ in range(3):
+        assert agent.step()
+    assert wait_for(lambda: secured.store.contiguous_seq(A) == 3)
+    nonce = "0123456789abcdef" * 2
+    question = json.dumps({"device": A, "nonce": nonce}).encode()
+    replies = secured.client(A).get(agent.keys["received"], payload=question, timeout=2.0)
+    (reply,) = [r.ok.payload.to_bytes() for r in replies if r.ok]
+    body = json.loads(reply)
+    assert body.get("nonce") == nonce and body["contiguous_seq"] == 3  # before: no nonce, no signature
+    SetVerifier.load(secured.pki).verify(body, "watermark reply")
+    assert wire.parse_watermark_reply(reply, A, verifier=SetVerifier.load(secured.pki), nonce=nonce) == (3, 0)
+    assert secured.store.rejection_counts() == {}  # before: the question with a nonce was dead-lettered as schema
+    assert agent.sync() and len(agent.outbox) == 0 and agent.watermark == 3
+    assert agent.counters.refused_watermarks == {} and agent.counters.offline_syncs == 0
+    agent.close()
+
+
 # --- the service checks too ------------------------------------------------------------------------
 
 
@@ -453,10 +571,11 @@ def test_zenohd_config_from_pki_router_config_admits_the_service_and_confines_de
 
 
 def test_only_the_service_and_its_meshed_routers_may_answer_a_query_in_the_router_acl(pki):
-    """The watermark reply (`received`) is not signed, as coefficient sets are: what keeps a device's certificate (a
-    stolen drive key) from answering another drive's question, so that its agent drops windows never stored, is the
-    router's ACL, default deny: a device's rules allow `reply` only egress (the answers to its own questions) and
-    never `declare_queryable`; only the service's policy (the service and the meshed routers) may answer."""
+    """What keeps a device's certificate (a stolen drive key) from answering another drive's `received` question, so
+    that its agent drops windows never stored, is the router's ACL, default deny: a device's rules allow `reply` only
+    egress (the answers to its own questions) and never `declare_queryable`; only the service's policy (the service
+    and the meshed routers) may answer. A meshed router is trusted as the service is: the reply's signature keeps it
+    honest (test_agent_keeps_its_windows_on_a_forged_unsigned_or_replayed_watermark_reply)."""
     from encoder_fleet.pki import router_config
 
     acl = router_config(pki, "zenohd-a", listen=["tls/0.0.0.0:7447"], peers=["zenohd-b"])["access_control"]

@@ -322,15 +322,22 @@ def test_errors_with_a_reason_survive_pickling():
 
 
 def test_a_received_question_names_where_the_agent_s_lost_windows_end_and_refuses_a_bad_one():
-    """The agent's question on `received`: no payload (what every agent asks while its outbox dropped nothing), or
-    the seq below which what the service lacks is gone. Anything else is refused by name."""
-    assert wire.parse_received_query(wire.received_query("d-1", 7), "d-1") == 7
-    assert wire.parse_received_query(None, "d-1") is None and wire.parse_received_query(b"", "d-1") is None
+    """The agent's question on `received`: no payload (what every agent asks while its outbox dropped nothing and
+    security is off), the seq below which what the service lacks is gone, the nonce the signed reply must carry, or
+    both. Anything else is refused by name."""
+    nonce = wire.new_nonce()
+    assert wire.parse_received_query(wire.received_query("d-1", 7), "d-1") == (7, None)
+    assert wire.parse_received_query(wire.received_query("d-1", nonce=nonce), "d-1") == (None, nonce)
+    assert wire.parse_received_query(wire.received_query("d-1", 7, nonce), "d-1") == (7, nonce)
+    assert wire.received_query("d-1") is None  # nothing to say: no payload
+    assert wire.parse_received_query(None, "d-1") == (None, None) == wire.parse_received_query(b"", "d-1")
     for bad in (b"7", b"{", b"[]", b'{"device": "d-2", "gone_below": 7}', b'{"device": "d-1", "gone_below": -1}',
                 b'{"device": "d-1", "gone_below": true}', b'{"device": "d-1", "gone_below": 7.5}',
                 b'{"device": "d-1", "gone_below": 1e999}', b'{"device": "d-1"}',
-                b'{"device": "d-1", "gone_below": 7, "also": 1}',
-                b'{"device": "d-1", "gone_below": 99999999999999999999}', b"\xff\xfe"):  # fmt: skip
+                b'{"device": "d-1", "gone_below": 7, "also": 1}', b'{"device": "d-1", "gone_below": null}',
+                b'{"device": "d-1", "gone_below": 99999999999999999999}', b"\xff\xfe",
+                b'{"device": "d-1", "nonce": 7}', b'{"device": "d-1", "nonce": "' + b"A" * 32 + b'"}',
+                b'{"device": "d-1", "nonce": "' + b"a" * 4096 + b'"}'):  # fmt: skip
         with pytest.raises(wire.WireError, match="not a received question for d-1"):
             wire.parse_received_query(bad, "d-1")
 
