@@ -388,7 +388,11 @@ class EdgeAgent:
 
     def _get(self, key: str, payload: bytes | None = None) -> list[bytes] | None:
         try:
-            replies = self.session.get(key, payload=payload, timeout=self.query_timeout_s)
+            # every reply, not Zenoh's default of the latest per key: a forged reply on the same key would hide the
+            # genuine one, which the caller then could not pick out
+            replies = self.session.get(
+                key, payload=payload, timeout=self.query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE
+            )
             return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
         except zenoh.ZError as exc:  # the session itself failed
             log.warning("%s: get %s failed: %s", self.device, key, exc)

@@ -399,6 +399,47 @@ def test_agent_keeps_its_windows_on_a_forged_unsigned_or_replayed_watermark_repl
         r.close()
 
 
+@pytest.mark.parametrize("forged_first", [True, False])
+def test_a_forged_watermark_reply_beside_the_genuine_one_hides_it_not(pki, tmp_path, forged_first):
+    """Two answers to one question, the service's and a forged one on the same key: the agent hears both, refuses
+    the forged and takes the genuine. Zenoh's default keeps the latest reply per key, so the forged one, sent after
+    the genuine, hid it and the agent could not sync at all while the stolen key answered."""
+    service_key = SetSigner.load(pki)
+
+    def body(nonce, seq):
+        return {"device": A, "contiguous_seq": seq, "acked_version": 0, "nonce": nonce}
+
+    r = RouterOnly(pki)
+
+    def genuine(nonce):
+        return service_key.sign(body(nonce, 2))
+
+    def forge(query):
+        nonce = json.loads(query.payload.to_bytes()).get("nonce")
+        query.reply(query.key_expr, json.dumps(body(nonce, 10**9)).encode())  # unsigned
+
+    r.answer = lambda nonce: None
+    forger = None
+    try:
+        if forged_first:
+            forger = r.router.declare_queryable(keys.key(A, keys.RECEIVED), forge)
+        agent = make_agent(r, r.client(A), tmp_path)
+        r.answer = genuine
+        if not forged_first:
+            forger = r.router.declare_queryable(keys.key(A, keys.RECEIVED), forge)
+        agent.start()
+        for _ in range(3):
+            assert agent.step()
+        assert agent.sync()
+        assert len(agent.outbox) == 1 and agent.watermark == 2
+        assert agent.counters.refused_watermarks.get("unsigned", 0) >= 1
+        agent.close()
+    finally:
+        if forger is not None:
+            forger.undeclare()
+        r.close()
+
+
 def test_the_service_signs_its_watermark_reply_for_the_question_and_the_agent_takes_it(secured, tmp_path):
     """The service's side: its reply carries the question's nonce and its signature over the reply (the signing key
     of its sets, `fleet_wire.security.canonical`), so an agent that checks takes it and drops what it stored."""
