@@ -20,9 +20,9 @@ before it has soaked; an error threshold stops the rollout).
   is final (a later 'applied' is answered by the rollback's set, delivered again while the drive's windows show an
   older one). No soak within `timeout_s` -> timed_out and rolled back (never worse: an unproven change does not
   stay).
-- Abort criteria count outcomes decided since the rollout started or a criterion last paused it (executed: every
-  outcome but `unchanged` and `offline`, where no set of the rollout went out): the outcomes
-  decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
+- Abort criteria count outcomes decided since the rollout started or a criterion last paused it (executed: the parts
+  a set of the rollout went out to; not `unchanged`, `offline`, or a part that never started, its trial unjudged):
+  the outcomes decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
   trips pauses the rollout or aborts it; abort (tripped or asked for over REST) rolls the current wave back:
   every device of it still running the rollout's set gets the set it ran before again. Devices of later
   waves are never touched.
@@ -56,8 +56,6 @@ log = logging.getLogger("service.rollout")
 FAILURE_TYPES = ("rejected", "timed_out", "regressed")
 ROLLOUT_STATES = ("running", "paused", "aborted", "completed")
 OUTCOMES = ("succeeded", "unchanged", "offline", *FAILURE_TYPES, "rolled_back")  # a device's part, once decided
-# outcomes of parts where no set of the rollout went out: done, but not executed (the abort criteria's denominator)
-NOT_EXECUTED = ("unchanged", "offline")
 WAVE_SPACING_S = 60.0  # the rate is per minute: wave k+1 starts no sooner than a minute after wave k
 
 
@@ -66,7 +64,7 @@ class AbortCriterion(BaseModel):
     failure_type: Literal["rejected", "timed_out", "regressed"]
     threshold_percentage: float = Field(gt=0, le=100, description="Trips when failures / executed reach this.")
     min_executed: int = Field(
-        ge=1, le=10_000_000, description="Executed outcomes (all but unchanged, offline) needed before it may trip."
+        ge=1, le=10_000_000, description="Executed outcomes (a set of the rollout went out) needed before it may trip."
     )
     action: Literal["abort", "pause"] = Field("abort", description="abort rolls the current wave back.")
 
@@ -411,11 +409,12 @@ class Rollouts:
             self._record(rollout, device, "succeeded", now, reason=reason)
 
     def _tripped(self, spec: RolloutSpec, devices: list[dict], counted_from: float):
-        # a no-op is not an execution: counted, 3 unchanged beside 1 regressed read as 25 % failed, not 100 %
+        # executed: a set of the rollout went out (its version recorded). A no-op is none: counted, 3 unchanged beside
+        # 1 regressed read as 25 % failed, not 100 %; nor a part that never started (offline, or its trial unjudged)
         decided = [
             d
             for d in devices
-            if d["state"] in OUTCOMES and d["state"] not in NOT_EXECUTED and d["decided_at"] >= counted_from
+            if d["state"] in OUTCOMES and d["version"] is not None and d["decided_at"] >= counted_from
         ]
         executed = len(decided)
         for criterion in spec.abort_criteria:

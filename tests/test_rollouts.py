@@ -534,6 +534,39 @@ def test_a_device_whose_trial_never_ends_does_not_hold_the_rollout_for_ever(flee
     assert result["state"] == "completed", result
 
 
+def test_a_part_that_never_started_is_not_counted_as_executed(fleet, clock):
+    """An online drive with a fit on trial it never applied: its part ends timed_out "not started" (no set of the
+    rollout went out). The abort criteria counted it as an executed failure: 1 timed_out of 2 executed tripped a
+    50 % criterion and aborted a change that had succeeded on the one drive it was made on."""
+    store, service = fleet
+    for device in DEVICES[:3]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    run_on(store, DEVICE_0, 1, hours=2.0)
+    drive_now = service._drive_now(DEVICE_0)
+    trial = wire.coefficients_message(DEVICE_0, 2, drive_now - 4000.0, "fit", shifted(true_bands(DEVICE_0), 0.01))
+    store.insert_coefficient_set(trial, state="trial")
+    service._publish(trial)  # online, but it never applies v2
+    criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
+    service.rollouts.create(
+        RolloutSpec(
+            name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:3], base_per_minute=2,
+            soak_windows=60, timeout_s=600.0, abort_criteria=criteria,
+        )
+    )  # fmt: skip
+    service.rollouts.step()
+    run_on(store, DEVICES[1], store.published_version(DEVICES[1]))
+    for _ in range(4):
+        clock.now += 601.0
+        service.rollouts.step()
+        if (v := store.published_version(DEVICES[2])) != 1:
+            run_on(store, DEVICES[2], v)
+    result = service.rollouts.get(1)
+    parts = {d["device"]: d for d in result["devices"]}
+    assert parts[DEVICE_0]["state"] == "timed_out" and "not started" in parts[DEVICE_0]["reason"], parts
+    assert result["state"] != "aborted", result  # before: "1 of 2 executed timed_out (50 % >= 50 %)"
+    assert parts[DEVICES[2]]["state"] != "pending", parts  # the next wave got the change
+
+
 def reset_rollout_on_a_driven_device(store, service) -> None:
     """DEVICE_0 off its truth and driven for two hours, and a reset-to-factory rollout created for it alone."""
     install(store, service, DEVICE_0, shifted(true_bands(DEVICE_0), 0.03))
