@@ -10,8 +10,10 @@ open alarm per device and cause).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 from encoder_core.monitor import DeviceMonitor, FleetRates, Settings, ellipse_fits, window_features
@@ -237,6 +239,8 @@ class Monitor:
             # none of its windows fed yet (a gap before them): its offline alarm is dated at the last one stored
             last = self.store.last_window(device) if mon.last_t is None else None
             events = mon.set_online(online, last[1] if last else None)
+            if online and events:
+                events = [self._outage_said(device, e) for e in events]
             try:
                 written = self._save(device, mon, self.last_seq[device], events) if events else []
             except BaseException:  # the state as written stands (this change of the token is lost, and logged)
@@ -244,6 +248,22 @@ class Monitor:
                 raise
         self._publish(written)
         return written
+
+    def _outage_said(self, device: str, event):
+        """The offline alarm's clear says how long the token was gone, on the service's clock: on the drive's, the
+        outage ends where it began (no window of it was stored meanwhile; those the agent held come after the token),
+        so raised_at and cleared_at alone read as no outage at all."""
+        if event.kind != "clear" or event.cause != "offline":
+            return event
+        opened = self.store.alarms(device, "offline", True, limit=1, audit=True)
+        if not opened:
+            return event
+        gone_s = max(0.0, time.time() - opened[0]["created_at"])
+        said = (
+            f"the agent's liveliness token is back after {_span(gone_s)} (service clock); the windows it held "
+            "meanwhile arrive after it, so on the drive's clock the outage ends where it began."
+        )
+        return dataclasses.replace(event, evidence=said)
 
     def _save(self, device: str, mon: DeviceMonitor, last_seq: int, events) -> list[dict]:
         plain = [
@@ -329,3 +349,14 @@ def fleet_health(store: Store, monitor: Monitor | None = None, serves: Callable[
     for state in device_states(store, monitor, serves).values():
         counts[state] += 1
     return {"devices": counts, "open_alarms": store.open_alarm_counts()}
+
+
+def _span(seconds: float) -> str:
+    """A duration as an operator reads it: 42 s, 12 min, 3.2 h, 2.1 days."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 172800:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"

@@ -221,6 +221,24 @@ def test_offline_before_any_window_is_fed_is_dated_at_the_last_one_stored(tmp_pa
         assert ghost["raised_at"] == 0.0 and "no window of it is stored" in ghost["evidence"]
 
 
+def test_an_offline_alarms_clear_says_how_long_the_token_was_gone(tmp_path, aging):
+    """On the drive's clock an outage ends where it began (no window of it is stored meanwhile; those the agent held
+    come after its token), so raised_at and cleared_at read as no outage at all: the clear says how long the token
+    was gone on the service's clock."""
+    spec, msgs = aging
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        insert(store, msgs)
+        monitor = Monitor(store)
+        monitor.process(spec.name)
+        (offline,) = monitor.set_online(spec.name, False)
+        with store._tx() as c:  # it went three hours ago
+            c.execute("UPDATE alarms SET created_at = created_at - 10800 WHERE id = ?", (offline["id"],))
+        (back,) = monitor.set_online(spec.name, True)
+        assert back["cleared_at"] == back["raised_at"] == msgs[-1]["window_end"]
+        (audited,) = store.alarms(spec.name, "offline", audit=True)
+        assert "token is back after 3.0 h (service clock)" in audited["clear_evidence"], audited
+
+
 def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
     spec, msgs = aging
     with Store.open(tmp_path / "fleet.sqlite") as store:
