@@ -81,7 +81,7 @@ class EdgeAgent:
         self.query_timeout_s = query_timeout_s
         self.verifier = verifier  # fleet_wire.security.SetVerifier: sets and watermark replies must be the service's
         self.clock = clock  # paces resends only: nothing the agent keeps depends on it
-        self.time_offset: float | None = None  # added to the drive clock so it never runs back (set at first block)
+        self.time_offset: float | None = None  # added to the drive clock so it never runs back (checked every block)
         self.resume_end: float | None = None  # the service's last window end, when it is past the outbox's
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
@@ -221,9 +221,18 @@ class EdgeAgent:
             return False
         if len(block) == 0:
             return True
-        if self.time_offset is None:
-            ends = [e for e in (self.outbox.last_window_end(), self.resume_end) if e is not None]
-            self.time_offset = continued_clock(block.t, max(ends, default=None))
+        # at every block, not only the first: a drive clock that steps back under a running agent (NTP, a controller
+        # restarted) made windows the service refuses as clock_backwards, held until the clock came past again
+        ends = [e for e in (self.outbox.last_window_end(), self.resume_end) if e is not None]
+        offset = self.time_offset or 0.0
+        shift = continued_clock(block.t + offset, max(ends, default=None))
+        if shift > 0 and self.time_offset is not None:
+            log.warning(
+                "%s: the drive clock went back %.1f s: its windows go on after the last one (%.1f s)",
+                self.device, max(ends) - float(block.t[0]) - offset, max(ends),
+            )  # fmt: skip
+        if np.isfinite(shift):
+            self.time_offset = offset + shift
         block = self.at_die_temperature(block)  # the correction and the window's temperatures: the die's
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
         usable, by_reason = rejected_by_reason(block)  # spikes and clipping counted per reason, for the monitor

@@ -646,3 +646,28 @@ def test_a_set_applied_just_before_the_process_ended_is_acknowledged_after_the_r
     assert wait_for(lambda: store.acked_version(DEVICE) == 7)
     assert [(a["version"], a["status"]) for a in store.acks(DEVICE)] == [(7, "applied")]
     again.close()
+
+
+def test_a_drive_clock_stepped_back_while_the_agent_runs_does_not_hold_windows_for_ever(setup, caplog):
+    """The drive's clock steps back two minutes while the agent runs (an NTP step, a controller whose clock restarts
+    under a running agent). The agent continued its drive clock past the last window only at its first block, so
+    the next windows started before the newest one stored ended: the service refused each as clock_backwards, the
+    outbox held them and the contiguous watermark (and the drift monitor reading up to it) waited below them until
+    the clock passed that window again (a day back: a day of windows, an outbox's two weeks when the clock restarts
+    at 0), and they were stored then as resends, the same stretch of drive time twice. Now every block goes on after
+    the last window issued, and the step is logged."""
+    store, _, client, factory, make_agent, _ = setup
+    agent = make_agent(client)
+    agent.start()
+    for _ in range(5):
+        assert agent.step()
+    agent.source.now -= 120.0  # the drive's clock, two minutes back
+    for _ in range(5):
+        assert agent.step()
+    assert agent.drain(timeout_s=5.0)
+    stored = store.windows(DEVICE)
+    assert [w["seq"] for w in stored] == list(range(1, 11)) and store.contiguous_seq(DEVICE) == 10
+    assert all(b["window_start"] > a["window_end"] for a, b in zip(stored, stored[1:]))
+    assert store.dead_letters() == []
+    assert "drive clock went back" in caplog.text
+    agent.close()
