@@ -233,6 +233,7 @@ class EdgeAgent:
             )  # fmt: skip
         if np.isfinite(shift):
             self.time_offset = offset + shift
+        block = self.readable_temperatures(block)
         block = self.at_die_temperature(block)  # the correction and the window's temperatures: the die's
         self.correct(block)  # the product: the drive's corrected angle (handed to its controller)
         usable, by_reason = rejected_by_reason(block)  # spikes and clipping counted per reason, for the monitor
@@ -287,6 +288,17 @@ class EdgeAgent:
         self.counters.windows += 1
         self.sync()
         return True
+
+    def readable_temperatures(self, block: Samples) -> Samples:
+        """The block with every temperature outside the wire's range (below absolute zero, above 300 °C: an open or
+        shorted thermistor, a converter's garbage) read as NaN, which is what it tells: its sample is rejected as
+        non_finite, its angle corrected at the die's last good estimate, and the estimate does not move. Summed into
+        the window, one such reading took its temperature past the range and the wire refused the whole window."""
+        temp = block.temp_c
+        if temp is None:
+            return block
+        broken = (temp < wire.TEMP_MIN_C) | (temp > wire.TEMP_MAX_C)
+        return replace(block, temp_c=np.where(broken, np.nan, temp)) if broken.any() else block
 
     def at_die_temperature(self, block: Samples) -> Samples:
         """The block with its temperatures replaced by the die estimate of the set the agent runs."""

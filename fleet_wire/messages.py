@@ -179,7 +179,8 @@ N_BIN_VALUES = N_BINS * len(BIN_COLUMNS)
 _F8 = np.dtype("<f8")
 
 Count = Annotated[int, msgspec.Meta(ge=0, le=MAX_INT)]
-Temp = Annotated[float, msgspec.Meta(ge=-273.15, le=300)]
+TEMP_MIN_C, TEMP_MAX_C = -273.15, 300.0  # a window's temperatures: past them a reading is a broken sensor's
+Temp = Annotated[float, msgspec.Meta(ge=TEMP_MIN_C, le=TEMP_MAX_C)]
 MAX_TIME_S = 1e10  # a drive clock in seconds: 300 years
 Time = Annotated[float, msgspec.Meta(ge=0, le=MAX_TIME_S)]
 Device = Annotated[str, msgspec.Meta(pattern=keys.DEVICE_RE.pattern)]

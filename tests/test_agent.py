@@ -671,3 +671,45 @@ def test_a_drive_clock_stepped_back_while_the_agent_runs_does_not_hold_windows_f
     assert store.dead_letters() == []
     assert "drive clock went back" in caplog.text
     agent.close()
+
+
+def test_a_temperature_reading_no_drive_can_have_costs_its_sample_not_the_window(setup, tmp_path):
+    """A shorted thermistor reads +400 °C for a sample, a converter's garbage -1000 °C for another: past the wire's
+    range (-273.15..300 °C), summed into the window's temperature, the wire refused the whole window (a minute of
+    good hall samples), and the angle was corrected at the set's outermost band as if the drive were that hot or
+    cold. Now such a reading is no reading, as a NaN one: its sample is rejected as non_finite, the window goes with
+    its temperature from the others, and its angle is corrected at the die's last good estimate. A reading inside
+    the range but past the set's bands (-200 °C) is held at the outermost band, never extrapolated."""
+    import numpy as np
+
+    from edge_agent.sources import ReplaySource
+    from encoder_core.correction import BandedCorrection, Correction
+    from encoder_core.samples import Samples
+    from encoder_core.simulator import simulate
+
+    store, _, client, factory, _, _ = setup
+    rng = np.random.default_rng(SEED)
+    t = np.arange(0.0, 120.0, 0.05)
+    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
+    temp = s.temp_c.copy()
+    temp[300], temp[1500] = 400.0, -1000.0  # one in each minute
+    agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=temp)), client,
+                      Outbox(tmp_path / "hot-outbox.sqlite"), factory)  # fmt: skip
+    agent.start()
+    counters = agent.run()
+    assert counters.windows == 2 and counters.unsent_windows == 0
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 2)
+    for window in store.monitor_windows(DEVICE, 0, 2):
+        assert window["rejected_by_reason"]["non_finite"] == 1 and window["stats"].rejected == 1
+        assert abs(window["temp_mean_c"] - 25.0) < 1.0 and window["stats"].temp_max < 30.0
+    # the angle handed to the drive, through a set of a cold and a warm band
+    cold = Correction.from_dict({**factory.bands[0].to_dict(), "temp_c": -40.0, "w": [1.2, 0.0, 1.0, 0.0]})
+    warm = Correction.from_dict({**factory.bands[0].to_dict(), "temp_c": 85.0, "w": [0.8, 0.0, 1.0, 0.0]})
+    agent.correction = BandedCorrection([cold, factory.bands[0], warm])
+    block = Samples(t=t[:1200], d=s.d[:1200], q=s.q[:1200], temp_c=temp[:1200])
+    angle = agent.correct(agent.at_die_temperature(agent.readable_temperatures(block)))
+    held = agent.correction.angle(s.d[300:301], s.q[300:301], [agent.die.last[2]])  # at the last good estimate
+    hot = agent.correction.angle(s.d[300:301], s.q[300:301], [85.0])  # what +400 °C read as before
+    assert angle[300] == pytest.approx(held[0], abs=1e-12) and abs(angle[300] - hot[0]) > 1e-4
+    assert agent.correction.at(-200.0).w1 == pytest.approx(1.2)  # held at the coldest band, no further
+    agent.close()
