@@ -8,10 +8,20 @@ jumps (either way) makes messages due, never stuck."""
 
 from __future__ import annotations
 
+import logging
 import math
 import sqlite3
 import threading
 from pathlib import Path
+
+from fleet_wire import messages as wire
+
+log = logging.getLogger("edge_agent")
+SQLITE_CORRUPT = 11  # sqlite_errorcode of a damaged file (not SQLITE_NOTADB: another kind of file)
+
+
+class Damaged(sqlite3.DatabaseError):
+    """PRAGMA quick_check found the file damaged (its first finding)."""
 
 
 class Outbox:
@@ -20,6 +30,23 @@ class Outbox:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.max_windows = max_windows
         self.lock = threading.Lock()
+        self.salvaged: dict | None = None  # what was kept of a damaged file (None: the file was sound)
+        try:
+            self._open()
+            damage = self.db.execute("PRAGMA quick_check").fetchone()[0]
+            if damage != "ok":
+                raise Damaged(damage)
+        except sqlite3.DatabaseError as exc:
+            # a damaged file (a power cut on a disk that lies about its writes, a torn page) refused the agent's start,
+            # or every window after it: kept aside, and what can still be read goes into a new one. Another kind of
+            # file (SQLITE_NOTADB), a directory, a full disk are refused as before
+            if not (isinstance(exc, Damaged) or getattr(exc, "sqlite_errorcode", None) == SQLITE_CORRUPT):
+                raise
+            self._salvage(exc)
+        self.dropped = int(self._meta("dropped", 0))
+        self._sent: dict[tuple[str, int], float] = {}  # ("window", seq) | ("ack", version) -> when, this process
+
+    def _open(self) -> None:
         self.db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute(
@@ -27,8 +54,67 @@ class Outbox:
         )
         self.db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value)")
         self.db.execute("CREATE TABLE IF NOT EXISTS acks (version INTEGER PRIMARY KEY, payload BLOB NOT NULL)")
-        self.dropped = int(self._meta("dropped", 0))
-        self._sent: dict[tuple[str, int], float] = {}  # ("window", seq) | ("ack", version) -> when, this process
+
+    def _salvage(self, exc: Exception) -> None:
+        """Move the damaged file aside (PATH.corrupt, PATH.corrupt.1, ...) and open a new outbox holding what of it
+        can still be read: the meta values (the seq and drive clock to go on from, the set the drive runs), every
+        window and ack whose payload decodes as what it claims. The windows lost count as dropped, so the agent's
+        received question names them gone (as a full outbox's) and the watermark steps over those the service lacks;
+        with its last seq unreadable, the agent goes on where the service's reply says, as with an outbox lost."""
+        if getattr(self, "db", None) is not None:
+            self.db.close()
+        aside = self.path.with_name(self.path.name + ".corrupt")
+        n = 0
+        while aside.exists():
+            n += 1
+            aside = self.path.with_name(f"{self.path.name}.corrupt.{n}")
+        self.path.rename(aside)
+        for suffix in ("-wal", "-shm"):  # the WAL holds committed writes not yet in the file: read with it
+            side = Path(str(self.path) + suffix)
+            if side.exists():
+                side.rename(Path(str(aside) + suffix))
+        old = sqlite3.connect(aside, isolation_level=None)
+        try:
+            meta, unread = {}, []
+            for key in ("last_seq", "last_window_end", "dropped", "coefficients", "unresumed_after"):
+                try:
+                    row = old.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+                except sqlite3.DatabaseError:
+                    unread.append(key)
+                    continue
+                if row is not None:
+                    meta[key] = row[0]
+            windows, lowest, damaged = _readable_rows(old, "outbox", "seq", _window_ok, probe=True)
+            acks, _, _ = _readable_rows(old, "acks", "version", _ack_ok, probe=False)  # versions are sparse
+        finally:
+            old.close()
+        self._open()
+        last_seq = max([int(meta.get("last_seq", 0))] + list(windows))
+        # every seq from the lowest read to the last issued was held (the outbox's seqs have no gaps)
+        lost = 0 if lowest is None else last_seq - lowest + 1 - len(windows)
+        if damaged:
+            lost = max(lost, 1)  # some below the lowest read, maybe: anything the service lacks there is gone
+        ends = [wire.decode_window(p, key_device=None).window_end for p in windows.values()]
+        ends += [float(meta["last_window_end"])] if "last_window_end" in meta else []
+        meta.update(last_seq=last_seq, dropped=int(meta.get("dropped", 0)) + lost)
+        if ends:
+            meta["last_window_end"] = max(ends)
+        with self.lock:
+            self.db.execute("BEGIN")
+            self.db.executemany("INSERT INTO outbox(seq, payload, sent_at) VALUES(?, ?, NULL)", sorted(windows.items()))
+            self.db.executemany("INSERT INTO acks(version, payload) VALUES(?, ?)", sorted(acks.items()))
+            for key, value in meta.items():
+                self._set_meta(key, value)
+            self.db.execute("COMMIT")
+        self.salvaged = {"windows": len(windows), "acks": len(acks), "lost": lost, "kept_as": str(aside)}
+        log.warning(
+            "outbox %s is damaged (%s), kept as %s: %d window(s) and %d ack(s) read back%s; %s%d window(s) it held "
+            "unreadable, dropped (the service is told they are gone)",
+            self.path, exc, aside, len(windows), len(acks),
+            f", unreadable: {', '.join(unread)} (the set the drive ran: the factory's until the service's)"
+            if "coefficients" in unread else f", unreadable: {', '.join(unread)}" if unread else "",
+            "at least " if damaged and lowest is None else "", lost,
+        )  # fmt: skip
 
     def _meta(self, key, default):
         row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
@@ -196,3 +282,48 @@ class Outbox:
     def close(self) -> None:
         with self.lock:
             self.db.close()
+
+
+def _window_ok(seq: int, payload: bytes) -> bool:
+    try:
+        return wire.decode_window(payload, key_device=None).seq == seq
+    except wire.WireError:
+        return False
+
+
+def _ack_ok(version: int, payload: bytes) -> bool:
+    try:
+        return wire.decode("ack", payload, key_device=None)["version"] == version
+    except wire.WireError:
+        return False
+
+
+def _readable_rows(
+    db: sqlite3.Connection, table: str, column: str, ok, *, probe: bool
+) -> tuple[dict[int, bytes], int | None, bool]:
+    """The rows of a damaged table that can be read and whose payload passes `ok`, the lowest id read, and whether
+    any read failed: a scan up from the lowest and one down from the highest, each to the first page that fails, and
+    between them (`probe`: ids without gaps) one lookup per id (a damaged page fails the lookups into it alone)."""
+    rows: dict[int, bytes] = {}
+    damaged = False
+    for order in ("ASC", "DESC"):
+        try:
+            for ident, payload in db.execute(f"SELECT {column}, payload FROM {table} ORDER BY {column} {order}"):
+                if int(ident) in rows:
+                    break
+                rows[int(ident)] = bytes(payload)
+        except sqlite3.DatabaseError:
+            damaged = True
+    if probe and damaged and rows and max(rows) - min(rows) < 10**6:
+        for ident in range(min(rows) + 1, max(rows)):
+            if ident in rows:
+                continue
+            try:
+                row = db.execute(f"SELECT payload FROM {table} WHERE {column} = ?", (ident,)).fetchone()
+            except sqlite3.DatabaseError:
+                damaged = True
+                continue
+            if row is not None:
+                rows[ident] = bytes(row[0])
+    good = {ident: payload for ident, payload in rows.items() if ok(ident, payload)}
+    return good, min(rows) if rows else None, damaged or len(good) < len(rows)

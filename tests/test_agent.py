@@ -713,3 +713,48 @@ def test_a_temperature_reading_no_drive_can_have_costs_its_sample_not_the_window
     assert angle[300] == pytest.approx(held[0], abs=1e-12) and abs(angle[300] - hot[0]) > 1e-4
     assert agent.correction.at(-200.0).w1 == pytest.approx(1.2)  # held at the coldest band, no further
     agent.close()
+
+
+def test_an_outbox_damaged_on_disk_is_kept_aside_and_what_it_can_read_is_sent(setup, tmp_path, caplog):
+    """The outbox's file damaged on disk (a power cut on a disk that lies about its writes: here one window's page
+    overwritten) while the service was away. Opened, it failed its first read of that page: every window the
+    agent made after it was refused by the outbox, none was ever sent again, and a file damaged in its first pages
+    refused the agent's start (and the drive's correction with it). Now the damaged file is kept aside and a new
+    outbox holds what it can read; the window lost is counted as dropped, the service is told it is gone, and the
+    watermark passes it: every other window is stored."""
+    import sqlite3
+
+    store, router, client, factory, _, service = setup
+    path = tmp_path / "damaged.sqlite"
+    service.stop()  # away: the windows stay in the outbox
+    agent = EdgeAgent(DEVICE, _replay(seconds=360.0)(), client, Outbox(path), factory)
+    agent.start()
+    while agent.step():
+        pass
+    assert len(agent.outbox) == 6
+    (payload,) = [p for s, p in agent.outbox.pending() if s == 3]
+    agent.close()
+    agent.outbox.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    agent.outbox.close()
+    data = bytearray(path.read_bytes())
+    page = data.find(payload[:200]) // 4096  # the page that holds window 3
+    data[page * 4096 : (page + 1) * 4096] = b"\xff" * 4096
+    path.write_bytes(bytes(data))
+    with pytest.raises(sqlite3.DatabaseError):
+        sqlite3.connect(path).execute("SELECT count(*) FROM outbox").fetchone()  # damaged, as SQLite says
+
+    back = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        outbox = Outbox(path)
+        again = EdgeAgent(DEVICE, _replay(SEED + 1, seconds=120.0)(), client, outbox, factory)
+        again.start()
+        counters = again.run()  # its source to the end, then drained
+        again.close()
+        assert counters.outbox_errors == 0 and counters.unsent_windows == 0 and again.seq == 8
+        assert [w["seq"] for w in store.windows(DEVICE)] == [1, 2, 4, 5, 6, 7, 8] and len(outbox) == 0
+        assert back.watermark(DEVICE) == 8 and store.dead_letters() == []
+        assert outbox.salvaged["windows"] == 5 and outbox.salvaged["lost"] == 1 and outbox.dropped == 1
+        assert (tmp_path / "damaged.sqlite.corrupt").exists()  # kept as it was found
+        assert "1 window(s) it held unreadable" in caplog.text
+    finally:
+        back.stop()
