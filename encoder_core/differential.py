@@ -90,10 +90,11 @@ class BenchLocus:
         )
 
     @classmethod
-    def fit(cls, theta_ref, d, q, temp_c: float, order: int = LOCUS_ORDER) -> BenchLocus:
-        """Least squares of d and q on the reference angle (samples far off the circle left out)."""
+    def fit(cls, theta_ref, d, q, temp_c: float, order: int = LOCUS_ORDER, center=None) -> BenchLocus:
+        """Least squares of d and q on the reference angle (samples far off the circle about `center`, by default
+        the median of d and q, left out)."""
         theta_ref, d, q = (np.asarray(a, float) for a in (theta_ref, d, q))
-        keep = plausible_mask(d, q, center=(np.median(d), np.median(q)))
+        keep = plausible_mask(d, q, center=(np.median(d), np.median(q)) if center is None else center)
         if keep.sum() < 4 * order + 2:
             raise InputError(f"bench locus: {int(keep.sum())} usable samples, need at least {4 * order + 2}")
         design = fourier_design(theta_ref[keep], order)

@@ -17,7 +17,7 @@ import numpy as np
 from encoder_core.correction import BandedCorrection, Correction
 from encoder_core.differential import BenchLocus
 from encoder_core.methods import OursLsRef
-from encoder_core.physics import REFERENCE_TEMP_C
+from encoder_core.physics import REFERENCE_TEMP_C, wrap_rad
 from encoder_core.samples import InputError, Samples, check_angle_coverage
 from encoder_fleet.outputs import write_file
 
@@ -28,6 +28,12 @@ PLATEAU_BIN_C = 0.5
 PLATEAU_SHARE = 0.05  # bins under this share of the fullest one are a ramp's (or a plateau's thin tails) ...
 PLATEAU_CONTRAST = 4.0  # ... and a bin this many times as full as they typically are is a plateau's
 PLATEAU_MIN_SAMPLES = 64  # and holds at least this many (what a band's fit needs)
+# a row the fit misses by this many robust sigmas (1.4826 x the median miss) is a glitch, not noise (Gaussian: 2e-9)
+GLITCH_SIGMAS = 6.0
+GLITCH_FLOOR_DEG = 0.01  # nor is a miss under this (a noise-free simulated bench's MAD is rounding)
+GLITCH_SHARE = 0.02  # more of a band than this off the fit is a wrong reference, not a handful (impulses: 0.5 %)
+RADIUS_TOLERANCE = 0.12  # a corrected point this far off the unit circle is a dropped read (plausible_mask's)
+GLITCH_PASSES = 5  # refits until the rows left out stop changing
 
 
 def plateaus(temp_c: np.ndarray) -> np.ndarray:
@@ -50,28 +56,68 @@ def plateaus(temp_c: np.ndarray) -> np.ndarray:
     return out
 
 
-def calibrate_band(samples: Samples) -> Correction:
-    """One plateau: OursLsRef's correction with the bench locus attached."""
+def fit_against_reference(samples: Samples, where: str) -> tuple[Correction, np.ndarray]:
+    """OursLsRef on the rows that agree with the reference, and which rows those are. A reference glitch (a read
+    error: theta_ref far off) or a dropped read (d, q collapsed) pulls a least-squares fit everywhere around the
+    circle: 6 of 3,600 rows made a set that misses the good reference by 0.34° rms, 1.12° max (0.08°, 0.30°
+    without them). So the fit is repeated without the rows it misses by far more than the others (GLITCH_SIGMAS)
+    or that lie off its circle. The circle's centre is the fit's: the median of d and q that OursLsRef's own
+    plausibility mask centres on is off the centre on a bench that steps finer over one half of the circle than
+    the other, and the mask then left the other half out."""
+    method = OursLsRef(outlier_tolerance=None)  # rows are left out here, around the fit's centre
+    keep = np.ones(len(samples), bool)
+    for _ in range(GLITCH_PASSES):
+        corr, _ = method.fit_band(samples.subset(keep), None)
+        miss = np.abs(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
+        sigma = 1.4826 * float(np.median(miss[keep]))
+        radius = BandedCorrection([corr]).radius(samples.d, samples.q)
+        agree = (miss <= max(GLITCH_SIGMAS * sigma, np.radians(GLITCH_FLOOR_DEG))) & (
+            np.abs(radius - 1) <= RADIUS_TOLERANCE
+        )
+        if np.array_equal(agree, keep):
+            break
+        if (~agree).sum() > GLITCH_SHARE * agree.size:
+            raise InputError(
+                f"{where}: {int((~agree).sum())} of {agree.size} rows disagree with the reference angle (more than"
+                f" {GLITCH_SHARE:.0%}: not a handful of glitches; first at t = {samples.t[~agree][0]:g})"
+            )
+        check_angle_coverage(samples.theta_ref[agree], min_sectors=12, what="reference angle (rows that agree)")
+        keep = agree
+    else:  # still changing: the fit of the rows returned
+        corr, _ = method.fit_band(samples.subset(keep), None)
+    return corr, keep
+
+
+def calibrate_band(samples: Samples) -> tuple[Correction, np.ndarray]:
+    """One plateau: the correction fitted against the reference with the bench locus attached, and the rows it
+    is fitted on (the others are glitches)."""
     check_angle_coverage(samples.theta_ref, min_sectors=12, what="reference angle")
-    method = OursLsRef()
-    corr, _ = method.fit_band(samples, None)
     temp = float(np.mean(samples.temp_c)) if samples.temp_c is not None else REFERENCE_TEMP_C
+    where = f"band at {temp:.1f} °C"
+    corr, keep = fit_against_reference(samples, where)
     corr.temp_c = temp
-    corr.bench_locus = BenchLocus.fit(samples.theta_ref, samples.d, samples.q, temp).to_dict()
-    return corr
+    centre = (-corr.w2 / corr.w1, -corr.w4 / corr.w3)  # the fit's, as the rows were chosen around
+    good = samples.subset(keep)
+    corr.bench_locus = BenchLocus.fit(good.theta_ref, good.d, good.q, temp, center=centre).to_dict()
+    return corr, keep
 
 
-def calibrate(samples: Samples) -> BandedCorrection:
-    """The factory set of a bench recording: one band per temperature plateau."""
+def calibrate_bands(samples: Samples) -> list[tuple[Samples, Correction, np.ndarray]]:
+    """Each temperature plateau of a bench recording: its samples, its band and the rows the band is fitted on."""
     if samples.theta_ref is None:
         raise InputError("calibration needs the reference angle column theta_ref_deg")
     if len(samples) < 64:
         raise InputError(f"calibration needs at least 64 bench samples, got {len(samples)}")
     if samples.temp_c is None:
-        return BandedCorrection([calibrate_band(samples)])
+        return [(samples, *calibrate_band(samples))]
     groups = plateaus(samples.temp_c)
-    bands = [calibrate_band(samples.subset(groups == g)) for g in np.unique(groups[groups >= 0])]
-    return BandedCorrection(bands)
+    parts = [samples.subset(groups == g) for g in np.unique(groups[groups >= 0])]
+    return [(part, *calibrate_band(part)) for part in parts]
+
+
+def calibrate(samples: Samples) -> BandedCorrection:
+    """The factory set of a bench recording: one band per temperature plateau."""
+    return BandedCorrection([corr for _, corr, _ in calibrate_bands(samples)])
 
 
 def factory_set(device: str, factory: BandedCorrection) -> dict:
@@ -84,18 +130,26 @@ def cmd_calibrate(args) -> int:
     from encoder_fleet.recording import read_recording
 
     samples = read_recording(args.bench)
-    factory = calibrate(samples)
+    fitted = calibrate_bands(samples)
+    factory = BandedCorrection([corr for _, corr, _ in fitted])
     if samples.temp_c is not None:
         ramps = int((plateaus(samples.temp_c) < 0).sum())
         if ramps:
             print(f"{ramps} of {len(samples)} samples between plateaus (ramps) left out of every band")
     msg = factory_set(args.device, factory)
     write_file(args.out, json.dumps(msg, indent=1))
-    for band in factory.bands:
+    for part, band, keep in fitted:
         harmonics = ", ".join(f"{m}: {np.degrees(np.hypot(a, b)):.3f}°" for m, (a, b) in sorted(band.harmonics.items()))
         print(
             f"band at {band.temp_c:.1f} °C: zero {np.degrees(band.zero_offset_rad):.3f}°, harmonics {harmonics}",
         )
+        if not keep.all():
+            shown = ", ".join(f"{t:g}" for t in part.t[~keep][:5])
+            print(
+                f"band at {band.temp_c:.1f} °C: {int((~keep).sum())} of {keep.size} rows left out, their reference"
+                f" angle or d, q far off the fit (a reference glitch or a dropped read): t = {shown}"
+                f"{', …' if (~keep).sum() > 5 else ''}"
+            )
     print(f"wrote {args.out}")
     return 0
 
