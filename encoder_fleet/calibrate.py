@@ -34,6 +34,10 @@ GLITCH_FLOOR_DEG = 0.01  # nor is a miss under this (a noise-free simulated benc
 GLITCH_SHARE = 0.02  # more of a band than this off the fit is a wrong reference, not a handful (impulses: 0.5 %)
 RADIUS_TOLERANCE = 0.12  # a corrected point this far off the unit circle is a dropped read (plausible_mask's)
 GLITCH_PASSES = 5  # refits until the rows left out stop changing
+# a band that misses its own reference by more than this many times the bench's noise floor carries an error of its
+# own into the fleet, which measures every set against it (bench-methods' goal for ours-ls-ref is 1.5: a 12-bit
+# converter's rounding alone, the simulator's noise-free bench, is 1.35)
+RESIDUAL_RATIO = 2.0
 
 
 def plateaus(temp_c: np.ndarray) -> np.ndarray:
@@ -88,6 +92,16 @@ def fit_against_reference(samples: Samples, where: str) -> tuple[Correction, np.
     return corr, keep
 
 
+def reference_miss(corr: Correction, samples: Samples) -> tuple[float, float, float]:
+    """How far the band's angle is from its bench reference, rms and max (degrees), and the bench's noise floor:
+    the misses' scatter from one row to the next (robust, over √2), which the systematic error a set carries (a
+    smooth function of the angle, or a reference that slipped once) leaves out, as it leaves out d, q's noise."""
+    miss = np.degrees(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
+    step = np.diff(miss)
+    floor = 1.4826 * float(np.median(np.abs(step - np.median(step)))) / np.sqrt(2)
+    return float(np.sqrt(np.mean(miss**2))), float(np.max(np.abs(miss))), floor
+
+
 def calibrate_band(samples: Samples) -> tuple[Correction, np.ndarray]:
     """One plateau: the correction fitted against the reference with the bench locus attached, and the rows it
     is fitted on (the others are glitches)."""
@@ -95,6 +109,13 @@ def calibrate_band(samples: Samples) -> tuple[Correction, np.ndarray]:
     temp = float(np.mean(samples.temp_c)) if samples.temp_c is not None else REFERENCE_TEMP_C
     where = f"band at {temp:.1f} °C"
     corr, keep = fit_against_reference(samples, where)
+    rms, worst, floor = reference_miss(corr, samples.subset(keep))
+    if rms > RESIDUAL_RATIO * max(floor, GLITCH_FLOOR_DEG):
+        raise InputError(
+            f"{where}: the set would miss its own bench reference by {rms:.3f}° rms, {worst:.3f}° max, over"
+            f" {RESIDUAL_RATIO:g}× the bench's noise floor {floor:.3f}°: the reference and d, q disagree along the"
+            " bench (a reference that slipped, lagged or is not this shaft's angle)"
+        )
     corr.temp_c = temp
     centre = (-corr.w2 / corr.w1, -corr.w4 / corr.w3)  # the fit's, as the rows were chosen around
     good = samples.subset(keep)
@@ -150,6 +171,11 @@ def cmd_calibrate(args) -> int:
                 f" angle or d, q far off the fit (a reference glitch or a dropped read): t = {shown}"
                 f"{', …' if (~keep).sum() > 5 else ''}"
             )
+        rms, worst, floor = reference_miss(band, part.subset(keep))
+        print(
+            f"band at {band.temp_c:.1f} °C: misses its reference by {rms:.3f}° rms, {worst:.3f}° max"
+            f" (noise floor {floor:.3f}°)"
+        )
     print(f"wrote {args.out}")
     return 0
 

@@ -176,6 +176,50 @@ def test_calibrate_fits_a_bench_that_steps_finer_over_half_the_circle(tmp_path):
     assert rms < 0.1 and worst < 0.4, (rms, worst)  # the noise's (the even bench: 0.087°, 0.34°)
 
 
+def test_calibrate_refuses_a_set_that_misses_its_own_reference_by_more_than_the_noise(tmp_path, capsys):
+    """The simulator's bench visits +20 °C twice; a reference that slipped on its coupling by 1° between the visits
+    made that band split the difference: 0.5° off its own reference everywhere, 27 times the bench's noise floor
+    (0.018° from row to row), written without a word and the fleet's baseline for life. It is refused now (one
+    line, exit 2, no set), and a good bench's output says how far each band misses its reference, beside the
+    noise floor."""
+    from dataclasses import replace
+
+    from encoder_fleet.calibrate import plateaus
+    from encoder_fleet.cli import main
+    from encoder_fleet.recording import read_recording
+
+    rec, out = tmp_path / "bench.csv", tmp_path / "factory.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "simulate", "--scenario", "bench", "--out", str(rec)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    done = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "calibrate", str(rec), "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    reported = re.findall(
+        r"band at (\S+) °C: misses its reference by (\S+)° rms, (\S+)° max \(noise floor (\S+)°\)", done.stdout
+    )
+    assert [t for t, *_ in reported] == ["-40.0", "20.0", "60.0"], done.stdout
+    assert all(float(rms) < 0.03 and float(rms) < 2 * float(floor) for _, rms, _, floor in reported), done.stdout
+
+    bench = read_recording(rec)
+    second = np.flatnonzero(plateaus(bench.temp_c) == 1)
+    second = second[bench.t[second] > bench.t[second].mean()]  # the second visit of +20 °C
+    theta = bench.theta_ref.copy()
+    theta[second] += np.radians(1.0)
+    write_recording(replace(bench, theta_ref=theta), rec)
+    out.unlink()
+    assert main(["calibrate", str(rec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "band at 20.0 °C: the set would miss its own bench reference" in err
+    assert "noise floor" in err and not out.exists(), err
+
+
 def test_a_short_plateau_beside_a_long_one_is_a_plateau_still():
     """Plateaus are told from ramps by how crowded their temperatures are against the ramps', not against the
     fullest plateau: 400 samples at -40 °C beside 10,000 at +20 °C were all taken for a ramp (a second reader),
