@@ -6,6 +6,9 @@ measured against the reference. Each band also carries its bench locus (d and q 
 of the reference angle, `encoder_core.differential.BenchLocus`): the shape of the drive's own field,
 which the fleet's reference-free refits need to tell drift from field harmonics. The output is the
 coefficient set (version 0, basis factory) that `encoder-fleet agent --factory FACTORY.json` reads.
+Each band is checked against its own reference: a handful of glitch rows is left out and reported, a reference
+that disagrees with d, q beyond them (or beyond the bench's noise floor) is refused, since every drive's set is
+judged against this one for life.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ GLITCH_PASSES = 5  # refits until the rows left out stop changing
 # own into the fleet, which measures every set against it (bench-methods' goal for ours-ls-ref is 1.5: a 12-bit
 # converter's rounding alone, the simulator's noise-free bench, is 1.35)
 RESIDUAL_RATIO = 2.0
+REVERSED_AGREEMENT = 0.5  # d, q's angle follows minus the reference this closely (1: exactly): counted the other way
+RADIANS_SLACK = 1.01  # a reference column spanning π to 2π·this "degrees" is one turn in radians
 
 
 def plateaus(temp_c: np.ndarray) -> np.ndarray:
@@ -60,7 +65,7 @@ def plateaus(temp_c: np.ndarray) -> np.ndarray:
     return out
 
 
-def fit_against_reference(samples: Samples, where: str) -> tuple[Correction, np.ndarray]:
+def fit_against_reference(samples: Samples) -> tuple[Correction, np.ndarray]:
     """OursLsRef on the rows that agree with the reference, and which rows those are. A reference glitch (a read
     error: theta_ref far off) or a dropped read (d, q collapsed) pulls a least-squares fit everywhere around the
     circle: 6 of 3,600 rows made a set that misses the good reference by 0.34° rms, 1.12° max (0.08°, 0.30°
@@ -82,7 +87,7 @@ def fit_against_reference(samples: Samples, where: str) -> tuple[Correction, np.
             break
         if (~agree).sum() > GLITCH_SHARE * agree.size:
             raise InputError(
-                f"{where}: {int((~agree).sum())} of {agree.size} rows disagree with the reference angle (more than"
+                f"{int((~agree).sum())} of {agree.size} rows disagree with the reference angle (more than"
                 f" {GLITCH_SHARE:.0%}: not a handful of glitches; first at t = {samples.t[~agree][0]:g})"
             )
         check_angle_coverage(samples.theta_ref[agree], min_sectors=12, what="reference angle (rows that agree)")
@@ -106,21 +111,40 @@ def calibrate_band(samples: Samples) -> tuple[Correction, np.ndarray]:
     """One plateau: the correction fitted against the reference with the bench locus attached, and the rows it
     is fitted on (the others are glitches)."""
     check_angle_coverage(samples.theta_ref, min_sectors=12, what="reference angle")
-    temp = float(np.mean(samples.temp_c)) if samples.temp_c is not None else REFERENCE_TEMP_C
-    where = f"band at {temp:.1f} °C"
-    corr, keep = fit_against_reference(samples, where)
+    # d, q turning from d towards q while the reference turns back fit only as a mirror image, which
+    # from_inverse_matrix refuses as "are d and q swapped?": a reference counted the other way is the same thing
+    phi = np.arctan2(samples.q - np.mean(samples.q), samples.d - np.mean(samples.d))
+    back = abs(np.mean(np.exp(1j * (phi + samples.theta_ref))))
+    if back > REVERSED_AGREEMENT and back > abs(np.mean(np.exp(1j * (phi - samples.theta_ref)))):
+        raise InputError(
+            "the reference angle turns the other way than d, q (from d towards q): theta_ref_deg counted the"
+            " other way round (as minus the angle), or d and q swapped"
+        )
+    corr, keep = fit_against_reference(samples)
     rms, worst, floor = reference_miss(corr, samples.subset(keep))
     if rms > RESIDUAL_RATIO * max(floor, GLITCH_FLOOR_DEG):
         raise InputError(
-            f"{where}: the set would miss its own bench reference by {rms:.3f}° rms, {worst:.3f}° max, over"
+            f"the set would miss its own bench reference by {rms:.3f}° rms, {worst:.3f}° max, over"
             f" {RESIDUAL_RATIO:g}× the bench's noise floor {floor:.3f}°: the reference and d, q disagree along the"
             " bench (a reference that slipped, lagged or is not this shaft's angle)"
         )
-    corr.temp_c = temp
+    corr.temp_c = band_temp(samples)
     centre = (-corr.w2 / corr.w1, -corr.w4 / corr.w3)  # the fit's, as the rows were chosen around
     good = samples.subset(keep)
-    corr.bench_locus = BenchLocus.fit(good.theta_ref, good.d, good.q, temp, center=centre).to_dict()
+    corr.bench_locus = BenchLocus.fit(good.theta_ref, good.d, good.q, corr.temp_c, center=centre).to_dict()
     return corr, keep
+
+
+def band_temp(samples: Samples) -> float:
+    return float(np.mean(samples.temp_c)) if samples.temp_c is not None else REFERENCE_TEMP_C
+
+
+def calibrate_named_band(samples: Samples) -> tuple[Correction, np.ndarray]:
+    """calibrate_band, its errors naming the band: a bench's plateaus fail each on their own."""
+    try:
+        return calibrate_band(samples)
+    except InputError as exc:
+        raise InputError(f"band at {band_temp(samples):.1f} °C: {exc}") from None
 
 
 def calibrate_bands(samples: Samples) -> list[tuple[Samples, Correction, np.ndarray]]:
@@ -129,11 +153,17 @@ def calibrate_bands(samples: Samples) -> list[tuple[Samples, Correction, np.ndar
         raise InputError("calibration needs the reference angle column theta_ref_deg")
     if len(samples) < 64:
         raise InputError(f"calibration needs at least 64 bench samples, got {len(samples)}")
+    span = float(np.degrees(np.ptp(samples.theta_ref)))  # in the column's unit
+    if np.pi <= span <= 2 * np.pi * RADIANS_SLACK:
+        raise InputError(
+            f"theta_ref_deg spans only {span:.3f}: is it in radians? (the column is the reference angle in degrees,"
+            " 0 to 360 or on past it)"
+        )
     if samples.temp_c is None:
-        return [(samples, *calibrate_band(samples))]
+        return [(samples, *calibrate_named_band(samples))]
     groups = plateaus(samples.temp_c)
     parts = [samples.subset(groups == g) for g in np.unique(groups[groups >= 0])]
-    return [(part, *calibrate_band(part)) for part in parts]
+    return [(part, *calibrate_named_band(part)) for part in parts]
 
 
 def calibrate(samples: Samples) -> BandedCorrection:

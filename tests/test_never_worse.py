@@ -220,6 +220,49 @@ def test_calibrate_refuses_a_set_that_misses_its_own_reference_by_more_than_the_
     assert "noise floor" in err and not out.exists(), err
 
 
+def test_calibrate_says_which_line_mistake_a_reference_is(tmp_path, capsys):
+    """The reference's own mistakes are refused saying what they are, naming the band: theta_ref_deg written in
+    radians (0 to 6.28) was "too little reference angle coverage: 1 of 12 sectors"; a reference counted the other
+    way round was "fitted channel map is singular or mirrored (are d and q swapped?)"; a bench that covered 90°
+    did not say which plateau. A reference whose zero is offset by a constant is the factory zero, not an error,
+    and a reference counting on past 360° is the same as one that wraps."""
+    from dataclasses import replace
+
+    from encoder_fleet.cli import main
+
+    rng = np.random.default_rng(11)
+    bench = fieldsim.bench_sweep(fieldsim.draw_drive(rng), rng)
+
+    def calibrate_cli(name, theta):
+        write_recording(replace(bench, theta_ref=theta), tmp_path / f"{name}.csv")
+        code = main(["calibrate", str(tmp_path / f"{name}.csv"), "--out", str(tmp_path / f"{name}.json")])
+        return code, capsys.readouterr()
+
+    turns = np.floor(np.arange(len(bench)) / 900)  # four turns' worth of counting on past 360°
+    for name, theta in (("wraps", bench.theta_ref), ("offset", bench.theta_ref + np.radians(37.0)),
+                        ("on-past-360", bench.theta_ref + 2 * np.pi * turns)):  # fmt: skip
+        code, seen = calibrate_cli(name, theta)
+        assert code == 0, seen.err
+    angle = {
+        n: BandedCorrection.from_dict({"bands": json.loads((tmp_path / f"{n}.json").read_text())["bands"]}).angle(
+            bench.d, bench.q, bench.temp_c
+        )
+        for n in ("wraps", "offset", "on-past-360")
+    }
+    for name, shift in (("offset", 37.0), ("on-past-360", 0.0)):  # apart from the 6 digits a recording is written to
+        apart = np.degrees(np.angle(np.exp(1j * (angle[name] - angle["wraps"])))) - shift
+        assert np.max(np.abs(apart)) < 0.002, (name, np.max(np.abs(apart)))
+
+    for name, theta, says in (
+        ("radians", np.radians(bench.theta_ref), "theta_ref_deg spans only 6.281: is it in radians?"),
+        ("reversed", -bench.theta_ref, "band at 20.0 °C: the reference angle turns the other way than d, q"),
+        ("quarter", bench.theta_ref / 4, "band at 20.0 °C: too little reference angle coverage for a fit"),
+    ):
+        code, seen = calibrate_cli(name, theta)
+        assert code == 2 and len(seen.err.strip().splitlines()) == 1 and says in seen.err, seen.err
+        assert not (tmp_path / f"{name}.json").exists()
+
+
 def test_a_short_plateau_beside_a_long_one_is_a_plateau_still():
     """Plateaus are told from ramps by how crowded their temperatures are against the ramps', not against the
     fullest plateau: 400 samples at -40 °C beside 10,000 at +20 °C were all taken for a ramp (a second reader),
