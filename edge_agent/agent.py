@@ -83,6 +83,9 @@ class EdgeAgent:
         self.clock = clock  # paces resends only: nothing the agent keeps depends on it
         self.time_offset: float | None = None  # added to the drive clock so it never runs back (checked every block)
         self.resume_end: float | None = None  # the service's last window end, when it is past the outbox's
+        # the newest window issued ends here (drive clock), as the outbox keeps it: read once, then kept with every
+        # window, so that a block is continued and corrected without a read of an outbox that may be failing
+        self.issued_end: float | None = outbox.last_window_end()
         self.keys = {suffix: keys.key(device, suffix) for suffix in keys.SUFFIXES}
         self.seq = outbox.last_seq()
         # the windows after start_seq were numbered with no word from the service (by this process, or by one
@@ -151,6 +154,7 @@ class EdgeAgent:
         )  # fmt: skip
         self.resume_end = last[1]
         shift_t = [0.0]
+        moved_end: list[float] = []  # the newest moved window's end: the outbox's last window end after the move
 
         def moved(rows: list[tuple[int, bytes]]) -> list[tuple[int, bytes, float]]:
             # numbered on from `first` (windows a full outbox dropped leave no gap), after the service's newest
@@ -162,11 +166,13 @@ class EdgeAgent:
                 )
                 for i, w in enumerate(wins, start=1)
             ]
+            moved_end.append(max(w.window_end for w in wins))
             return [(w.seq, wire.encode_window(w), w.window_end) for w in wins]
 
         moved_count = self.outbox.resumed(moved)
         self.seq = first + moved_count
         if moved_count:
+            self.issued_end = moved_end[-1]
             log.warning(
                 "%s: %d window(s) numbered while the service was away moved after its own", self.device, moved_count
             )
@@ -223,7 +229,7 @@ class EdgeAgent:
             return True
         # at every block, not only the first: a drive clock that steps back under a running agent (NTP, a controller
         # restarted) made windows the service refuses as clock_backwards, held until the clock came past again
-        ends = [e for e in (self.outbox.last_window_end(), self.resume_end) if e is not None]
+        ends = [e for e in (self.issued_end, self.resume_end) if e is not None]
         offset = self.time_offset or 0.0
         shift = continued_clock(block.t + offset, max(ends, default=None))
         if shift > 0 and self.time_offset is not None:
@@ -282,6 +288,7 @@ class EdgeAgent:
             self.counters.unsent_windows += 1
             return True
         self.seq += 1
+        self.issued_end = msg["window_end"]
         if self.resumed:  # before the service has said where it stands, a window's seq and time may still move
             self.put(self.keys["stats"], payload)
             self.outbox.mark_sent([("window", self.seq)], self.clock())

@@ -673,6 +673,38 @@ def test_a_drive_clock_stepped_back_while_the_agent_runs_does_not_hold_windows_f
     agent.close()
 
 
+def test_an_outbox_page_damaged_under_a_running_agent_stops_no_correction(setup, tmp_path):
+    """The outbox's meta page is damaged on disk while the agent runs (the salvage runs only at open), so every read
+    of it fails. The drive clock's continuation read the outbox's last window end at every block, before the block
+    was corrected: each block raised, and the drive got no corrected angle while the outbox failed (before, only the
+    first block read it; the window it cannot keep is logged and counted, and the agent corrects on). The end of the
+    newest window issued is kept in memory with it now."""
+    import sqlite3
+
+    store, _, client, factory, _, _ = setup
+    path = tmp_path / "damaged.sqlite"
+    agent = EdgeAgent(DEVICE, SimulatedDrive(SEED, hours=1), client, Outbox(path), factory)
+    agent.start()
+    for _ in range(3):
+        assert agent.step()
+    agent.outbox.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    (root,) = agent.outbox.db.execute("SELECT rootpage FROM sqlite_master WHERE name = 'meta'").fetchone()
+    with open(path, "r+b") as f:  # the meta table's page, overwritten
+        f.seek((root - 1) * 4096)
+        f.write(b"\xff" * 4096)
+    other = sqlite3.connect(path, isolation_level=None)
+    other.execute("CREATE TABLE nudge (a)")  # another writer: the agent's connection reads its pages from disk again
+    other.close()
+    with pytest.raises(sqlite3.DatabaseError):
+        agent.outbox.last_window_end()  # damaged, as SQLite says
+    before = agent.die.last
+    for _ in range(2):
+        assert agent.step()  # corrected, and the window it could not keep counted
+    assert agent.counters.unsent_windows == 2 and agent.seq == 3
+    assert agent.die.last[0] > before[0]  # the die's estimate followed the blocks: they were corrected
+    agent.close()
+
+
 def test_a_temperature_reading_no_drive_can_have_costs_its_sample_not_the_window(setup, tmp_path):
     """A shorted thermistor reads +400 °C for a sample, a converter's garbage -1000 °C for another: past the wire's
     range (-273.15..300 °C), summed into the window's temperature, the wire refused the whole window (a minute of
