@@ -100,9 +100,14 @@ def fit_against_reference(samples: Samples) -> tuple[Correction, np.ndarray]:
 def reference_miss(corr: Correction, samples: Samples) -> tuple[float, float, float]:
     """How far the band's angle is from its bench reference, rms and max (degrees), and the bench's noise floor:
     the misses' scatter from one row to the next (robust, over √2), which the systematic error a set carries (a
-    smooth function of the angle, or a reference that slipped once) leaves out, as it leaves out d, q's noise."""
+    smooth function of the angle, or a reference that slipped once) leaves out, as it leaves out d, q's noise. A
+    row that repeats the one before (d, q and the reference as they were: a logger faster than the bench, a jig
+    holding its angle) is no new reading: counted, its step of 0 made the floor 0.000° and every band refused."""
     miss = np.degrees(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
-    step = np.diff(miss)
+    new = (np.diff(samples.d) != 0) | (np.diff(samples.q) != 0) | (np.diff(samples.theta_ref) != 0)
+    step = np.diff(miss)[new]
+    if step.size == 0:  # not one new reading: no scatter to tell
+        return float(np.sqrt(np.mean(miss**2))), float(np.max(np.abs(miss))), 0.0
     floor = 1.4826 * float(np.median(np.abs(step - np.median(step)))) / np.sqrt(2)
     return float(np.sqrt(np.mean(miss**2))), float(np.max(np.abs(miss))), floor
 

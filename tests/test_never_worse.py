@@ -263,6 +263,40 @@ def test_calibrate_says_which_line_mistake_a_reference_is(tmp_path, capsys):
         assert not (tmp_path / f"{name}.json").exists()
 
 
+def test_calibrate_judges_a_bench_that_repeats_its_readings_by_its_own_noise(tmp_path, capsys):
+    """A bench logged faster than it reads (each reading held for three rows, as a jig holding its angle writes
+    it): the rows that repeat the one before were steps of 0 in the noise floor, which came out 0.000°, and every
+    band was refused as missing its reference by more than twice that (the simulator's clean bench, and the real
+    jig sensors calibrate wrote sets for before). Its floor is its readings' now: the set is the bench's own."""
+    from dataclasses import replace
+
+    from encoder_fleet.cli import main
+    from encoder_fleet.recording import read_recording
+
+    rec, held, out = tmp_path / "bench.csv", tmp_path / "held.csv", tmp_path / "factory.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "simulate", "--scenario", "bench", "--out", str(rec)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    bench = read_recording(rec)
+    rows = np.repeat(np.arange(len(bench)), 3)
+    step = float(np.median(np.diff(bench.t)))
+    write_recording(
+        replace(bench.subset(rows), t=bench.t[rows] + np.tile([0.0, 1 / 3, 2 / 3], len(bench)) * step), held
+    )
+    assert main(["calibrate", str(held), "--out", str(out)]) == 0, capsys.readouterr().err
+    floors = [float(f) for f in re.findall(r"\(noise floor (\S+)°\)", capsys.readouterr().out)]
+    assert len(floors) == 3 and all(0.01 < f < 0.03 for f in floors), floors  # the bench's 0.018°, not 0.000°
+    got = BandedCorrection.from_dict(json.loads(out.read_text()))
+    assert main(["calibrate", str(rec), "--out", str(tmp_path / "own.json")]) == 0
+    own = BandedCorrection.from_dict(json.loads((tmp_path / "own.json").read_text()))
+    for a, b in zip(got.bands, own.bands, strict=True):
+        assert a.temp_c == pytest.approx(b.temp_c) and a.w1 == pytest.approx(b.w1, rel=1e-6)
+        assert a.zero_offset_rad == pytest.approx(b.zero_offset_rad, abs=1e-6)
+
+
 def test_a_short_plateau_beside_a_long_one_is_a_plateau_still():
     """Plateaus are told from ramps by how crowded their temperatures are against the ramps', not against the
     fullest plateau: 400 samples at -40 °C beside 10,000 at +20 °C were all taken for a ramp (a second reader),
