@@ -22,6 +22,7 @@ from encoder_core.differential import BenchLocus
 from encoder_core.methods import OursLsRef
 from encoder_core.physics import REFERENCE_TEMP_C, wrap_rad
 from encoder_core.samples import InputError, Samples, check_angle_coverage
+from encoder_fleet.argtypes import positive_float
 from encoder_fleet.outputs import write_file
 
 PLATEAU_GAP_C = 2.0  # a bench's temperature plateaus are separated by more than this
@@ -97,6 +98,16 @@ def fit_against_reference(samples: Samples) -> tuple[Correction, np.ndarray]:
     return corr, keep
 
 
+def run_shifts(corr: Correction, samples: Samples) -> dict[int, float]:
+    """Each run's mean miss of the reference (degrees), when the band holds several runs: a shaft re-mounted between
+    runs, or a reference slipped on its coupling, shifts the reference by a constant no fit can predict, and the
+    set's zero splits the difference. Reported as the bench's run-to-run repeatability; {} for a band of one run."""
+    if samples.run is None or np.unique(samples.run).size < 2:
+        return {}
+    miss = np.degrees(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
+    return {int(r): float(np.mean(miss[samples.run == r])) for r in np.unique(samples.run)}
+
+
 def reference_miss(corr: Correction, samples: Samples) -> tuple[float, float, float]:
     """How far the band's angle is from its bench reference, rms and max (degrees), and the bench's noise floor:
     the misses' scatter from one row to the next (robust, over √2), which the systematic error a set carries (a
@@ -112,9 +123,10 @@ def reference_miss(corr: Correction, samples: Samples) -> tuple[float, float, fl
     return float(np.sqrt(np.mean(miss**2))), float(np.max(np.abs(miss))), floor
 
 
-def calibrate_band(samples: Samples) -> tuple[Correction, np.ndarray]:
+def calibrate_band(samples: Samples, max_miss_ratio: float = RESIDUAL_RATIO) -> tuple[Correction, np.ndarray]:
     """One plateau: the correction fitted against the reference with the bench locus attached, and the rows it
-    is fitted on (the others are glitches)."""
+    is fitted on (the others are glitches). max_miss_ratio: the most the band may miss its reference, in noise
+    floors (a line's own acceptance bound; RESIDUAL_RATIO by default)."""
     check_angle_coverage(samples.theta_ref, min_sectors=12, what="reference angle")
     # d, q turning from d towards q while the reference turns back fit only as a mirror image, which
     # from_inverse_matrix refuses as "are d and q swapped?": a reference counted the other way is the same thing
@@ -127,11 +139,19 @@ def calibrate_band(samples: Samples) -> tuple[Correction, np.ndarray]:
         )
     corr, keep = fit_against_reference(samples)
     rms, worst, floor = reference_miss(corr, samples.subset(keep))
-    if rms > RESIDUAL_RATIO * max(floor, GLITCH_FLOOR_DEG):
+    if rms > max_miss_ratio * max(floor, GLITCH_FLOOR_DEG):
+        shifts = run_shifts(corr, samples.subset(keep))
+        runs = ", ".join(f"run {r} {v:+.3f}°" for r, v in shifts.items())
+        why = (
+            f"its runs sit apart by {runs} (re-mounted between them, or the reference slipped)"
+            if shifts
+            else "the reference and d, q disagree along the bench (a reference that slipped, lagged or is not this"
+            " shaft's angle)"
+        )
         raise InputError(
             f"the set would miss its own bench reference by {rms:.3f}° rms, {worst:.3f}° max, over"
-            f" {RESIDUAL_RATIO:g}× the bench's noise floor {floor:.3f}°: the reference and d, q disagree along the"
-            " bench (a reference that slipped, lagged or is not this shaft's angle)"
+            f" {max_miss_ratio:g}× the bench's noise floor {floor:.3f}°: {why}; a line that accepts it:"
+            " --max-miss-ratio"
         )
     corr.temp_c = band_temp(samples)
     centre = (-corr.w2 / corr.w1, -corr.w4 / corr.w3)  # the fit's, as the rows were chosen around
@@ -144,15 +164,17 @@ def band_temp(samples: Samples) -> float:
     return float(np.mean(samples.temp_c)) if samples.temp_c is not None else REFERENCE_TEMP_C
 
 
-def calibrate_named_band(samples: Samples) -> tuple[Correction, np.ndarray]:
+def calibrate_named_band(samples: Samples, max_miss_ratio: float = RESIDUAL_RATIO) -> tuple[Correction, np.ndarray]:
     """calibrate_band, its errors naming the band: a bench's plateaus fail each on their own."""
     try:
-        return calibrate_band(samples)
+        return calibrate_band(samples, max_miss_ratio)
     except InputError as exc:
         raise InputError(f"band at {band_temp(samples):.1f} °C: {exc}") from None
 
 
-def calibrate_bands(samples: Samples) -> list[tuple[Samples, Correction, np.ndarray]]:
+def calibrate_bands(
+    samples: Samples, max_miss_ratio: float = RESIDUAL_RATIO
+) -> list[tuple[Samples, Correction, np.ndarray]]:
     """Each temperature plateau of a bench recording: its samples, its band and the rows the band is fitted on."""
     if samples.theta_ref is None:
         raise InputError("calibration needs the reference angle column theta_ref_deg")
@@ -165,10 +187,10 @@ def calibrate_bands(samples: Samples) -> list[tuple[Samples, Correction, np.ndar
             " 0 to 360 or on past it)"
         )
     if samples.temp_c is None:
-        return [(samples, *calibrate_named_band(samples))]
+        return [(samples, *calibrate_named_band(samples, max_miss_ratio))]
     groups = plateaus(samples.temp_c)
     parts = [samples.subset(groups == g) for g in np.unique(groups[groups >= 0])]
-    return [(part, *calibrate_named_band(part)) for part in parts]
+    return [(part, *calibrate_named_band(part, max_miss_ratio)) for part in parts]
 
 
 def calibrate(samples: Samples) -> BandedCorrection:
@@ -186,7 +208,7 @@ def cmd_calibrate(args) -> int:
     from encoder_fleet.recording import read_recording
 
     samples = read_recording(args.bench)
-    fitted = calibrate_bands(samples)
+    fitted = calibrate_bands(samples, args.max_miss_ratio)
     factory = BandedCorrection([corr for _, corr, _ in fitted])
     if samples.temp_c is not None:
         ramps = int((plateaus(samples.temp_c) < 0).sum())
@@ -206,11 +228,16 @@ def cmd_calibrate(args) -> int:
                 f" angle or d, q far off the fit (a reference glitch or a dropped read): t = {shown}"
                 f"{', …' if (~keep).sum() > 5 else ''}"
             )
-        rms, worst, floor = reference_miss(band, part.subset(keep))
+        good = part.subset(keep)
+        rms, worst, floor = reference_miss(band, good)
+        shifts = run_shifts(band, good)
         print(
             f"band at {band.temp_c:.1f} °C: misses its reference by {rms:.3f}° rms, {worst:.3f}° max"
             f" (noise floor {floor:.3f}°)"
         )
+        if shifts:
+            said = ", ".join(f"run {r} {v:+.3f}°" for r, v in shifts.items())
+            print(f"band at {band.temp_c:.1f} °C: run-to-run repeatability (each run's mean miss): {said}")
     print(f"wrote {args.out}")
     return 0
 
@@ -220,4 +247,11 @@ def register(sub) -> None:
     p.add_argument("bench", help="bench CSV: t, d, q, temp_c, theta_ref_deg")
     p.add_argument("--out", required=True, help="the coefficient set (JSON) that `agent --factory` reads")
     p.add_argument("--device", default="factory", help="device id written into the set")
+    p.add_argument(
+        "--max-miss-ratio",
+        type=positive_float,
+        default=RESIDUAL_RATIO,
+        metavar="R",
+        help=f"refuse a band missing its own reference by more than R noise floors (default {RESIDUAL_RATIO:g})",
+    )
     p.set_defaults(func=cmd_calibrate)

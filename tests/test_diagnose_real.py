@@ -131,3 +131,28 @@ def test_cli_on_real_sensor_writes_json_and_report(tmp_path):
     assert "Run-to-run repeatability" in text
     assert text.count("data:image/png;base64,") == 2  # no temperature: no temperature plot
     assert "no temp_c column" in text
+
+
+def test_calibrate_on_the_real_jig_says_how_far_its_runs_sit_apart(tmp_path, capsys):
+    """`encoder-fleet calibrate` on the real sensors: each band's output gives its runs' mean miss of the reference
+    (the jig re-mounted between runs), and a bench whose runs sit apart by more than the line accepts is refused
+    naming them, unless the line says it accepts that much (--max-miss-ratio): sensor 3's runs sit 0.05-0.16° apart,
+    1.8 noise floors in all, sensor 1's up to 0.59°, 7.8 floors."""
+    import re
+
+    from encoder_fleet.cli import main
+
+    for sensor in SENSORS:
+        load(sensor)  # skipped when ../shared does not hold them
+    path = lambda sensor: str(JIG / f"jig_sensor{sensor:02d}.csv")  # noqa: E731
+    out = tmp_path / "factory.json"
+    assert main(["calibrate", path(3), "--out", str(out)]) == 0 and out.exists()
+    said = capsys.readouterr().out
+    line = re.search(r"run-to-run repeatability \(each run's mean miss\): (.*)", said).group(1)
+    shifts = [float(v) for v in re.findall(r"run \d ([+-]\d\.\d+)°", line)]
+    assert len(shifts) == 3 and 0.1 < max(shifts) - min(shifts) < 0.5, said
+    out.unlink()
+    assert main(["calibrate", path(1), "--out", str(out)]) == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert "its runs sit apart by run 1 +0.586°, run 2 -0.481°, run 3 -0.105°" in err and "--max-miss-ratio" in err
+    assert main(["calibrate", path(1), "--out", str(out), "--max-miss-ratio", "8"]) == 0 and out.exists()

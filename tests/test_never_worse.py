@@ -218,6 +218,13 @@ def test_calibrate_refuses_a_set_that_misses_its_own_reference_by_more_than_the_
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "band at 20.0 °C: the set would miss its own bench reference" in err
     assert "noise floor" in err and not out.exists(), err
+    # the two visits are runs 0 and 3 of the bench: the message says they sit apart, and a line may accept it
+    assert re.search(r"its runs sit apart by .*run 3 [+-]0\.\d+°.*--max-miss-ratio", err), err
+    assert main(["calibrate", str(rec), "--out", str(out), "--max-miss-ratio", "40"]) == 0
+    said = capsys.readouterr().out
+    line = re.search(r"band at 20\.0 °C: run-to-run repeatability.*", said).group(0)
+    shifts = dict(re.findall(r"run (\d+) ([+-]\d\.\d+)°", line))
+    assert abs(float(shifts["0"]) - float(shifts["3"]) - 1.0) < 0.05, said  # the slip, as the runs' repeatability
 
 
 def test_calibrate_says_which_line_mistake_a_reference_is(tmp_path, capsys):
