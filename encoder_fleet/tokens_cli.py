@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 
 from encoder_core.samples import InputError
@@ -84,8 +85,12 @@ def _at_out(auth, out: Path, force: bool) -> tuple[bool, int | None]:
         raise InputError(f"--out {out}: not a regular file (leave out --out to print the token)")
     if not force:
         raise InputError(f"--out {out}: {TAKEN}")
-    with open(out, "rb") as f:  # a token is 47 characters
-        text = f.read(4096).decode("utf-8", errors="replace").strip()
+    # read as checked: a link or a FIFO put there since the checks above is not followed, nor waited on
+    fd = os.open(out, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise InputError(f"--out {out}: not a regular file (leave out --out to print the token)")
+        text = f.read(4096).decode("utf-8", errors="replace").strip()  # a token is 47 characters
     return True, auth.id_of(text) if text else None
 
 

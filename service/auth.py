@@ -106,23 +106,32 @@ def write_token_file(path, token: str, *, replace: bool = True) -> None:
     byte is written, renamed onto the path. Written into a file already there, a token was readable with that file's
     mode until a chmod, and through a symlink it went wherever the link pointed (a security review): a link at the
     path is replaced, never followed. replace=False: anything at the path (a file, a link, a folder) is left as it
-    is and FileExistsError raised, checked in the same step as the file takes the name (a hard link)."""
+    is and FileExistsError raised, checked in the same step as the file is made (O_CREAT | O_EXCL, which a link at
+    the path fails too; a hard link, which vfat and some network mounts refuse, is not needed)."""
     path = Path(path)
     if path.is_dir() and not path.is_symlink():
         raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
+    if not replace:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+        try:
+            with os.fdopen(fd, "w") as out:
+                out.write(token + "\n")
+                out.flush()
+                os.fsync(out.fileno())
+        except BaseException:
+            path.unlink(missing_ok=True)  # ours, made just now: no half-written token left behind
+            raise
+        return
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")  # O_EXCL, 0600
     try:
         with os.fdopen(fd, "w") as out:
             out.write(token + "\n")
             out.flush()
             os.fsync(out.fileno())
-        if replace:
-            os.replace(tmp, path)
-        else:
-            os.link(tmp, path)  # EEXIST if anything took the name meanwhile
+        os.replace(tmp, path)
     finally:
-        Path(tmp).unlink(missing_ok=True)  # renamed: gone already; linked: its second name
+        Path(tmp).unlink(missing_ok=True)  # renamed: gone already
 
 
 # --- FastAPI ----------------------------------------------------------------------------------------

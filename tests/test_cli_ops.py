@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from fleet_wire.session import free_port
 
 
@@ -330,6 +332,32 @@ def test_token_create_over_a_file_refuses_or_revokes_the_token_it_held(tmp_path)
         auth = TokenAuth(store)
         assert auth.scope_of(first) is None and auth.scope_of(second) == "admin"
         assert auth.count() == 1 and len(auth.tokens()) == 2  # nothing made for the refusals
+
+
+def test_a_token_file_is_written_where_the_filesystem_has_no_hard_links(tmp_path, monkeypatch):
+    """A new --out file is made with O_CREAT | O_EXCL: it had been a temporary file hard-linked onto the path, and
+    vfat and some network mounts refuse hard links (os.link raises EPERM there, as it is made to here), so every
+    `token create --out` to such a disk failed."""
+    import errno
+    import os
+    import stat
+
+    from service.auth import write_token_file
+
+    def no_links(*_):
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_links)
+    out = tmp_path / "a.token"
+    write_token_file(out, "t0ken", replace=False)
+    assert out.read_text() == "t0ken\n" and stat.S_IMODE(out.stat().st_mode) == 0o600
+    with pytest.raises(FileExistsError):  # one there already, or a link there: left as it is
+        write_token_file(out, "other", replace=False)
+    (tmp_path / "link.token").symlink_to(tmp_path / "nowhere")
+    with pytest.raises(FileExistsError):
+        write_token_file(tmp_path / "link.token", "other", replace=False)
+    assert out.read_text() == "t0ken\n" and not (tmp_path / "nowhere").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.token", "link.token"]  # no temporary file left
 
 
 def test_a_database_password_is_never_printed(tmp_path):
