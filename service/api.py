@@ -242,11 +242,42 @@ alarms = APIRouter(tags=["alarms"])
 page = APIRouter(tags=["page"])
 
 
-@devices.get("", response_model=list[Device], summary="All devices")
-def list_devices(store: StoreDep, request: Request):
+_NEXT_PAGE = {
+    "Link": {
+        "description": 'When the list was cut at `limit`: `<URL of the next page>; rel="next"` (RFC 8288).',
+        "schema": {"type": "string"},
+    }
+}
+
+
+@devices.get(
+    "",
+    response_model=list[Device],
+    responses={200: {"headers": _NEXT_PAGE}},
+    summary="All devices, by id (a page of them with `limit`)",
+)
+def list_devices(
+    store: StoreDep,
+    request: Request,
+    response: Response,
+    limit: Annotated[
+        int | None, Query(ge=1, le=10000, description="Most devices listed; none: every device, in one list.")
+    ] = None,
+    after: Annotated[
+        str | None,
+        Query(max_length=64, description="Only devices of a higher id: the last id of the page before."),
+    ] = None,
+):
+    # paged by id in the body's own shape (a list, as the fleet page and older clients read it): the next page is
+    # named in a Link header, and a device seen meanwhile lands on whichever page its id falls in, moving no other
+    found = store.devices(after=after, limit=None if limit is None else limit + 1)
+    if limit is not None and len(found) > limit:
+        found = found[:limit]
+        url = request.url.include_query_params(limit=limit, after=found[-1]["id"])
+        response.headers["Link"] = f'<{url}>; rel="next"'
     # the fleet page's "Devices by state" reads `state`: without it, it showed online/offline only, an alarm never
-    states = device_states(store, *_monitor_view(request))
-    return [{**d, "state": states.get(d["id"], "unknown")} for d in store.devices()]
+    states = device_states(store, *_monitor_view(request), ids=[d["id"] for d in found])
+    return [{**d, "state": states.get(d["id"], "unknown")} for d in found]
 
 
 @devices.get("/{device_id}", response_model=Device, responses=_UNKNOWN_DEVICE, summary="One device")

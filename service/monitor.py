@@ -322,10 +322,14 @@ def device_state(
 
 
 def device_states(
-    store: Store, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None
+    store: Store,
+    monitor: Monitor | None = None,
+    serves: Callable[[str], bool] | None = None,
+    *,
+    ids: list[str] | None = None,
 ) -> dict[str, str]:
-    """Every device's state (device_state)."""
-    ids = store.device_ids()
+    """Every device's state (device_state), or those of `ids`."""
+    ids = store.device_ids() if ids is None else ids
     if monitor is None:
         return _stored_states(store, ids)
     others = _stored_states(store, [d for d in ids if serves is not None and not serves(d)])

@@ -1143,8 +1143,13 @@ class Store:
             counts["online" if r["online"] else "offline"] += r["n"]
         return counts
 
-    def devices(self) -> list[dict]:
-        return [self._device_row(r) for r in self._rows(self._DEVICE_SQL + " ORDER BY d.id")]
+    def devices(self, *, after: str | None = None, limit: int | None = None) -> list[dict]:
+        """Devices by id; after: only those of a higher id (the next page's); limit None: every one."""
+        where, args = ("", ()) if after is None else (" WHERE d.id > ?", (after,))
+        bound = 2**62 if limit is None else limit  # no bound: SQLite reads -1 so, PostgreSQL does not
+        return [
+            self._device_row(r) for r in self._rows(self._DEVICE_SQL + where + " ORDER BY d.id LIMIT ?", (*args, bound))
+        ]
 
     def online_device_ids(self) -> list[str]:
         """The devices marked online (their liveliness token last seen coming), without the devices' window counts."""

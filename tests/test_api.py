@@ -118,6 +118,37 @@ def test_windows_range_and_stats(client, history, store):
     assert [w["seq"] for w in page["windows"]] == [1, 2] and page["truncated"]
 
 
+def test_devices_are_paged_by_id_in_a_list_with_a_link_to_the_next_page(client, store):
+    """A fleet of hundreds, pages of 50: the body stays the list it was (the fleet page and older clients read it),
+    a cut page names the next in a Link header (RFC 8288), and the pages together are every device once (GET
+    /devices sent the whole fleet in one response, with no way to ask for less)."""
+    ids = [f"drive-{i:03d}" for i in range(230)]
+    for n, device in enumerate(ids):
+        store.set_online(device, n % 2 == 0, at=float(n))
+    whole = client.get("/devices")
+    assert [d["id"] for d in whole.json()] == ids and "link" not in whole.headers  # no limit: every one, as before
+    got, url, pages = [], "/devices?limit=50", 0
+    while url is not None:
+        r = client.get(url)
+        assert r.status_code == 200 and isinstance(r.json(), list), r.text
+        pages += 1
+        got += [d["id"] for d in r.json()]
+        if pages == 1:  # seen between two pages: on the page its id falls in (a page read, or one to come)
+            store.set_online("drive-000a", True, at=999.0)
+            store.set_online("drive-150a", True, at=999.0)
+        url = r.links.get("next", {}).get("url")
+        assert (url is None) == (pages == 5), (pages, r.headers.get("link"))
+        if url is not None:
+            assert len(r.json()) == 50 and f"after={r.json()[-1]['id']}" in url and "limit=50" in url
+    assert got == ids[:151] + ["drive-150a"] + ids[151:]
+    exact = client.get("/devices", params={"limit": 232})
+    assert len(exact.json()) == 232 and "link" not in exact.headers  # not cut: no next page
+    assert client.get("/devices", params={"after": ids[-1]}).json() == []
+    for bad in ({"limit": 0}, {"limit": 10001}, {"limit": "all"}, {"after": "x" * 65}):
+        r = client.get("/devices", params=bad)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", next(iter(bad))], r.text
+
+
 def _offline(store, device, at):
     (alarm,) = store.save_monitor(
         device,
