@@ -203,8 +203,11 @@ class CoefficientHistory(BaseModel):
 class WindowList(BaseModel):
     device: str
     count: int
-    truncated: bool = Field(description="More windows match; narrow the range or raise the limit.")
-    windows: list[dict] = Field(description="encoder-fleet/window/1 messages by window_start (stats only if asked).")
+    truncated: bool = Field(description="More windows match: ask for the next page with `after` = `next`.")
+    next: int | None = Field(description="`after` of the next page (the last window's seq) when truncated, else null.")
+    windows: list[dict] = Field(
+        description="encoder-fleet/window/1 messages by window_start, then seq (stats only if asked)."
+    )
 
 
 class DeadLetter(BaseModel):
@@ -386,10 +389,33 @@ def list_windows(
     span: RangeDep,
     stats: Annotated[bool, Query(description="Include the (large) statistics of each window.")] = False,
     limit: Annotated[int, Query(ge=1, le=10000, description="Most windows returned.")] = 1000,
+    after: Annotated[
+        int | None,
+        Query(
+            ge=1,
+            le=2**53 - 1,
+            description="Only windows after this seq's (by window_start, then seq): the `next` of the page before.",
+        ),
+    ] = None,
 ):
-    found = store.windows(device["id"], span.t_from, span.t_to, stats=stats, limit=limit + 1)
+    # paged by (window_start, seq), the order listed, from the seq of the page's last window (a seq names one window
+    # of a device; a window_start alone may be shared)
+    cursor = None
+    if after is not None:
+        start = store.window_start_of(device["id"], after)
+        if start is None:
+            message = f"device {device['id']!r} has no window of seq {after}"
+            raise RequestValidationError([{"type": "value_error", "loc": ("query", "after"), "msg": message}])
+        cursor = (start, after)
+    found = store.windows(device["id"], span.t_from, span.t_to, stats=stats, limit=limit + 1, after=cursor)
+    truncated = len(found) > limit
+    found = found[:limit]
     return WindowList(
-        device=device["id"], count=min(len(found), limit), truncated=len(found) > limit, windows=found[:limit]
+        device=device["id"],
+        count=len(found),
+        truncated=truncated,
+        next=found[-1]["seq"] if truncated else None,
+        windows=found,
     )
 
 

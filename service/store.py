@@ -1205,6 +1205,11 @@ class Store:
         rows = self._rows("SELECT seq, window_end FROM windows WHERE device = ? ORDER BY seq DESC LIMIT 1", (device,))
         return (rows[0]["seq"], rows[0]["window_end"]) if rows else None
 
+    def window_start_of(self, device: str, seq: int) -> float | None:
+        """window_start of the device's window `seq`, None when none is stored."""
+        rows = self._rows("SELECT window_start FROM windows WHERE device = ? AND seq = ?", (device, seq))
+        return rows[0]["window_start"] if rows else None
+
     def max_seq(self, device: str) -> int:
         """Highest window seq stored (0 when none): where an agent's catch-up resumes."""
         last = self.last_window(device)
@@ -1225,12 +1230,14 @@ class Store:
         *,
         stats: bool = False,
         limit: int | None = None,
+        after: tuple[float, int] | None = None,
     ) -> list[dict]:
-        """Windows with t_from <= window_start <= t_to, by window_start; wire messages (without stats unless asked)."""
+        """Windows with t_from <= window_start <= t_to, by window_start then seq; wire messages (without stats unless
+        asked). after: (window_start, seq) of the last window of the page before: only the windows past it."""
         cols = ", ".join(WINDOW_FIELDS) + (", stats_json, stats" if stats else "")
         sql = (
             f"SELECT {cols} FROM windows WHERE device = ? AND window_start >= ? AND window_start <= ? "
-            "ORDER BY window_start, seq LIMIT ?"
+            "AND (window_start, seq) > (?, ?) ORDER BY window_start, seq LIMIT ?"
         )
         rows = self._rows(
             sql,
@@ -1238,6 +1245,7 @@ class Store:
                 device,
                 -float("inf") if t_from is None else t_from,
                 float("inf") if t_to is None else t_to,
+                *((-float("inf"), 0) if after is None else after),
                 2**62 if limit is None else limit,  # no bound: SQLite reads -1 so, PostgreSQL does not
             ),
         )

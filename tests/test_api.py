@@ -115,7 +115,7 @@ def test_windows_range_and_stats(client, history, store):
     for w in full:
         wire.check("window", w)
     page = client.get(f"/devices/{DEVICE}/windows", params={"limit": 2}).json()
-    assert [w["seq"] for w in page["windows"]] == [1, 2] and page["truncated"]
+    assert [w["seq"] for w in page["windows"]] == [1, 2] and page["truncated"] and page["next"] == 2
 
 
 def test_devices_are_paged_by_id_in_a_list_with_a_link_to_the_next_page(client, store):
@@ -147,6 +147,31 @@ def test_devices_are_paged_by_id_in_a_list_with_a_link_to_the_next_page(client, 
     for bad in ({"limit": 0}, {"limit": 10001}, {"limit": "all"}, {"after": "x" * 65}):
         r = client.get("/devices", params=bad)
         assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", next(iter(bad))], r.text
+
+
+def test_windows_are_paged_by_start_then_seq_from_the_last_seq(client, store):
+    """Windows past a page: `next` is the last window's seq and `after=<next>` the next page, windows sharing a
+    window_start included, the range kept (a truncated page said only that more matched, with no way to get them)."""
+    for seq in [*range(2, 25, 2), *range(1, 24, 2)]:  # an odd seq, come late, shares the next one's start
+        assert store.insert_window(window(seq=seq, start=60.0 * (seq + seq % 2)))
+    found = store.windows(DEVICE, 240.0, 1200.0)
+    expected = [w["seq"] for w in found]
+    assert len(expected) > 10 and len({w["window_start"] for w in found}) < len(found)
+    got, after = [], None
+    while True:
+        params = {"from": 240, "to": 1200, "limit": 3, **({"after": after} if after is not None else {})}
+        page = client.get(f"/devices/{DEVICE}/windows", params=params).json()
+        got += [w["seq"] for w in page["windows"]]
+        assert page["count"] == len(page["windows"]) and page["truncated"] == (page["next"] is not None)
+        if not page["truncated"]:
+            break
+        assert page["next"] == page["windows"][-1]["seq"]
+        after = page["next"]
+    assert got == expected
+    for bad in ({"after": 0}, {"after": "last"}, {"after": 999}):
+        r = client.get(f"/devices/{DEVICE}/windows", params=bad)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "after"], r.text
+    assert "no window of seq 999" in r.json()["detail"][0]["msg"]
 
 
 def _offline(store, device, at):
