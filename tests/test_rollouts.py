@@ -225,6 +225,16 @@ def test_wave_sizes_grow_by_the_factor_and_cover_every_device():
     assert wave_sizes(10, 3, 1.5) == [3, 4, 3]
 
 
+def test_wave_sizes_of_a_large_fleet_in_waves_of_one_take_no_time():
+    """A rollout of 100,000 drives one a minute: the sizes are reckoned at once (each wave summed the waves before
+    it: 40 s inside the rollouts' lock, POST /rollouts unanswered and every rollout's step waiting behind it)."""
+    import time
+
+    started = time.monotonic()
+    assert wave_sizes(100_000, 1, 1.0) == [1] * 100_000
+    assert time.monotonic() - started < 5.0
+
+
 def test_rest_creates_pauses_resumes_and_aborts_with_an_admin_token_only(fleet, clock, caplog):
     """The REST API's first mutations: admin token only (compared in constant time, never logged); a paused
     rollout starts nobody new; abort rolls the current wave back and leaves later waves untouched."""
