@@ -584,6 +584,8 @@ def _rollout_call(call, *args):
     try:
         return call(*args)
     except RolloutError as e:
+        if e.status == 422:  # the documented 422 (HTTPValidationError: where and what), not a bare string
+            raise RequestValidationError([{"type": "value_error", "loc": e.loc, "msg": str(e)}]) from None
         raise HTTPException(status_code=e.status, detail=str(e)) from None
 
 

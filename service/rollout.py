@@ -111,12 +111,13 @@ class DeviceHeld(NothingWritten):
 class RolloutError(ValueError):
     """A request the rollouts cannot take: `status` is the HTTP status that says so."""
 
-    def __init__(self, status: int, message: str):
+    def __init__(self, status: int, message: str, loc: tuple = ()):
         super().__init__(message)
         self.status = status
+        self.loc = loc  # where in the request, for a 422 (the shape of FastAPI's own: ("body", "devices"))
 
-    def __reduce__(self):  # pickled with both arguments: a worker process's error reaches its pool intact
-        return type(self), (self.status, str(self))
+    def __reduce__(self):  # pickled with every argument: a worker process's error reaches its pool intact
+        return type(self), (self.status, str(self), self.loc)
 
 
 class RolloutRefused(RolloutError, NothingWritten):
@@ -149,9 +150,10 @@ class Rollouts:
             devices = sorted(known) if spec.devices is None else list(dict.fromkeys(spec.devices))
             unknown = sorted(set(devices) - set(known))
             if unknown:
-                raise RolloutError(422, f"unknown devices: {', '.join(unknown[:10])}")
+                more = f" and {len(unknown) - 10} more" if len(unknown) > 10 else ""
+                raise RolloutError(422, f"unknown devices: {', '.join(unknown[:10])}{more}", ("body", "devices"))
             if not devices:
-                raise RolloutError(422, "no devices to roll out to")
+                raise RolloutError(422, "no devices to roll out to: the fleet has none yet", ("body", "devices"))
             now = self.clock()
             sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
             waves = [wave for wave, size in enumerate(sizes) for _ in range(size)]

@@ -235,6 +235,29 @@ def test_wave_sizes_of_a_large_fleet_in_waves_of_one_take_no_time():
     assert time.monotonic() - started < 5.0
 
 
+def test_a_rollout_to_unknown_devices_or_an_empty_fleet_is_the_documented_422_naming_where(fleet):
+    """The 422 of a spec naming devices the fleet does not have (or of a fleet with none) is the HTTPValidationError
+    the OpenAPI documents, saying where (body, devices) and what: it was {"detail": "<a string>"}, which a client
+    reading the documented shape failed on."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+
+    store, service = fleet
+    api = TestClient(create_app(store, service))
+    spec = {"name": "reset", "change": {"kind": "reset_to_factory"}, "base_per_minute": 2, "soak_windows": 60}
+    for body, what in [(spec, "no devices"), ({**spec, "devices": ["drive-404"]}, "unknown devices: drive-404")]:
+        r = api.post("/rollouts", json=body)
+        assert r.status_code == 422, r.text
+        (error,) = r.json()["detail"]
+        assert error["loc"] == ["body", "devices"] and what in error["msg"], error
+    store.set_online(DEVICE_0, True)
+    many = [f"drive-{i:03d}" for i in range(100, 112)]
+    r = api.post("/rollouts", json={**spec, "devices": [DEVICE_0, *many]})
+    assert r.status_code == 422 and "drive-109 and 2 more" in r.json()["detail"][0]["msg"], r.text
+    assert api.get("/rollouts").json() == []  # nothing was made of any of them
+
+
 def test_rest_creates_pauses_resumes_and_aborts_with_an_admin_token_only(fleet, clock, caplog):
     """The REST API's first mutations: admin token only (compared in constant time, never logged); a paused
     rollout starts nobody new; abort rolls the current wave back and leaves later waves untouched."""
@@ -268,7 +291,7 @@ def test_rest_creates_pauses_resumes_and_aborts_with_an_admin_token_only(fleet, 
     ):
         assert api.post("/rollouts", json=bad, headers=as_admin).status_code == 422, bad
     unknown = api.post("/rollouts", json={**spec, "devices": ["drive-99"]}, headers=as_admin)
-    assert unknown.status_code == 422 and "drive-99" in unknown.json()["detail"]
+    assert unknown.status_code == 422 and "drive-99" in unknown.json()["detail"][0]["msg"]
 
     created = api.post("/rollouts", json=spec, headers=as_admin)
     assert created.status_code == 201, created.text
