@@ -225,16 +225,6 @@ def test_wave_sizes_grow_by_the_factor_and_cover_every_device():
     assert wave_sizes(10, 3, 1.5) == [3, 4, 3]
 
 
-def test_wave_sizes_of_a_large_fleet_in_waves_of_one_take_no_time():
-    """A rollout of 100,000 drives one a minute: the sizes are reckoned at once (each wave summed the waves before
-    it: 40 s inside the rollouts' lock, POST /rollouts unanswered and every rollout's step waiting behind it)."""
-    import time
-
-    started = time.monotonic()
-    assert wave_sizes(100_000, 1, 1.0) == [1] * 100_000
-    assert time.monotonic() - started < 5.0
-
-
 def test_a_rollout_to_unknown_devices_or_an_empty_fleet_is_the_documented_422_naming_where(fleet):
     """The 422 of a spec naming devices the fleet does not have (or of a fleet with none) is the HTTPValidationError
     the OpenAPI documents, saying where (body, devices) and what: it was {"detail": "<a string>"}, which a client
