@@ -91,19 +91,30 @@ class SimulatedDrive(SampleSource):
 
 
 class ReplaySource(SampleSource):
-    """A recording replayed in blocks of its own time column."""
+    """A recording replayed in blocks of its own time column: block k holds the samples of
+    [t0 + k * duration, t0 + (k + 1) * duration). A stretch with no sample (the logger stopped, a rate slower than
+    the window) is skipped to the next block that has one, so that no block is empty or taken from the next's."""
 
     def __init__(self, samples: Samples):
         self.samples = samples
         self.pos = 0
-        self.t_next = float(samples.t[0]) if len(samples) else 0.0
+        self.t0 = float(samples.t[0]) if len(samples) else 0.0
+        self.blocks = 0  # blocks of the grid from t0 passed, read or skipped
+        self.now = self.t0
 
     def read(self, duration_s: float) -> Samples | None:
         if self.pos >= len(self.samples):
             return None
-        self.t_next += duration_s
-        end = int(np.searchsorted(self.samples.t, self.t_next, side="left"))
-        end = max(end, self.pos + 1)
+        t = self.samples.t
+        # from t0 on each time, not summed: the grid does not drift at unix times (~1.7e9 s)
+        first = max(self.blocks, int(np.floor((t[self.pos] - self.t0) / duration_s)))
+        while True:  # the floor above may land one block short or long of t[pos] in rounding
+            self.blocks = first + 1
+            t_end = self.t0 + self.blocks * duration_s
+            end = int(np.searchsorted(t, t_end, side="left"))
+            if end > self.pos:
+                break
+            first += 1
         block = self.samples.subset(slice(self.pos, end))
         self.pos = end
         self.now = float(block.t[-1])

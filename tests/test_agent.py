@@ -4,6 +4,7 @@ it remembers across a restart."""
 import json
 import time
 
+import numpy as np
 import pytest
 import zenoh
 
@@ -790,3 +791,57 @@ def test_an_outbox_damaged_on_disk_is_kept_aside_and_what_it_can_read_is_sent(se
         assert "1 window(s) it held unreadable" in caplog.text
     finally:
         back.stop()
+
+
+def _field_recording(t: np.ndarray, seed: int = SEED):
+    """A drive recorded at times t, its temperature rising 1 °C a minute (a drive that heats, as a logger saw it)."""
+    from encoder_core.samples import Samples
+    from encoder_core.simulator import simulate
+
+    rng = np.random.default_rng(seed)
+    temp = 25.0 + (t - t[0]) / 60.0
+    s, _ = simulate(drive_model(SEED), t - t[0], rng.uniform(0, 2 * np.pi, t.size), temp, rng)
+    return Samples(t=t, d=s.d, q=s.q, temp_c=temp)
+
+
+def test_a_recording_with_a_gap_is_replayed_in_blocks_of_its_own_clock(setup, tmp_path):
+    """A field recording at unix times, its samples jittered, its logger stopped for an hour: each block of the
+    replay took at least one sample, from the next block when its own stretch had none, so the hour after the gap
+    came out as twelve windows of one sample each (and a 0.2 Hz recording with 10 s windows as one window per sample
+    from the first gap on, for ever behind its clock). Now a stretch with no sample is skipped: every window the
+    service stores lies within one block of the recording's clock from its first sample, none is empty, none spans
+    the gap, and each has its share of samples and the drive's real heating rate."""
+    from edge_agent.sources import ReplaySource
+
+    store, _, client, factory, _, _ = setup
+    rng = np.random.default_rng(SEED)
+    t0 = 1_700_000_000.0
+    before = np.arange(0.0, 600.0, 0.05)
+    after = 600.0 + 3600.0 + np.arange(0.5, 600.0, 0.05)
+    jitter = rng.uniform(-0.02, 0.02, before.size + after.size)  # irregular spacing
+    jitter[0] = 0.0
+    t = t0 + np.concatenate([before, after]) + jitter
+    agent = EdgeAgent(DEVICE, ReplaySource(_field_recording(t)), client, Outbox(tmp_path / "gap.sqlite"), factory)
+    agent.window_s = 300.0
+    agent.start()
+    counters = agent.run()
+    assert counters.windows == 4 and counters.unsent_windows == 0
+    assert wait_for(lambda: len(store.windows(DEVICE)) == 4)
+    stored = store.monitor_windows(DEVICE, 0, 4)
+    blocks = [int((w["window_start"] - t[0]) // 300.0) for w in stored]
+    assert blocks == [0, 1, 14, 15]  # the gap is the blocks 2 to 13
+    for w, k in zip(stored, blocks):
+        assert t[0] + k * 300.0 <= w["window_start"] <= w["window_end"] < t[0] + (k + 1) * 300.0
+        assert 5900 <= w["stats"].n <= 6010, w["stats"].n
+        assert abs(w["temp_rate_c_per_s"] - 1 / 60.0) < 1e-3  # the heating, not a jump across the gap
+    agent.close()
+
+    # a recording far slower than its windows: two samples or none in each 10 s, and an hour missing
+    t = t0 + np.concatenate([np.arange(0.0, 600.0, 5.0), 4200.0 + np.arange(0.0, 600.0, 5.0)])
+    source = ReplaySource(_field_recording(t))
+    blocks = []
+    while (block := source.read(10.0)) is not None:
+        blocks.append((len(block), int((block.t[0] - t[0]) // 10.0), int((block.t[-1] - t[0]) // 10.0)))
+    assert [n for n, _, _ in blocks] == [2] * 120
+    assert all(first == last for _, first, last in blocks)  # each block's samples are of one 10 s of the clock
+    assert source.now == t[-1]
