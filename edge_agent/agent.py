@@ -201,7 +201,7 @@ class EdgeAgent:
     def run(self, *, real_time_factor: float = 0.0, stop: threading.Event | None = None) -> AgentCounters:
         """Process the source to its end (or until `stop` is set). real_time_factor > 0 paces the drive's
         clock at that many times real time; 0 runs as fast as the machine can."""
-        started = time.monotonic()
+        started, drive_started = time.monotonic(), self.source.now
         while stop is None or not stop.is_set():
             try:
                 if not self.step():
@@ -210,8 +210,9 @@ class EdgeAgent:
                 log.warning("%s: the outbox failed: %s", self.device, exc)
                 self.counters.outbox_errors += 1
             if real_time_factor > 0:
-                windows = self.counters.windows + self.counters.unsent_windows
-                ahead = windows * self.window_s / real_time_factor - (time.monotonic() - started)
+                # by the drive's clock, not the windows made: a replayed recording's stretch with no sample (the
+                # logger stopped for an hour) makes no window and still takes its time
+                ahead = (self.source.now - drive_started) / real_time_factor - (time.monotonic() - started)
                 if ahead > 0:
                     time.sleep(ahead)
         if stop is None or not stop.is_set():

@@ -260,7 +260,7 @@ def register(sub) -> None:
         "--real-time-factor",
         type=non_negative_float,
         default=0.0,
-        help="pace the simulated clock at this many times real time (0: as fast as possible)",
+        help="pace the drive clock (simulated or replayed) at this many times real time (0: as fast as possible)",
     )
     p.add_argument("--outbox", help="the durable outbox file (default out/outbox/DEVICE.sqlite)")
     p.add_argument(

@@ -845,3 +845,23 @@ def test_a_recording_with_a_gap_is_replayed_in_blocks_of_its_own_clock(setup, tm
     assert [n for n, _, _ in blocks] == [2] * 120
     assert all(first == last for _, first, last in blocks)  # each block's samples are of one 10 s of the clock
     assert source.now == t[-1]
+
+
+def test_a_replay_paced_at_a_real_time_factor_takes_its_gaps_time(setup, tmp_path):
+    """`--real-time-factor F` paces the drive's clock at F times real time. It counted windows made, so a replayed
+    recording's hour with no sample (no window) went by in no time, and the service, which runs on the wall clock,
+    saw the drive's time jump. Now the pace follows the drive's clock: ten minutes, two hours missing, ten minutes
+    at 3600x take 140 / 60 s, not the 20 / 60 s of the four windows made."""
+    from edge_agent.sources import ReplaySource
+
+    _, _, client, factory, _, _ = setup
+    t = 1_700_000_000.0 + np.concatenate([np.arange(0.0, 600.0, 0.5), 7800.0 + np.arange(0.0, 600.0, 0.5)])
+    agent = EdgeAgent(DEVICE, ReplaySource(_field_recording(t)), client, Outbox(tmp_path / "paced.sqlite"), factory)
+    agent.window_s = 300.0
+    agent.start()
+    started = time.monotonic()
+    counters = agent.run(real_time_factor=3600.0)
+    took = time.monotonic() - started
+    assert counters.windows == 4
+    assert took >= (t[-1] - t[0]) / 3600.0 - 0.1, took
+    agent.close()
