@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import signal
 import sqlite3
+import sys
 import threading
 from pathlib import Path
 
@@ -51,6 +53,20 @@ def cmd_agent(args) -> int:
         if recording.temp_c is None:
             raise InputError(
                 f"{args.source}: a replayed recording needs the temp_c column (windows are banded by temperature)"
+            )
+        first = float(recording.t[0])  # t increases: its first row is the earliest
+        if first < 0:  # the wire refuses a window before 0: each was logged and dropped (fieldsim's first, jittered)
+            print(
+                f"WARNING: {args.source}: t starts at {first:g} s; replayed with every t moved by {-first:g} s "
+                "(the drive clock windows carry starts at 0)",
+                file=sys.stderr,
+                flush=True,
+            )
+            recording = dataclasses.replace(recording, t=recording.t - first)
+        if float(recording.t[-1]) > wire.MAX_TIME_S:
+            raise InputError(
+                f"{args.source}: t reaches {float(recording.t[-1]):g} s on its last row, past the drive clock's "
+                f"{wire.MAX_TIME_S:g} s (milliseconds? the t column is in seconds)"
             )
         source = ReplaySource(recording)
         factory = None

@@ -266,6 +266,85 @@ def test_an_agent_refuses_a_factory_file_that_is_not_a_coefficient_set(tmp_path)
         assert not outbox.exists(), name
 
 
+def _replay_agent(rec, factory, outbox, connect):
+    command = [sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", "drive-001", "--insecure"]
+    command += ["--connect", connect, "--source", f"replay:{rec}", "--window-s", "60"]
+    command += ["--factory", str(factory), "--outbox", str(outbox), "--real-time-factor", "3600"]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120)
+
+
+def _recording_and_factory(tmp_path, name, t, temp=True):
+    import numpy as np
+
+    from encoder_core.samples import Samples
+    from encoder_fleet.recording import write_recording
+    from tests.wire_samples import coefficients
+
+    factory = tmp_path / "factory.json"
+    factory.write_text(json.dumps({**coefficients("drive-001", 0), "basis": "factory"}))
+    rec = tmp_path / f"{name}.csv"
+    angle = np.random.default_rng(0).uniform(0, 2 * np.pi, t.size)
+    temps = np.full(t.size, 25.0) if temp else None
+    write_recording(Samples(t=t, d=1000 * np.cos(angle), q=1000 * np.sin(angle), temp_c=temps), rec)
+    return rec, factory
+
+
+def test_an_agent_refuses_a_recording_whose_clock_the_wire_cannot_carry(tmp_path):
+    """A field recording with t in unix milliseconds: the wire carries a drive clock of 0 to 1e10 s, so every window
+    was refused one by one, logged, and the command exited 0 having sent none. Now it says so in one line and exits 2
+    before anything is created, as for a recording without temp_c or one whose t goes back (read_recording names
+    the line)."""
+    import numpy as np
+
+    t = np.arange(0.0, 120.0, 0.05)
+    back = t.copy()
+    back[1000:] -= 10.0
+    cases = {
+        "millis": (1.7e12 + t * 1000.0, True, "t reaches 1.7e+12 s on its last row"),
+        "no-temp": (t, False, "needs the temp_c column"),
+        "back": (back, True, "line 1002, column 't': does not increase"),
+    }
+    for name, (times, temp, says) in cases.items():
+        rec, factory = _recording_and_factory(tmp_path, name, times, temp)
+        outbox = tmp_path / f"{name}-outbox.sqlite"
+        done = _replay_agent(rec, factory, outbox, f"tcp/127.0.0.1:{free_port()}")
+        assert done.returncode == 2, (name, done.stderr)
+        errors = [line for line in done.stderr.splitlines() if "error" in line]
+        assert len(errors) == 1 and says in errors[0] and "Traceback" not in done.stderr, (name, done.stderr)
+        assert not outbox.exists(), name
+
+
+def test_a_recording_from_before_0_is_replayed_whole_from_0(tmp_path):
+    """t from a trigger, negative before it (the project's own fieldsim drives start at -0.01 s, jittered): the wire
+    refuses a window before 0, so each was logged and dropped (a minute here, a fleet replay's first 300 s), and the
+    command exited 0. Now the replay moves every t by the same amount so that the first is 0, and says so."""
+    import numpy as np
+
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+    from service.store import Store
+
+    rec, factory = _recording_and_factory(tmp_path, "trigger", np.arange(-60.0, 120.0, 0.05))
+    endpoint = loopback_endpoint()
+    store = Store.open(tmp_path / "fleet.sqlite")
+    router = open_session(listen=[endpoint])
+    service = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        done = _replay_agent(rec, factory, tmp_path / "outbox.sqlite", endpoint)
+        assert done.returncode == 0, done.stderr
+        assert "t starts at -60 s; replayed with every t moved by 60 s" in done.stderr
+        assert "not sent" not in done.stderr and "drive-001: 3 windows" in done.stdout, done.stdout
+        deadline = time.monotonic() + 10
+        while len(store.windows("drive-001")) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        stored = store.windows("drive-001")
+        assert [round(w["window_start"]) for w in stored] == [0, 60, 120] and stored[-1]["window_end"] < 180
+    finally:
+        service.stop()
+        router.close()
+        store.close()
+
+
 def main_simulate(out) -> int:
     from encoder_fleet.cli import main
 
