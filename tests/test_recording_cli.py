@@ -130,3 +130,32 @@ def test_an_output_that_cannot_be_written_is_one_line_and_leaves_what_was_there(
     assert res.returncode == 2 and "is a directory" in res.stderr and "Traceback" not in res.stderr, res.stderr
     assert rec.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a-dir", "rec.csv"]  # no .part file left
+
+
+def test_a_long_recording_is_read_without_a_python_float_per_value(tmp_path, monkeypatch):
+    """Every value of a recording was kept as a Python float in a list (32 bytes, an array's 8) until the last row:
+    a day at 20 Hz with temp_c took ~400 MB to read, once per agent process a fleet replay runs at once. Now the rows
+    go into arrays as they are read, a chunk at a time (small here, so that a small file has many), and the peak is
+    a few times the arrays it makes; a row's line is still the file's across chunks (a blank line skipped)."""
+    import tracemalloc
+
+    import encoder_fleet.recording as recording
+
+    monkeypatch.setattr(recording, "CHUNK_ROWS", 1000, raising=False)
+    n = 100_000
+    rows = [f"{i * 0.05:.4f},{i % 2000 - 1000},{1000 - i % 2000},{25 + i * 1e-5:.5f}" for i in range(n)]
+    rec = tmp_path / "long.csv"
+    rec.write_text("t,d,q,temp_c\n" + "\n".join(rows[:50]) + "\n\n" + "\n".join(rows[50:]) + "\n")
+    tracemalloc.start()
+    try:
+        samples = read_recording(rec)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(samples) == n and samples.t[-1] == pytest.approx((n - 1) * 0.05) and samples.temp_c[0] == 25.0
+    made = 5 * 8 * n  # four columns and the line of each row, as arrays
+    assert peak < 3 * made, f"{peak / 1e6:.1f} MB to read {made / 1e6:.1f} MB of arrays"
+    rows[60_000] = rows[60_000].replace(f"{60_000 * 0.05:.4f}", "1.0", 1)  # t back, past many chunks
+    rec.write_text("t,d,q,temp_c\n" + "\n".join(rows[:50]) + "\n\n" + "\n".join(rows[50:]) + "\n")
+    with pytest.raises(InputError, match=r"line 60003, column 't': does not increase \(2999.95 on line 60002"):
+        read_recording(rec)
