@@ -230,6 +230,10 @@ class Rejections(BaseModel):
     counts: dict[str, int] = Field(description="Dead letters by reason.")
     total: int
     latest: list[DeadLetter] = Field(description="Newest first.")
+    truncated: bool = Field(description="More dead letters match: ask for the next page with `before` = `next`.")
+    next: int | None = Field(
+        description="`before` of the next page (the last letter's id) when truncated and limit > 0, else null."
+    )
 
 
 # --- routers ------------------------------------------------------------------------------------
@@ -434,8 +438,17 @@ def export_mcap(device: DeviceDep, store: StoreDep, span: RangeDep):
 
 
 @ingest.get("/rejections", response_model=Rejections, summary="Rejected input: counts and the latest dead letters")
-def rejections(store: StoreDep, limit: Annotated[int, Query(ge=0, le=1000, description="Dead letters listed.")] = 20):
+def rejections(
+    store: StoreDep,
+    limit: Annotated[int, Query(ge=0, le=1000, description="Dead letters listed.")] = 20,
+    before: Annotated[
+        int | None, Query(ge=1, le=2**63 - 1, description="Only letters of a lower id: the `next` of the page before.")
+    ] = None,
+):
+    # paged by id, newest first, as /alarms: a letter kept meanwhile has a higher id and moves no page after the first
     counts = store.rejection_counts()
+    found = store.dead_letters(limit + 1, before=before)
+    truncated = len(found) > limit
     latest = [
         DeadLetter(
             payload_bytes=d["payload_bytes"],
@@ -443,9 +456,10 @@ def rejections(store: StoreDep, limit: Annotated[int, Query(ge=0, le=1000, descr
             payload_preview=bytes(d["payload"][:200]).decode("utf-8", errors="replace"),
             **{k: d[k] for k in ("id", "received_at", "key_expr", "reason", "detail")},
         )
-        for d in store.dead_letters(limit)
+        for d in found[:limit]
     ]
-    return Rejections(counts=counts, total=sum(counts.values()), latest=latest)
+    next_page = found[limit - 1]["id"] if truncated and limit > 0 else None
+    return Rejections(counts=counts, total=sum(counts.values()), latest=latest, truncated=truncated, next=next_page)
 
 
 def _checks_response(request: Request, names: tuple[str, ...] | None) -> JSONResponse:

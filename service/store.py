@@ -765,9 +765,14 @@ class Store:
             for r in self._rows("SELECT reason, count(*) AS n FROM dead_letters GROUP BY reason ORDER BY reason")
         }
 
-    def dead_letters(self, limit: int = 20) -> list[dict]:
-        """Newest first."""
-        return [dict(r) for r in self._rows("SELECT * FROM dead_letters ORDER BY id DESC LIMIT ?", (limit,))]
+    def dead_letters(self, limit: int = 20, *, before: int | None = None) -> list[dict]:
+        """Newest first; before: only those of a lower id (the next page's)."""
+        if before is None:
+            return [dict(r) for r in self._rows("SELECT * FROM dead_letters ORDER BY id DESC LIMIT ?", (limit,))]
+        return [
+            dict(r)
+            for r in self._rows("SELECT * FROM dead_letters WHERE id < ? ORDER BY id DESC LIMIT ?", (before, limit))
+        ]
 
     def insert_ack(self, msg: dict, *, received_at: float | None = None) -> int | None:
         """Store an ack; None (nothing changed) when the same ack (version, verdict, drive time) is already

@@ -257,6 +257,27 @@ def test_rejections(client, history, store):
     assert client.get("/ingest/rejections", params={"limit": 1}).json()["latest"][0]["reason"] == "schema"
 
 
+def test_rejections_page_through_every_dead_letter(client, store):
+    """GET /ingest/rejections stopped at `limit` (1,000 at most) with no way past it: a flood of bad messages hid
+    every older letter. It pages as /alarms does: `truncated`, and `before` = `next` for the next page."""
+    for k in range(7):
+        store.ingest(keys.key(f"drive-{k:03d}", keys.STATS), b"junk %d" % k)
+    seen, before = [], None
+    for _ in range(7):
+        params = {"limit": 3} | ({"before": before} if before is not None else {})
+        page = client.get("/ingest/rejections", params=params).json()
+        seen += [d["key_expr"] for d in page["latest"]]
+        if not page["truncated"]:
+            assert page["next"] is None
+            break
+        before = page["next"]
+        store.ingest(keys.key("drive-late", keys.STATS), b"junk late")  # kept meanwhile: moves no later page
+    assert seen == [keys.key(f"drive-{k:03d}", keys.STATS) for k in reversed(range(7))], seen
+    counts_only = client.get("/ingest/rejections", params={"limit": 0}).json()
+    assert counts_only["latest"] == [] and counts_only["truncated"] and counts_only["next"] is None
+    assert client.get("/ingest/rejections", params={"before": 0}).status_code == 422
+
+
 def test_openapi_documents_every_router(client):
     import warnings
 
