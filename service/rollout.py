@@ -226,11 +226,19 @@ class Rollouts:
         if not rows:
             raise RolloutError(404, f"no rollout {rollout}")
         r = rows[0]
-        devices = self._devices(rollout)
         waves: dict[int, Counter] = {}
-        for d in devices:
-            waves.setdefault(d["wave"], Counter())[d["state"]] += 1
-        by_state = Counter(d["state"] for d in devices)
+        devices = self._devices(rollout) if with_devices else None
+        if devices is not None:  # the counts from the same read as the parts listed
+            counted = [{"wave": d["wave"], "state": d["state"], "n": 1} for d in devices]
+        else:  # by the database: a summary (GET /rollouts, every refresh of the fleet page) read every part
+            counted = self.store._rows(
+                "SELECT wave, state, count(*) AS n FROM rollout_devices WHERE rollout = ? GROUP BY wave, state",
+                (rollout,),
+            )
+        for c in counted:
+            waves.setdefault(c["wave"], Counter())[c["state"]] += c["n"]
+        by_state = sum(waves.values(), Counter())
+        total = sum(by_state.values())
         done = sum(n for state, n in by_state.items() if state in OUTCOMES)
         out = {
             "id": r["id"],
@@ -242,16 +250,16 @@ class Rollouts:
             "wave_started_at": r["wave_started_at"],
             "created_at": r["created_at"],
             "updated_at": r["updated_at"],
-            "devices_total": len(devices),
+            "devices_total": total,
             "devices_done": done,
-            "percent_done": round(100.0 * done / len(devices), 1) if devices else 100.0,
+            "percent_done": round(100.0 * done / total, 1) if total else 100.0,
             "by_state": dict(sorted(by_state.items())),
             "waves": [
                 {"wave": w, "size": sum(c.values()), "by_state": dict(sorted(c.items()))}
                 for w, c in sorted(waves.items())
             ],
         }
-        if with_devices:
+        if devices is not None:
             out["devices"] = devices
         return out
 
