@@ -56,14 +56,19 @@ class TokenAuth:
             )
             return cur.lastrowid, token
 
-    def scope_of(self, token: str) -> str | None:
-        """The token's scope, or None. Every live token's hash is compared, each in constant time."""
+    def _live(self, token: str):
+        """The live token's row (id, scope), or None. Every live token's hash is compared, each in constant time."""
         wanted = _digest(token)
         found = None
-        for row in self.store._rows("SELECT scope, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
+        for row in self.store._rows("SELECT id, scope, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
             if hmac.compare_digest(row["token_sha256"], wanted):
-                found = row["scope"]
+                found = row
         return found
+
+    def scope_of(self, token: str) -> str | None:
+        """The token's scope, or None."""
+        row = self._live(token)
+        return None if row is None else row["scope"]
 
     def tokens(self) -> list[dict]:
         rows = self.store._rows("SELECT id, name, scope, created_at, revoked_at FROM api_tokens ORDER BY id")
@@ -92,13 +97,9 @@ class TokenAuth:
         return Path(path)
 
     def id_of(self, token: str) -> int | None:
-        """The id of the live token `token`, or None (every live token's hash compared in constant time)."""
-        wanted = _digest(token)
-        found = None
-        for row in self.store._rows("SELECT id, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
-            if hmac.compare_digest(row["token_sha256"], wanted):
-                found = row["id"]
-        return found
+        """The id of the live token `token`, or None."""
+        row = self._live(token)
+        return None if row is None else row["id"]
 
 
 def write_token_file(path, token: str, *, replace: bool = True) -> None:
