@@ -35,17 +35,18 @@ from encoder_fleet.recording import write_recording
 from service.refit import band_index, centre, refit_device
 
 
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """`encoder-fleet ARGS` as a user runs it: its own process, its output captured."""
+    return subprocess.run([sys.executable, "-m", "encoder_fleet.cli", *args], capture_output=True, text=True)
+
+
 def test_calibrate_writes_the_factory_set_an_agent_reads(tmp_path):
     rng = np.random.default_rng(11)
     phys = fieldsim.draw_drive(rng)
     bench = fieldsim.bench_sweep(phys, rng)
     write_recording(bench, tmp_path / "bench.csv")
     out = tmp_path / "factory.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "encoder_fleet.cli", "calibrate", str(tmp_path / "bench.csv"), "--out", str(out)],
-        capture_output=True,
-        text=True,
-    )
+    done = run_cli("calibrate", str(tmp_path / "bench.csv"), "--out", str(out))
     assert done.returncode == 0, done.stderr
     msg = json.loads(out.read_text())
     assert msg["version"] == 0 and msg["basis"] == "factory" and all("bench_locus" in b for b in msg["bands"])
@@ -71,7 +72,7 @@ def test_calibrate_fits_each_plateau_of_a_bench_that_records_its_ramps(tmp_path)
     rec, out = tmp_path / "bench.csv", tmp_path / "factory.json"
     for argv in (["simulate", "--scenario", "bench", "--out", str(rec), "--seed", "3", "--plateaus", "-40", "25", "70"],
                  ["calibrate", str(rec), "--out", str(out)]):  # fmt: skip
-        done = subprocess.run([sys.executable, "-m", "encoder_fleet.cli", *argv], capture_output=True, text=True)
+        done = run_cli(*argv)
         assert done.returncode == 0, done.stderr
     factory = BandedCorrection.from_dict({"bands": json.loads(out.read_text())["bands"]})
     assert [round(b.temp_c) for b in factory.bands] == [-40, 25, 70]
@@ -129,19 +130,7 @@ def test_calibrate_refuses_a_reference_that_disagrees_on_more_than_a_handful_of_
     theta = bench.theta_ref.copy()
     theta[::20] = (theta[::20] + np.radians(30)) % (2 * np.pi)
     write_recording(replace(bench, theta_ref=theta), tmp_path / "bench.csv")
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "encoder_fleet.cli",
-            "calibrate",
-            str(tmp_path / "bench.csv"),
-            "--out",
-            str(tmp_path / "f.json"),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    done = run_cli("calibrate", str(tmp_path / "bench.csv"), "--out", str(tmp_path / "f.json"))
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "band at 20.0 °C: 180 of 3600 rows disagree with the reference angle" in done.stderr, done.stderr
@@ -157,19 +146,7 @@ def test_calibrate_fits_a_bench_that_steps_finer_over_half_the_circle(tmp_path):
     bench = fieldsim.bench_sweep(fieldsim.draw_drive(rng), rng)
     uneven = bench.subset((bench.theta_ref < np.pi) | (np.arange(len(bench)) % 10 == 0))
     write_recording(uneven, tmp_path / "bench.csv")
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "encoder_fleet.cli",
-            "calibrate",
-            str(tmp_path / "bench.csv"),
-            "--out",
-            str(tmp_path / "f.json"),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    done = run_cli("calibrate", str(tmp_path / "bench.csv"), "--out", str(tmp_path / "f.json"))
     assert done.returncode == 0, done.stderr
     assert "left out" not in done.stdout, done.stdout
     rms, worst = bench_error_deg(tmp_path / "f.json", uneven)
@@ -189,17 +166,9 @@ def test_calibrate_refuses_a_set_that_misses_its_own_reference_by_more_than_the_
     from encoder_fleet.recording import read_recording
 
     rec, out = tmp_path / "bench.csv", tmp_path / "factory.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "encoder_fleet.cli", "simulate", "--scenario", "bench", "--out", str(rec)],
-        capture_output=True,
-        text=True,
-    )
+    done = run_cli("simulate", "--scenario", "bench", "--out", str(rec))
     assert done.returncode == 0, done.stderr
-    done = subprocess.run(
-        [sys.executable, "-m", "encoder_fleet.cli", "calibrate", str(rec), "--out", str(out)],
-        capture_output=True,
-        text=True,
-    )
+    done = run_cli("calibrate", str(rec), "--out", str(out))
     assert done.returncode == 0, done.stderr
     reported = re.findall(
         r"band at (\S+) °C: misses its reference by (\S+)° rms, (\S+)° max \(noise floor (\S+)°\)", done.stdout
@@ -281,11 +250,7 @@ def test_calibrate_judges_a_bench_that_repeats_its_readings_by_its_own_noise(tmp
     from encoder_fleet.recording import read_recording
 
     rec, held, out = tmp_path / "bench.csv", tmp_path / "held.csv", tmp_path / "factory.json"
-    done = subprocess.run(
-        [sys.executable, "-m", "encoder_fleet.cli", "simulate", "--scenario", "bench", "--out", str(rec)],
-        capture_output=True,
-        text=True,
-    )
+    done = run_cli("simulate", "--scenario", "bench", "--out", str(rec))
     assert done.returncode == 0, done.stderr
     bench = read_recording(rec)
     rows = np.repeat(np.arange(len(bench)), 3)
