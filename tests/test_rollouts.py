@@ -528,18 +528,23 @@ def test_failures_decided_while_paused_count_once_the_rollout_resumes(fleet, clo
         assert store.published_version(device) == 1 and store.next_version(device) == 2, device
 
 
+def a_trial_it_never_applies(store, service) -> None:
+    """DEVICE_0 driven two hours on v1, then a fit v2 put on trial and published, which the drive never applies."""
+    run_on(store, DEVICE_0, 1, hours=2.0)
+    drive_now = service._drive_now(DEVICE_0)
+    trial = wire.coefficients_message(DEVICE_0, 2, drive_now - 4000.0, "fit", shifted(true_bands(DEVICE_0), 0.01))
+    store.insert_coefficient_set(trial, state="trial")
+    service._publish(trial)
+
+
 def test_a_device_whose_trial_never_ends_does_not_hold_the_rollout_for_ever(fleet, clock):
     """A drive went offline with a fit on trial it never applied: the guard keeps that trial (it is not kept on no
     evidence), so the rollout's part for the drive cannot start. The wave must still end within timeout_s."""
     store, service = fleet
     for device in DEVICES[:2]:
         install(store, service, device, shifted(true_bands(device), 0.03))
-    run_on(store, DEVICE_0, 1, hours=2.0)
-    drive_now = service._drive_now(DEVICE_0)
-    trial = wire.coefficients_message(DEVICE_0, 2, drive_now - 4000.0, "fit", shifted(true_bands(DEVICE_0), 0.01))
-    store.insert_coefficient_set(trial, state="trial")
-    service._publish(trial)  # the drive went offline before it applied v2
-    store.set_online(DEVICE_0, False)
+    a_trial_it_never_applies(store, service)
+    store.set_online(DEVICE_0, False)  # the drive went offline before it applied v2
     service.rollouts.create(
         RolloutSpec(
             name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:2], base_per_minute=2,
@@ -564,11 +569,7 @@ def test_a_part_that_never_started_is_not_counted_as_executed(fleet, clock):
     store, service = fleet
     for device in DEVICES[:3]:
         install(store, service, device, shifted(true_bands(device), 0.03))
-    run_on(store, DEVICE_0, 1, hours=2.0)
-    drive_now = service._drive_now(DEVICE_0)
-    trial = wire.coefficients_message(DEVICE_0, 2, drive_now - 4000.0, "fit", shifted(true_bands(DEVICE_0), 0.01))
-    store.insert_coefficient_set(trial, state="trial")
-    service._publish(trial)  # online, but it never applies v2
+    a_trial_it_never_applies(store, service)  # online, but it never applies v2
     criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
     service.rollouts.create(
         RolloutSpec(
