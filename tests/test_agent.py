@@ -188,10 +188,9 @@ def test_a_window_with_no_usable_sample_is_skipped_without_a_seq_and_the_agent_g
     agent.close()
 
 
-def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_path):
-    """One temperature sample that reads NaN (a dropped conversion of the sensor) summed into the window's
-    temperature made it NaN, and the wire refused the whole window. Now that sample is rejected as non_finite and
-    the window goes, its temperature from the others."""
+def two_minutes_at_25_c(setup, outbox_path, spoil):
+    """Two minutes of the drive at +25 °C replayed through a real agent, its temperature readings spoiled in place by
+    `spoil(temp, rng)`: both windows sent and stored. The agent, the times, the samples and the temperatures."""
     import numpy as np
 
     from edge_agent.sources import ReplaySource
@@ -202,15 +201,31 @@ def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_pa
     rng = np.random.default_rng(SEED)
     t = np.arange(0.0, 120.0, 0.05)
     s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
-    bad = rng.integers(0, t.size // 2)  # in the first of two minutes
     temp = s.temp_c.copy()
-    temp[bad] = np.nan
-    agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=temp)), client,
-                      Outbox(tmp_path / "nan-temp-outbox.sqlite"), factory)  # fmt: skip
+    spoil(temp, rng)
+    agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=temp)), client, Outbox(outbox_path),
+                      factory)  # fmt: skip
     agent.start()
     counters = agent.run()
     assert counters.windows == 2 and counters.unsent_windows == 0
     assert wait_for(lambda: len(store.windows(DEVICE)) == 2)
+    return agent, t, s, temp
+
+
+def test_a_nan_temperature_reading_costs_its_sample_not_the_window(setup, tmp_path):
+    """One temperature sample that reads NaN (a dropped conversion of the sensor) summed into the window's
+    temperature made it NaN, and the wire refused the whole window. Now that sample is rejected as non_finite and
+    the window goes, its temperature from the others."""
+    import numpy as np
+
+    from encoder_core.samples import Samples
+
+    store, _, _, factory, _, _ = setup
+
+    def one_nan(temp, rng):
+        temp[rng.integers(0, temp.size // 2)] = np.nan  # in the first of two minutes
+
+    agent, t, s, temp = two_minutes_at_25_c(setup, tmp_path / "nan-temp-outbox.sqlite", one_nan)
     first = store.monitor_windows(DEVICE, 0, 1)[0]
     assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"].rejected == 1
     assert np.isfinite(first["temp_mean_c"]) and abs(first["temp_mean_c"] - 25.0) < 1.0
@@ -713,25 +728,16 @@ def test_a_temperature_reading_no_drive_can_have_costs_its_sample_not_the_window
     cold. Now such a reading is no reading, as a NaN one: its sample is rejected as non_finite, the window goes with
     its temperature from the others, and its angle is corrected at the die's last good estimate. A reading inside
     the range but past the set's bands (-200 °C) is held at the outermost band, never extrapolated."""
-    import numpy as np
 
-    from edge_agent.sources import ReplaySource
     from encoder_core.correction import BandedCorrection, Correction
     from encoder_core.samples import Samples
-    from encoder_core.simulator import simulate
 
-    store, _, client, factory, _, _ = setup
-    rng = np.random.default_rng(SEED)
-    t = np.arange(0.0, 120.0, 0.05)
-    s, _ = simulate(drive_model(SEED), t, rng.uniform(0, 2 * np.pi, t.size), np.full(t.size, 25.0), rng)
-    temp = s.temp_c.copy()
-    temp[300], temp[1500] = 400.0, -1000.0  # one in each minute
-    agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=temp)), client,
-                      Outbox(tmp_path / "hot-outbox.sqlite"), factory)  # fmt: skip
-    agent.start()
-    counters = agent.run()
-    assert counters.windows == 2 and counters.unsent_windows == 0
-    assert wait_for(lambda: len(store.windows(DEVICE)) == 2)
+    store, _, _, factory, _, _ = setup
+
+    def two_impossible(temp, _rng):
+        temp[300], temp[1500] = 400.0, -1000.0  # one in each minute
+
+    agent, t, s, temp = two_minutes_at_25_c(setup, tmp_path / "hot-outbox.sqlite", two_impossible)
     for window in store.monitor_windows(DEVICE, 0, 2):
         assert window["rejected_by_reason"]["non_finite"] == 1 and window["stats"].rejected == 1
         assert abs(window["temp_mean_c"] - 25.0) < 1.0 and window["stats"].temp_max < 30.0
