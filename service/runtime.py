@@ -776,32 +776,28 @@ class FleetService:
             return
         if self.guard is not None and not self.guard.admits(device):
             return  # as for its windows: an id out of the registry (revoked) gets no watermark and moves no floor
-        try:
-            self._take_gone_below(device, query)
-        except Exception:  # a write the database refused: the watermark is still answered (reads work)
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:  # a write the database refuses below: the watermark is still answered (reads work)
+            try:
+                gone_below, nonce = wire.parse_received_query(payload, device)
+            except wire.WireError as exc:  # kept and counted; answered with no nonce (a checking agent refuses it)
+                gone_below = nonce = None
+                self.store.dead_letter(str(query.key_expr), exc.reason, str(exc), payload)
+                with self._lock:
+                    self.counters.count(exc.reason)
+            if gone_below is not None:
+                self._take_gone_below(device, gone_below)
+        except Exception:
             log.exception("%s: the received question's floor could not be stored", device)
-        try:
-            nonce = wire.parse_received_query(query.payload.to_bytes() if query.payload is not None else b"", device)[1]
-        except wire.WireError:  # dead-lettered above; answered with no nonce (an agent checking signatures refuses it)
-            nonce = None
         mark, acked, last = self.watermark(device), self.store.acked_version(device), self.store.last_window(device)
         # signed for this question (security on): whoever else can answer it (a meshed router's stolen key) cannot forge
         # a higher watermark, nor replay an old or another drive's reply, to make the agent drop windows never stored
         query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last, nonce=nonce, signer=self.signer))
 
-    def _take_gone_below(self, device: str, query: zenoh.Query) -> None:
+    def _take_gone_below(self, device: str, gone_below: int) -> None:
         """An agent whose full outbox dropped windows names the seq below which what we lack is gone: without it the
-        watermark waits at the first of them for ever, and the drift monitor with it (it reads up to the mark). A
-        question that is not one is dead-lettered and counted, and answered all the same."""
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            gone_below = wire.parse_received_query(payload, device)[0]
-        except wire.WireError as exc:
-            self.store.dead_letter(str(query.key_expr), exc.reason, str(exc), payload)
-            with self._lock:
-                self.counters.count(exc.reason)
-            return
-        if gone_below is not None and self.store.mark_gone_below(device, gone_below):
+        watermark waits at the first of them for ever, and the drift monitor with it (it reads up to the mark)."""
+        if self.store.mark_gone_below(device, gone_below):
             log.warning(
                 "windows below seq %d lost by the agent (its outbox full): the watermark steps over them",
                 gone_below,
