@@ -767,12 +767,9 @@ class Store:
 
     def dead_letters(self, limit: int = 20, *, before: int | None = None) -> list[dict]:
         """Newest first; before: only those of a lower id (the next page's)."""
-        if before is None:
-            return [dict(r) for r in self._rows("SELECT * FROM dead_letters ORDER BY id DESC LIMIT ?", (limit,))]
-        return [
-            dict(r)
-            for r in self._rows("SELECT * FROM dead_letters WHERE id < ? ORDER BY id DESC LIMIT ?", (before, limit))
-        ]
+        where, args = ("", ()) if before is None else (" WHERE id < ?", (before,))
+        sql = "SELECT * FROM dead_letters" + where + " ORDER BY id DESC LIMIT ?"
+        return [dict(r) for r in self._rows(sql, (*args, limit))]
 
     def insert_ack(self, msg: dict, *, received_at: float | None = None) -> int | None:
         """Store an ack; None (nothing changed) when the same ack (version, verdict, drive time) is already
