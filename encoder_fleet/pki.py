@@ -37,6 +37,7 @@ from fleet_wire.security import (
     SecurityError,
     access_control,
     certificate_identity,
+    plain_endpoints,
     registry,
     registry_names,
 )
@@ -261,15 +262,14 @@ def router_config(
     from the registry. container_dir: where zenohd sees pki_dir (paths in the config are zenohd's).
     Meshed routers: `connect` to other routers (with this router's certificate); `peers`, the certificate names
     of the routers meshed with this one either way, whom its access control trusts as it trusts the service."""
-    # TLS only, as the service's own router (service.guard.router_security): a tcp/ (or udp/, ws/, ...) listener takes
-    # clients without a certificate, in plain text, and a mesh link over one has no certificate for the peer's ACL
+    # TLS only, as the service's own router (service.guard.router_security)
     for option, endpoints in (("--listen", listen), ("--connect", connect)):
-        for endpoint in endpoints:
-            if not str(endpoint).startswith("tls/"):
-                raise SecurityError(
-                    f"router-config {option} {endpoint}: not TLS; every endpoint of the fleet's router is "
-                    "tls/HOST:PORT (mutual TLS: the certificates and the ACL)"
-                )
+        plain = plain_endpoints(endpoints)
+        if plain:
+            raise SecurityError(
+                f"router-config {option} {plain[0]}: not TLS; every endpoint of the fleet's router is "
+                "tls/HOST:PORT (mutual TLS: the certificates and the ACL)"
+            )
     pki_dir = Path(pki_dir)
     where = Path(container_dir) if container_dir else pki_dir.resolve()
     tls = {

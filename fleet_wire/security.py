@@ -43,6 +43,12 @@ class SecurityError(InputError):
 # --- certificates ---------------------------------------------------------------------------------
 
 
+def plain_endpoints(endpoints) -> list[str]:
+    """The endpoints that are not TLS: a fleet's router takes none (a tcp/, udp/, ws/ ... listener takes clients
+    without a certificate, in plain text, and a mesh link over one has no certificate for the peer's ACL)."""
+    return [str(e) for e in endpoints if not str(e).startswith("tls/")]
+
+
 def certificate_identity(path: Path) -> tuple[str, str]:
     """(common name, role) of a PEM certificate; role is its organizational unit ('' if none)."""
     from cryptography import x509

@@ -79,9 +79,17 @@ def router_security(pki, *, listen: list[str] | None, connect: list[str] | None,
     router meshed with others connects to them as the service (their access control lets it through)."""
     if pki is None:
         return None, None
-    from fleet_wire.security import ROLE_SERVICE, SERVICE_NAME, Identity, SecurityError, access_control, registry_names
+    from fleet_wire.security import (
+        ROLE_SERVICE,
+        SERVICE_NAME,
+        Identity,
+        SecurityError,
+        access_control,
+        plain_endpoints,
+        registry_names,
+    )
 
-    plain = [e for e in (connect or [*(listen or []), *(mesh or [])]) if not str(e).startswith("tls/")]
+    plain = plain_endpoints(connect or [*(listen or []), *(mesh or [])])
     if plain:
         raise SecurityError(f"with --pki every endpoint must be tls/HOST:PORT, not {', '.join(plain)}")
     identity = Identity.load(pki, SERVICE_NAME, ROLE_SERVICE)
