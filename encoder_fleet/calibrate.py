@@ -98,13 +98,22 @@ def fit_against_reference(samples: Samples) -> tuple[Correction, np.ndarray]:
     return corr, keep
 
 
+def miss_deg(corr: Correction, samples: Samples) -> np.ndarray:
+    """Each row's miss of its bench reference by the band's angle (degrees, wrapped)."""
+    return np.degrees(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
+
+
+def runs_said(shifts: dict[int, float]) -> str:
+    return ", ".join(f"run {r} {v:+.3f}°" for r, v in shifts.items())
+
+
 def run_shifts(corr: Correction, samples: Samples) -> dict[int, float]:
     """Each run's mean miss of the reference (degrees), when the band holds several runs: a shaft re-mounted between
     runs, or a reference slipped on its coupling, shifts the reference by a constant no fit can predict, and the
     set's zero splits the difference. Reported as the bench's run-to-run repeatability; {} for a band of one run."""
     if samples.run is None or np.unique(samples.run).size < 2:
         return {}
-    miss = np.degrees(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
+    miss = miss_deg(corr, samples)
     return {int(r): float(np.mean(miss[samples.run == r])) for r in np.unique(samples.run)}
 
 
@@ -114,7 +123,7 @@ def reference_miss(corr: Correction, samples: Samples) -> tuple[float, float, fl
     smooth function of the angle, or a reference that slipped once) leaves out, as it leaves out d, q's noise. A
     row that repeats the one before (d, q and the reference as they were: a logger faster than the bench, a jig
     holding its angle) is no new reading: counted, its step of 0 made the floor 0.000° and every band refused."""
-    miss = np.degrees(wrap_rad(corr.angle(samples.d, samples.q) - samples.theta_ref))
+    miss = miss_deg(corr, samples)
     new = (np.diff(samples.d) != 0) | (np.diff(samples.q) != 0) | (np.diff(samples.theta_ref) != 0)
     step = np.diff(miss)[new]
     if step.size == 0:  # not one new reading: no scatter to tell
@@ -141,9 +150,8 @@ def calibrate_band(samples: Samples, max_miss_ratio: float = RESIDUAL_RATIO) -> 
     rms, worst, floor = reference_miss(corr, samples.subset(keep))
     if rms > max_miss_ratio * max(floor, GLITCH_FLOOR_DEG):
         shifts = run_shifts(corr, samples.subset(keep))
-        runs = ", ".join(f"run {r} {v:+.3f}°" for r, v in shifts.items())
         why = (
-            f"its runs sit apart by {runs} (re-mounted between them, or the reference slipped)"
+            f"its runs sit apart by {runs_said(shifts)} (re-mounted between them, or the reference slipped)"
             if shifts
             else "the reference and d, q disagree along the bench (a reference that slipped, lagged or is not this"
             " shaft's angle)"
@@ -236,8 +244,7 @@ def cmd_calibrate(args) -> int:
             f" (noise floor {floor:.3f}°)"
         )
         if shifts:
-            said = ", ".join(f"run {r} {v:+.3f}°" for r, v in shifts.items())
-            print(f"band at {band.temp_c:.1f} °C: run-to-run repeatability (each run's mean miss): {said}")
+            print(f"band at {band.temp_c:.1f} °C: run-to-run repeatability (each run's mean miss): {runs_said(shifts)}")
     print(f"wrote {args.out}")
     return 0
 
