@@ -164,6 +164,7 @@ def cmd_service(args) -> int:
         http_port=args.http_port,
         refit_interval_s=args.refit_interval,
         db_max_mb=args.db_max_mb,
+        keep_days=args.keep_days,
         **horizon,
     )
 
@@ -332,6 +333,13 @@ def register(sub) -> None:
         "--db-max-mb",
         type=positive_float,
         help="a quota on the database: past it, writes fail as on a full disk (/healthz says so, agents buffer)",
+    )
+    p.add_argument(
+        "--keep-days",
+        type=positive_float,
+        help="retention: delete windows that ended more than this many days of a drive's own time before its newest "
+        "(those the refit, the monitor, a trial or the watermark still need stay) and dead letters this old; "
+        "coefficient sets, acks, fits and alarms are kept for good (default: keep every window)",
     )
     add_security_options(p, "service.crt/.key, ca.crt, signing.key and the device certificates (the registry)")
     p.add_argument(

@@ -90,6 +90,12 @@ class FleetCollector(Collector):
             "Ingest batches the database refused (disk full, read-only, I/O); the agents resend them.",
             value=counters["storage_failures"],
         )
+        pruned = CounterMetricFamily(
+            "encoder_fleet_pruned", "Rows deleted by retention (service --keep-days), by table.", labels=["table"]
+        )
+        pruned.add_metric(["windows"], counters["pruned_windows"])
+        pruned.add_metric(["dead_letters"], counters["pruned_dead_letters"])
+        yield pruned
         yield from self.service.counters.ingest_latency.collect()
         yield from self.service.counters.refit_latency.collect()
         alarms = self.store.open_alarm_counts()

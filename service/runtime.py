@@ -83,6 +83,8 @@ RESEND_AFTER_S = 60.0
 # … or after this much drive time, whichever comes first: a fleet replayed at 3,600x real time would otherwise wait
 # 60 drive-hours for it (an agent applies a set at its next window: a few windows of the longest, 600 s)
 RESEND_AFTER_DRIVE_S = 1800.0
+# wall seconds between two retention passes (`service --keep-days`): each deletes what has aged out since the last
+PRUNE_EVERY_S = 600.0
 
 
 @dataclass
@@ -96,6 +98,8 @@ class ServiceCounters:
     storage_error: str | None = None  # the last refusal, until a batch is stored again (/healthz fails meanwhile)
     database_reconnects: int = 0  # PostgreSQL sessions lost (server restart, failover) and opened again
     analysis_waited_s: float = 0.0  # the monitor and refit passes' waits for a backlog to be stored (_store_first)
+    pruned_windows: int = 0  # deleted by retention (--keep-days)
+    pruned_dead_letters: int = 0
     # windows and acks this process stored, by the device's partition (GET /cluster: who served what)
     stored_by_partition: list[int] = field(default_factory=lambda: [0] * keys.PARTITIONS)
     # seconds from a message's arrival to its commit, and of one device's refit (read by service.observability)
@@ -129,6 +133,8 @@ class ServiceCounters:
             "storage_failures": self.storage_failures,
             "database_reconnects": self.database_reconnects,
             "analysis_waited_s": self.analysis_waited_s,
+            "pruned_windows": self.pruned_windows,
+            "pruned_dead_letters": self.pruned_dead_letters,
         }
 
 
@@ -211,8 +217,15 @@ class FleetService:
         member: str | None = None,
         resend_after_s: float = RESEND_AFTER_S,
         online_recheck_s: float = ONLINE_RECHECK_S,
+        keep_days: float | None = None,
     ):
         self.store = store
+        # retention (prune): windows older than this in each drive's own time, dead letters in the service's; None
+        # keeps everything. Needs the store's band horizon: without one a band's sum holds every window it had.
+        if keep_days is not None and not (keep_days > 0 and store.band_horizon_s):
+            raise InputError("--keep-days needs a positive number of days and a band horizon (--band-horizon-h)")
+        self.keep_s = None if keep_days is None else keep_days * 86_400.0
+        self._pruned_at: float | None = None  # monotonic: the last retention pass
         self.online_recheck_s = online_recheck_s
         self._online_recheck_at: float | None = None  # monotonic; set when partitions are taken
         self._token_seen: dict[str, float] = {}  # device -> when (monotonic) its token last came or went
@@ -824,6 +837,14 @@ class FleetService:
                 self.refit_all()
             except Exception:  # the thread must outlive a pass: a dead one would never refit again
                 log.exception("refit pass failed")
+            if self.keep_s is not None and (
+                self._pruned_at is None or time.monotonic() - self._pruned_at > PRUNE_EVERY_S
+            ):
+                self._pruned_at = time.monotonic()
+                try:
+                    self.prune()
+                except Exception:  # the next pass tries again; nothing is lost by pruning late
+                    log.exception("retention pass failed")
             if not self.partitions.leads():
                 continue  # one process steps the rollouts; every process records and judges from the database
             try:
@@ -900,6 +921,44 @@ class FleetService:
         with self._lock:
             self._changed |= later
         return published
+
+    def prune(self) -> dict[str, int]:
+        """Retention (`--keep-days`): delete each served device's windows that ended more than keep_s of its own
+        drive time before its newest, in small transactions with the writer served first. Kept whatever their age:
+        every window above the contiguous watermark (the agent may still fill a gap below them), not yet seen by
+        the drift monitor, run on a set on trial, or in a band's sum (Store.prune_windows), and each device's newest
+        (its drive time, its offline alarm's date). Dead letters older than keep_s of the service's clock go too.
+        Returns {"windows": n, "dead_letters": n} deleted."""
+        if self.keep_s is None:
+            return {"windows": 0, "dead_letters": 0}
+        windows = 0
+        for device in filter(self.partitions.serves, self.store.device_ids()):
+            self._store_first()
+            with self.partitions.serving(device) as mine:
+                last = self.store.last_window(device) if mine else None
+                if last is None:
+                    continue
+                below = min(self.watermark(device) + 1, last[0])
+                if self.monitor_interval_s > 0:  # the monitor reads its windows back, and its last one at a restart
+                    below = min(below, self.store.monitor_states(device).get(device, (None, 0))[1])
+                trial = self.store.set_on_trial(device)
+                keep_version = None if trial is None else trial["version"]
+                while n := self.store.prune_windows(
+                    device, ended_before=last[1] - self.keep_s, below_seq=below, keep_version=keep_version
+                ):
+                    windows += n
+                    self._store_first()
+        dead_letters = 0
+        if self.partitions.leads():  # the table is the whole fleet's: one process prunes it
+            while n := self.store.prune_dead_letters(self._clock() - self.keep_s):
+                dead_letters += n
+                self._store_first()
+        with self._lock:
+            self.counters.pruned_windows += windows
+            self.counters.pruned_dead_letters += dead_letters
+        if windows or dead_letters:
+            log.info("retention pass", extra={"windows": windows, "dead_letters": dead_letters})
+        return {"windows": windows, "dead_letters": dead_letters}
 
     def _next_in_pass(self, pending: deque, done: set[str]) -> str | None:
         """The next device a refit pass serves: one with a step just raised first, even one the monitor raised
@@ -1539,6 +1598,7 @@ def run_service(
     admin_token_file=None,
     rest_auth: bool = True,
     db_max_mb: float | None = None,
+    keep_days: float | None = None,
 ) -> int:
     """`encoder-fleet service`: until SIGINT or SIGTERM. pki: TLS, mTLS, ACL and signed sets (None: insecure);
     rest_auth: bearer tokens on REST, the first admin token written to admin_token_file."""
@@ -1561,6 +1621,10 @@ def run_service(
             raise InputError("--mesh connects the embedded router to others; --connect means no embedded router")
         if postgres and db_max_mb is not None:
             raise InputError("--db-max-mb is a quota on a SQLite file; give PostgreSQL its own limits")
+        if keep_days is not None and not band_horizon_h:
+            raise InputError(
+                "--keep-days needs a band horizon: with --band-horizon-h 0 a band's sum holds every window"
+            )
         try:
             if not postgres:
                 Path(sqlite_path(db)).parent.mkdir(parents=True, exist_ok=True)
@@ -1575,7 +1639,9 @@ def run_service(
         from .guard import service_security
 
         secured = service_security(store, pki)
-        service = FleetService(store, session, refit_interval_s=refit_interval_s, member=member, **secured).start()
+        service = FleetService(
+            store, session, refit_interval_s=refit_interval_s, member=member, keep_days=keep_days, **secured
+        ).start()
         running.callback(service.stop)
         auth, written = None, None
         if rest_auth:

@@ -54,6 +54,10 @@ DEAD_LETTER_DETAIL = 1000  # characters of its reason text
 # them when it is read (Store._device_bands), so a crash still loses nothing.
 BANDS_WRITE_EVERY_S = 2.0
 
+# rows deleted in one transaction by retention (Store.prune_windows, prune_dead_letters): the writer waits for one
+# such at most (~10 ms of SQLite), never for a whole fleet's pruning
+PRUNE_BATCH = 1000
+
 TRANSACTION_ENDED = (
     "the database ended the transaction after an error inside it (a full disk, an I/O error, a lost connection): "
     "nothing of it is stored"
@@ -759,6 +763,15 @@ class Store:
             )
             return cur.lastrowid
 
+    def prune_dead_letters(self, received_before: float, limit: int = PRUNE_BATCH) -> int:
+        """Delete up to `limit` of the oldest dead letters received before `received_before` (service clock).
+        Ids come in arrival order, so the look stops at the first one kept: a flood's table is not scanned whole."""
+        with self._tx() as c:
+            rows = c.execute("SELECT id, received_at FROM dead_letters ORDER BY id LIMIT ?", (limit,)).fetchall()
+            old = [(r["id"],) for r in rows if r["received_at"] < received_before]
+            c.executemany("DELETE FROM dead_letters WHERE id = ?", old)
+        return len(old)
+
     def rejection_counts(self) -> dict[str, int]:
         return {
             r["reason"]: r["n"]
@@ -1197,6 +1210,34 @@ class Store:
                 "UPDATE devices SET seq_floor = ? WHERE id = ? AND seq_floor < ?", (int(seq), device, int(seq))
             )
             return cur.rowcount > 0
+
+    def prune_windows(
+        self, device: str, *, ended_before: float, below_seq: int, keep_version: int | None, limit: int = PRUNE_BATCH
+    ) -> int:
+        """Delete up to `limit` of the device's windows past retention: ended before `ended_before` (drive clock),
+        seq below `below_seq` (the caller's bound: under the contiguous watermark, monitored, not the newest), not
+        run on `keep_version` (a set on trial is judged from its windows), and in no band's sum (seq below its
+        band's first_seq: the horizon has subtracted it; a sum's own windows are what rebuild it after a crash, and
+        a band without a stored sum keeps its windows). The seq floor rises over them, so the watermark steps over
+        the gap and a window that is not stored below it counts as gone. Coefficient sets, acks, fits and alarms
+        all stay: retention takes the bulk telemetry only. Returns how many were deleted."""
+        with self._tx() as c:
+            # the sums' first_seqs as kept in memory (written behind): a sum counts its windows from first_seq on to
+            # tell whether it is behind them, so no window from the stored first_seq on may go
+            self._write_bands(c, {(d, b) for d, b in self._dirty if d == device})
+            rows = c.execute(
+                "SELECT w.seq FROM windows w JOIN band_stats b ON b.device = w.device AND b.band = w.band "
+                "WHERE w.device = ? AND w.window_end < ? AND w.seq < ? AND w.seq < b.first_seq "
+                "AND w.coefficients_version <> ? ORDER BY w.window_end LIMIT ?",
+                (device, ended_before, below_seq, -1 if keep_version is None else keep_version, limit),
+            ).fetchall()
+            seqs = [r["seq"] for r in rows]
+            if not seqs:
+                return 0
+            c.executemany("DELETE FROM windows WHERE device = ? AND seq = ?", [(device, s) for s in seqs])
+            floor = max(seqs) + 1  # every seq below below_seq was stored or gone: none waits under the floor
+            c.execute("UPDATE devices SET seq_floor = ? WHERE id = ? AND seq_floor < ?", (floor, device, floor))
+        return len(seqs)
 
     def acked_version(self, device: str) -> int:
         """Highest coefficient version the device has acknowledged, either way (0 when none)."""

@@ -1,0 +1,146 @@
+"""Retention (`service --keep-days`): the oldest windows and dead letters are deleted, and nothing the refit, the
+drift monitor, a trial or the watermark still needs goes with them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+import tests.wire_samples as ws
+from fleet_wire import keys
+from fleet_wire import messages as wire
+from fleet_wire.session import loopback_endpoint, session_config
+from service.runtime import FleetService, open_session
+from service.store import Store
+
+DEVICE = "drive-001"
+HORIZON_S = 150.0  # 60 s windows: a band's sum holds its newest two or three
+
+
+def wait_for(predicate, timeout=30.0):
+    deadline = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return predicate()
+
+
+def seqs(store: Store, device: str = DEVICE) -> list[int]:
+    return [w["seq"] for w in store.windows(device, limit=100_000)]
+
+
+def sums(store: Store) -> dict:
+    return {b: (w, s, total.moments.copy()) for b, (total, w, s) in store.band_stats(DEVICE).items()}
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+def test_pruning_keeps_every_band_sum_the_watermark_and_what_a_trial_or_the_bound_holds(backend, tmp_path, request):
+    target = tmp_path / "fleet.db" if backend == "sqlite" else request.getfixturevalue("postgres_url")
+    # two bands, so that one of them (band 3, last seen at seq 20) holds old windows in its sum
+    msgs = [ws.window(seq=s, temp_c=33.0 if s <= 20 else 23.0, version=3 if 11 <= s <= 14 else 0) for s in range(1, 41)]
+    with Store.open(target, band_horizon_s=HORIZON_S) as store:
+        store.ingest_many([(keys.key(DEVICE, keys.STATS), wire.encode("window", m)) for m in msgs])
+        before = sums(store)
+        in_band_3 = {s for s in range(1, 21) if s >= store._device_bands(DEVICE)[3][3]}
+        assert in_band_3 and store.contiguous_seq(DEVICE) == 40
+        n = store.prune_windows(DEVICE, ended_before=np.inf, below_seq=36, keep_version=3, limit=7)
+        assert n == 7 and seqs(store)[:1] == [8]  # the oldest first, a batch at a time
+        while store.prune_windows(DEVICE, ended_before=np.inf, below_seq=36, keep_version=3):
+            pass
+        kept = set(seqs(store))
+        assert kept == in_band_3 | set(range(11, 15)) | set(range(36, 41)) | {
+            s for s in range(21, 36) if s >= store._device_bands(DEVICE)[2][3]
+        }
+        assert store.contiguous_seq(DEVICE) == 40  # the floor stepped over what was deleted
+        assert store.prune_windows(DEVICE, ended_before=np.inf, below_seq=36, keep_version=3) == 0
+    with Store.open(target, band_horizon_s=HORIZON_S) as store:  # read again: no sum is rebuilt short of a window
+        after = sums(store)
+        assert after.keys() == before.keys()
+        for band, (windows, samples, moments) in before.items():
+            assert after[band][:2] == (windows, samples)
+            np.testing.assert_allclose(after[band][2], moments, rtol=1e-12)
+        assert set(seqs(store)) == kept and store.contiguous_seq(DEVICE) == 40
+        # a window that ended after `ended_before` stays, whatever else holds
+        assert store.prune_windows(DEVICE, ended_before=0.0, below_seq=41, keep_version=None) == 0
+
+
+def test_a_band_without_a_stored_sum_keeps_its_windows(tmp_path):
+    with Store.open(tmp_path / "fleet.db", band_horizon_s=HORIZON_S) as store:
+        for s in range(1, 9):
+            store.insert_window(ws.window(seq=s))
+        store.restart_band_memory(DEVICE, after=1e9)  # a step forgot every window: the band has no sum
+        assert store.band_stats(DEVICE) == {}
+        assert store.prune_windows(DEVICE, ended_before=np.inf, below_seq=9, keep_version=None) == 0
+        assert seqs(store) == list(range(1, 9))
+
+
+def test_old_dead_letters_go_and_the_newer_stay(tmp_path):
+    with Store.open(tmp_path / "fleet.db") as store:
+        ids = [store.dead_letter("k", "bad_json", "x", b"{", received_at=t) for t in (1.0, 2.0, 3.0, 50.0, 4.0)]
+        assert store.prune_dead_letters(3.5, limit=2) == 2
+        assert store.prune_dead_letters(3.5, limit=2) == 1  # id order: the look stops at the first one kept
+        assert store.prune_dead_letters(3.5) == 0
+        assert sorted(d["id"] for d in store.dead_letters()) == ids[3:]
+
+
+class Fleet:
+    def __init__(self, tmp_path, **options):
+        self.store = Store.open(tmp_path / "fleet.sqlite", band_horizon_s=HORIZON_S)
+        self.endpoint = loopback_endpoint()
+        self.router = open_session(listen=[self.endpoint])
+        self.service = FleetService(self.store, self.router, refit_interval_s=0, **options).start()
+        self.client = zenoh.open(session_config("client", connect=[self.endpoint]))
+
+    def put(self, msgs) -> None:
+        for m in msgs:
+            self.client.put(keys.key(m["device"], keys.STATS), wire.encode("window", m))
+
+    def close(self) -> None:
+        self.client.close()
+        self.service.stop()
+        self.router.close()
+        self.store.close()
+
+
+@pytest.mark.parametrize("monitor", [True, False])
+def test_the_service_prunes_behind_the_watermark_and_the_monitor_and_keeps_each_devices_newest(tmp_path, monitor):
+    keep_days = 5 * 60 / 86_400  # five 60 s windows of drive time
+    fleet = Fleet(tmp_path, keep_days=keep_days, monitor_interval_s=0.5 if monitor else 0)
+    try:
+        sent = [s for s in range(1, 61) if s != 45]  # 45 is still on its way: nothing from it on may go
+        fleet.put([ws.window(seq=s) for s in sent] + [ws.window("drive-002", seq=1)])
+        assert wait_for(lambda: len(seqs(fleet.store)) == len(sent) and seqs(fleet.store, "drive-002") == [1])
+        assert fleet.service.watermark(DEVICE) == 44
+        if monitor:  # it monitors up to the watermark; its last window is read again at a restart
+            assert wait_for(lambda: fleet.store.monitor_states(DEVICE).get(DEVICE, (None, 0))[1] == 44)
+        # drive time alone would take 1..54 (ended more than five windows before the newest, 60)
+        first_kept = 44 if monitor else 46
+        first = fleet.service.prune()["windows"]
+        assert first == len([s for s in sent if s < first_kept])
+        assert seqs(fleet.store) == [s for s in sent if s >= first_kept]
+        assert seqs(fleet.store, "drive-002") == [1]  # a device's newest stays however old
+        assert fleet.service.watermark(DEVICE) == 44
+        fleet.put([ws.window(seq=45)])  # the gap filled: the watermark moves on, and the next pass prunes to 54
+        assert wait_for(lambda: fleet.service.watermark(DEVICE) == 60)
+        if monitor:
+            assert wait_for(lambda: fleet.store.monitor_states(DEVICE)[DEVICE][1] == 60)
+        assert fleet.service.prune() == {"windows": 54 - first, "dead_letters": 0}
+        band_first = fleet.store._device_bands(DEVICE)[2][3]
+        assert seqs(fleet.store) == list(range(min(55, band_first), 61)) and band_first <= 60
+        assert fleet.service.counters.snapshot()["pruned_windows"] == 54
+    finally:
+        fleet.close()
+
+
+def test_the_service_refuses_retention_without_a_band_horizon(tmp_path):
+    db = tmp_path / "fleet.sqlite"
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "service", "--insecure", "--db", str(db), "--http-port", "0"]
+    out = subprocess.run([*cmd, "--keep-days", "30", "--band-horizon-h", "0"], capture_output=True, text=True)
+    assert out.returncode == 2 and "--keep-days needs a band horizon" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr and not db.exists()  # refused before anything was made
+    out = subprocess.run([*cmd, "--keep-days", "-1"], capture_output=True, text=True)
+    assert out.returncode == 2 and "must be greater than 0" in out.stderr
