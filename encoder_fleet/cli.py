@@ -145,6 +145,7 @@ def _extensions():
         "encoder_fleet.rollout_cli",
         "encoder_fleet.calibrate",
         "encoder_fleet.bench_soak",
+        "encoder_fleet.backup",
     ):
         try:
             module = importlib.import_module(name)

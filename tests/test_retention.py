@@ -3,8 +3,11 @@ drift monitor, a trial or the watermark still needs goes with them."""
 
 from __future__ import annotations
 
+import json
+import sqlite3
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -144,3 +147,60 @@ def test_the_service_refuses_retention_without_a_band_horizon(tmp_path):
     assert "Traceback" not in out.stderr and not db.exists()  # refused before anything was made
     out = subprocess.run([*cmd, "--keep-days", "-1"], capture_output=True, text=True)
     assert out.returncode == 2 and "must be greater than 0" in out.stderr
+
+
+# --- backup: a consistent copy while the service writes ---------------------------------------------
+
+
+def backup_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "encoder_fleet.cli", "backup", *args], capture_output=True, text=True)
+
+
+def test_a_backup_taken_while_windows_are_written_is_a_consistent_checked_copy_the_service_opens(tmp_path):
+    db, out = tmp_path / "fleet.sqlite", tmp_path / "backup.sqlite"
+    store = Store.open(db, band_horizon_s=HORIZON_S)
+    for s in range(1, 201):
+        store.insert_window(ws.window(seq=s))
+    stop, written = threading.Event(), [200]
+
+    def write_on() -> None:  # the service's writer, going on while the copy is taken
+        while not stop.is_set() and written[0] < 2000:
+            written[0] += 1
+            store.insert_window(ws.window(seq=written[0]))
+
+    writer = threading.Thread(target=write_on)
+    writer.start()
+    try:
+        done = backup_cli("--db", str(db), str(out), "--json")
+    finally:
+        stop.set()
+        writer.join()
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["backup"] == str(out) and (out.stat().st_mode & 0o777) == 0o600
+    n = report["rows"]["windows"]
+    assert 200 <= n <= written[0] and report["rows"]["devices"] == 1
+    with Store.open(out, band_horizon_s=HORIZON_S) as copy:  # a restore: the service opens it as its own
+        got = copy.windows(DEVICE, limit=100_000, stats=True)
+        assert [w["seq"] for w in got] == list(range(1, n + 1))  # one snapshot: a prefix, no window half there
+        assert got == store.windows(DEVICE, limit=n, stats=True)
+        assert copy.migrations() == store.migrations()
+    store.close()
+
+
+def test_a_backup_refuses_an_existing_file_a_postgres_url_and_a_file_that_is_no_database(tmp_path):
+    db = tmp_path / "fleet.sqlite"
+    Store.open(db).close()
+    taken = tmp_path / "taken.sqlite"
+    taken.write_bytes(b"a file the user keeps")
+    done = backup_cli("--db", str(db), str(taken))
+    assert done.returncode == 2 and "exists: a backup never replaces a file" in done.stderr
+    assert taken.read_bytes() == b"a file the user keeps"
+    done = backup_cli("--db", "postgresql://u:secret@localhost/fleet", str(tmp_path / "b.sqlite"))
+    assert done.returncode == 2 and "pg_dump" in done.stderr and "secret" not in done.stderr
+    other = tmp_path / "other.sqlite"
+    with sqlite3.connect(other) as conn:
+        conn.execute("CREATE TABLE t (x)")
+    done = backup_cli("--db", str(other), str(tmp_path / "b.sqlite"))
+    assert done.returncode == 2 and "not the service's database" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "b.sqlite").exists() and not (tmp_path / "b.sqlite.partial").exists()
