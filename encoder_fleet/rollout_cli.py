@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import urllib.error
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -81,6 +82,27 @@ def show(r: dict) -> None:
         version = "–" if part["version"] is None else f"v{part['before_version']} -> v{part['version']}"
         where = f"wave {part['wave'] + 1:<3} {part['device']:<24}"
         print(f"     {where} {part['state']:<12} {version:<12} {part['reason'] or ''}")
+    if r.get("devices_next"):
+        print(
+            f"     ... the first {len(r['devices'])} of {r['devices_total']} parts: `rollout show {r['id']}` lists all"
+        )
+
+
+def every_part(args) -> dict:
+    """GET /rollouts/{id}, page after page (the service lists at most 10,000 parts at once): every part asked for."""
+    query = {"limit": 10_000}
+    if args.state:
+        query["state"] = args.state
+    if args.wave is not None:
+        query["wave"] = args.wave - 1  # the service counts waves from 0, this command (as it prints them) from 1
+    result = request(args, "GET", f"/rollouts/{args.id}?{urllib.parse.urlencode(query)}")
+    while result.get("devices_next"):
+        page = request(
+            args, "GET", f"/rollouts/{args.id}?{urllib.parse.urlencode({**query, 'after': result['devices_next']})}"
+        )
+        result["devices"] += page["devices"]
+        result["devices_next"] = page["devices_next"]
+    return result
 
 
 def cmd_rollout(args) -> int:
@@ -101,7 +123,7 @@ def cmd_rollout(args) -> int:
     elif action == "list":
         result = request(args, "GET", "/rollouts")
     elif action == "show":
-        result = request(args, "GET", f"/rollouts/{args.id}")
+        result = every_part(args)
     else:  # pause | resume | abort
         result = request(args, "POST", f"/rollouts/{args.id}/{action}")
     if args.json:
@@ -150,5 +172,8 @@ def register(sub) -> None:
     ):
         q = rsub.add_parser(name, help=text)
         q.add_argument("id", type=positive_int, help="the rollout's id (rollout list)")
+        if name == "show":
+            q.add_argument("--state", help="only the parts in this state (pending, in_progress, succeeded, ...)")
+            q.add_argument("--wave", type=positive_int, help="only the parts of this wave (1: the first)")
         common(q)
     p.set_defaults(func=cmd_rollout)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from importlib import resources
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
 from fastapi import Path as FastAPIPath
@@ -24,7 +24,7 @@ from .auth import TokenAuth, authorize, require_admin, tokens
 from .mcap_export import iter_mcap
 from .monitor import device_state, device_states, fleet_health
 from .observability import health_checks, metrics_registry
-from .rollout import OUTCOMES, RolloutError, Rollouts, RolloutSpec
+from .rollout import DEVICES_PAGE, OUTCOMES, RolloutError, Rollouts, RolloutSpec
 from .store import Store
 
 if TYPE_CHECKING:
@@ -537,6 +537,9 @@ _ROLLOUT_CHANGE_ERRORS = {
 }
 
 
+PartState = Literal[("pending", "in_progress", *OUTCOMES)]  # type: ignore[valid-type]
+
+
 class RolloutDevice(BaseModel):
     device: str
     wave: int
@@ -572,7 +575,12 @@ class RolloutSummary(BaseModel):
 
 
 class RolloutDetail(RolloutSummary):
-    devices: list[RolloutDevice]
+    devices: list[RolloutDevice] = Field(
+        description="The parts in (wave, device) order: a page of `limit` (the counts above are the whole rollout's)."
+    )
+    devices_next: str | None = Field(
+        description="Pass as `after` for the next page of parts; null on the last page.", examples=["3:drive-0042"]
+    )
 
 
 def rollout_registry(request: Request) -> Rollouts:
@@ -609,8 +617,19 @@ def list_rollouts(registry: RolloutsDep):
 
 
 @rollouts.get("/{rollout_id}", response_model=RolloutDetail, responses=_ROLLOUT_ERRORS, summary="A rollout")
-def get_rollout(rollout_id: RolloutId, registry: RolloutsDep):
-    return _rollout_call(registry.get, rollout_id)
+def get_rollout(
+    rollout_id: RolloutId,
+    registry: RolloutsDep,
+    limit: Annotated[int, Query(ge=1, le=10_000, description="Parts in this page.")] = DEVICES_PAGE,
+    after: Annotated[
+        str | None, Query(max_length=100, description="The `devices_next` of the page before: WAVE:DEVICE.")
+    ] = None,
+    state: Annotated[PartState | None, Query(description="Only the parts in this state.")] = None,
+    wave: Annotated[
+        int | None, Query(ge=0, le=2**31, description="Only the parts of this wave (0: the first).")
+    ] = None,
+):
+    return _rollout_call(lambda: registry.get(rollout_id, limit=limit, after=after, state=state, wave=wave))
 
 
 @rollouts.post(
@@ -622,7 +641,7 @@ def get_rollout(rollout_id: RolloutId, registry: RolloutsDep):
 )
 def create_rollout(spec: RolloutSpec, registry: MutableRolloutsDep):
     rollout_id = _rollout_call(registry.create, spec)
-    return registry.get(rollout_id)
+    return registry.get(rollout_id, limit=DEVICES_PAGE)
 
 
 @rollouts.post(
