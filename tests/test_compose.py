@@ -105,21 +105,14 @@ def test_compose_waits_for_health_restarts_on_failure_and_binds_loopback():
             assert (ROOT / mount.split(":")[0]).exists(), mount
 
 
-def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_exports(tmp_path):
-    import json
-    import re
-
+def scraped_metrics(tmp_path) -> str:
+    """The real service's /metrics text, with a sample in every family (a rejection counted, an alarm open)."""
     from fastapi.testclient import TestClient
-    from prometheus_client.parser import text_string_to_metric_families
 
     from fleet_wire.session import loopback_endpoint
     from service.api import create_app
     from service.runtime import FleetService, open_session
     from service.store import Store
-
-    scrape = yaml.safe_load((ROOT / "ops" / "prometheus.yml").read_text())["scrape_configs"][0]
-    assert scrape["metrics_path"] == "/metrics" and scrape["static_configs"][0]["targets"] == ["service:8000"]
-    assert scrape["authorization"] == {"type": "Bearer", "credentials_file": "/secrets/prometheus-token"}
 
     store = Store.open(tmp_path / "f.sqlite")
     session = open_session(listen=[loopback_endpoint()])
@@ -128,11 +121,23 @@ def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_expor
         service.counters.count("schema")  # so every family has a sample
         step = {"kind": "raise", "cause": "offset_step", "at": 1.0, "parameters": {}, "evidence": "planted"}
         store.save_monitor("drive-001", {}, 0, [step])
-        text = TestClient(create_app(store, service)).get("/metrics").text
+        return TestClient(create_app(store, service)).get("/metrics").text
     finally:
         service.stop()
         session.close()
         store.close()
+
+
+def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_exports(tmp_path):
+    import json
+    import re
+
+    from prometheus_client.parser import text_string_to_metric_families
+
+    scrape = yaml.safe_load((ROOT / "ops" / "prometheus.yml").read_text())["scrape_configs"][0]
+    assert scrape["metrics_path"] == "/metrics" and scrape["static_configs"][0]["targets"] == ["service:8000"]
+    assert scrape["authorization"] == {"type": "Bearer", "credentials_file": "/secrets/prometheus-token"}
+    text = scraped_metrics(tmp_path)
     exported = {s.name for f in text_string_to_metric_families(text) for s in f.samples}
     dashboard = json.loads((ROOT / "ops" / "grafana" / "dashboards" / "encoder-fleet.json").read_text())
     drawn = {n for p in dashboard["panels"] for t in p["targets"] for n in re.findall(r"encoder_fleet_\w+", t["expr"])}
@@ -141,6 +146,67 @@ def test_prometheus_scrapes_the_service_and_the_dashboard_draws_metrics_it_expor
     families = {f.name for f in text_string_to_metric_families(text) if not f.name.endswith("_created")}
     drawn_families = {re.sub(r"_(total|bucket|count|sum)$", "", n) for n in drawn}
     assert families <= drawn_families, families - drawn_families
+
+
+def selectors(node) -> list:
+    """Every vector selector in a parsed PromQL expression (promql_parser's tree)."""
+    import promql_parser
+
+    if isinstance(node, promql_parser.VectorSelector):
+        return [node]
+    found = []
+    for attr in ("lhs", "rhs", "expr", "param", "vector_selector"):
+        child = getattr(node, attr, None)
+        if child is not None and not isinstance(child, (str, int, float)):
+            found += selectors(child)
+    for arg in getattr(node, "args", None) or []:
+        found += selectors(arg)
+    return found
+
+
+def test_the_alerting_rules_parse_and_read_only_metrics_and_labels_the_service_exports(tmp_path):
+    """ops/alerts.yml: every expression is PromQL Prometheus parses, every metric it reads is one /metrics exports
+    (or Prometheus's own `up` of this job), and every label value it matches exists: a rule on a misspelt metric
+    or cause would never fire, and nobody would know."""
+    import re
+
+    import promql_parser
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from encoder_core.monitor_causes import CAUSES
+
+    config = yaml.safe_load((ROOT / "ops" / "prometheus.yml").read_text())
+    assert config["rule_files"] == ["/etc/prometheus/alerts.yml"]
+    mounts = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]["prometheus"]["volumes"]
+    assert "./ops/alerts.yml:/etc/prometheus/alerts.yml:ro" in mounts
+    samples = [s for f in text_string_to_metric_families(scraped_metrics(tmp_path)) for s in f.samples]
+    labels: dict[tuple[str, str], set[str]] = {}
+    for s in samples:
+        for k, v in s.labels.items():
+            labels.setdefault((s.name, k), set()).add(v)
+    labels[("encoder_fleet_open_alarms", "cause")] |= set(CAUSES)  # one cause was planted; any may be open
+    rules = [r for g in yaml.safe_load((ROOT / "ops" / "alerts.yml").read_text())["groups"] for r in g["rules"]]
+    assert len({r["alert"] for r in rules}) == len(rules) >= 8
+    for rule in rules:
+        assert rule["labels"]["severity"] in ("critical", "warning", "info"), rule["alert"]
+        assert rule["annotations"]["summary"] and rule["annotations"]["description"], rule["alert"]
+        read = selectors(promql_parser.parse(rule["expr"]))
+        assert read, rule["alert"]
+        for vs in read:
+            if vs.name == "up":
+                assert [(m.name, m.value) for m in vs.matchers.matchers] == [
+                    ("job", config["scrape_configs"][0]["job_name"])
+                ]
+                continue
+            assert any(s.name == vs.name for s in samples), (rule["alert"], vs.name)
+            for m in vs.matchers.matchers:
+                known = labels.get((vs.name, m.name), set())
+                values = str(m.value).split("|") if "Re" in str(m.op) else [str(m.value)]
+                missing = [v for v in values if v not in known]
+                assert known and not missing, (rule["alert"], vs.name, m.name, missing)
+        for text in rule["annotations"].values():  # templates name only what the expression keeps
+            for label in re.findall(r"\$labels\.(\w+)", text):
+                assert f"by ({label})" in rule["expr"], (rule["alert"], label)
 
 
 def test_the_image_installs_the_extras_its_compose_commands_need(monkeypatch):
