@@ -146,6 +146,7 @@ def _extensions():
         "encoder_fleet.calibrate",
         "encoder_fleet.bench_soak",
         "encoder_fleet.backup",
+        "encoder_fleet.audit",
     ):
         try:
             module = importlib.import_module(name)

@@ -10,6 +10,7 @@ import sqlite3
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from encoder_core.samples import InputError
 from encoder_fleet.argtypes import (
@@ -23,6 +24,9 @@ from encoder_fleet.argtypes import (
     positive_int,
 )
 from encoder_fleet.logs import add_level_option
+
+if TYPE_CHECKING:
+    from service.store import Store
 
 
 def device_seed(device: str) -> int:
@@ -175,28 +179,36 @@ def _database_files(db: Path) -> set[Path]:
     return {db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")}
 
 
-def cmd_export(args) -> int:
-    from encoder_fleet.outputs import replaced
+def open_evidence(db: str, migrate: bool, *, out) -> Store:
+    """The service's database opened to read evidence from (export, audit): refused, one line, when it does not exist,
+    is empty, is the file `out` would write, or lacks migrations and `migrate` was not given (reading evidence
+    changes no file unasked)."""
     from service.db import is_postgres, sqlite_path
-    from service.mcap_export import export_mcap
     from service.store import Store, unapplied_migrations
 
-    db_file = None if is_postgres(args.db) else Path(sqlite_path(args.db))
+    db_file = None if is_postgres(db) else Path(sqlite_path(db))
     if db_file is not None and not db_file.exists():
-        raise InputError(f"--db {args.db}: no such database")
-    if db_file is not None and db_file.stat().st_size == 0:  # an export makes no database
-        raise InputError(f"--db {args.db}: an empty file, not the service's database")
+        raise InputError(f"--db {db}: no such database")
+    if db_file is not None and db_file.stat().st_size == 0:  # reading evidence makes no database
+        raise InputError(f"--db {db}: an empty file, not the service's database")
+    if db_file is not None and Path(out).resolve() in _database_files(db_file):
+        raise InputError(f"--out {out} is the database itself (or its WAL): name another file")
+    behind = [] if db_file is None else unapplied_migrations(db_file)
+    if behind and not migrate:  # the service's own start migrates it
+        raise InputError(
+            f"--db {db} was written by an older encoder-fleet (it lacks migration(s) {', '.join(behind)}): "
+            "reading it here would change the file. Start the service on it once, or pass --migrate to migrate it here"
+        )
+    return Store.open(db)
+
+
+def cmd_export(args) -> int:
+    from encoder_fleet.outputs import replaced
+    from service.mcap_export import export_mcap
+
     if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
-    if db_file is not None and Path(args.out).resolve() in _database_files(db_file):
-        raise InputError(f"--out {args.out} is the database itself (or its WAL): name another file")
-    behind = [] if db_file is None else unapplied_migrations(db_file)
-    if behind and not args.migrate:  # the service's own start migrates it; an export changes no evidence unasked
-        raise InputError(
-            f"--db {args.db} was written by an older encoder-fleet (it lacks migration(s) {', '.join(behind)}): "
-            "exporting it would change the file. Start the service on it once, or pass --migrate to migrate it here"
-        )
-    store = Store.open(args.db)
+    store = open_evidence(args.db, args.migrate, out=args.out)
     try:
         if store.device(args.device) is None:
             raise InputError(f"device {args.device!r} is not in {args.db}")
