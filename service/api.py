@@ -18,14 +18,14 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from .auth import TokenAuth, authorize, require_admin, tokens
 from .mcap_export import iter_mcap
 from .monitor import device_state, device_states, fleet_health
 from .observability import health_checks, metrics_registry
 from .rollout import DEVICES_PAGE, OUTCOMES, RolloutError, Rollouts, RolloutSpec
-from .store import Store
+from .store import Store, StoreError
 
 if TYPE_CHECKING:
     from .runtime import FleetService
@@ -128,6 +128,14 @@ class Alarm(BaseModel):
     evidence: str = Field(description="One sentence: what the monitor saw.")
     raised_at: float = Field(description="Drive clock, s: end of the window that made the alarm certain.")
     cleared_at: float | None = Field(description="Drive clock, s; null while the alarm is open.")
+    acked_at: float | None = Field(None, description="Service clock, unix s, when an operator acknowledged it.")
+    acked_by: str | None = Field(None, description="The REST token that acknowledged it.")
+    ack_note: str | None = Field(None, description="What the operator said (seen, and what will be done).")
+
+
+class AlarmAck(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    note: str = Field(min_length=1, max_length=500, description="Seen, and what will be done: kept with the alarm.")
 
 
 class AlarmList(BaseModel):
@@ -347,11 +355,35 @@ def list_alarms(
         int | None, Query(ge=1, le=2**63 - 1, description="Only alarms of a lower id: the `next` of the page before.")
     ] = None,
     limit: Annotated[int, Query(ge=1, le=10000, description="Most alarms listed.")] = 1000,
+    acked: Annotated[
+        bool | None, Query(description="true: acknowledged alarms only; false: those nobody acknowledged.")
+    ] = None,
 ):
     # paged by id, newest first: an alarm raised meanwhile has a higher id and moves no page after the first
-    found = store.alarms(device, cause, open, before=before, limit=limit + 1)
+    found = store.alarms(device, cause, open, before=before, limit=limit + 1, acked=acked)
     truncated = len(found) > limit
     return AlarmList(alarms=found[:limit], truncated=truncated, next=found[limit - 1]["id"] if truncated else None)
+
+
+@alarms.post(
+    "/alarms/{alarm_id}/ack",
+    response_model=Alarm,
+    responses={
+        404: {"model": ErrorMessage, "description": "No such alarm."},
+        409: {"model": ErrorMessage, "description": "Already acknowledged (the first acknowledgement stands)."},
+    },
+    summary="Acknowledge an alarm (admin): seen, with a note; it stays open until its condition clears",
+)
+def ack_alarm(alarm_id: Annotated[int, FastAPIPath(ge=1, le=2**62)], body: AlarmAck, store: StoreDep, request: Request):
+    require_admin(request)
+    try:
+        return store.ack_alarm(
+            alarm_id, by=getattr(request.state, "token", None) or "no token (REST open)", note=body.note
+        )
+    except KeyError:
+        raise HTTPException(status_code=404, detail=f"no alarm {alarm_id}") from None
+    except StoreError as e:
+        raise HTTPException(status_code=409, detail=str(e)) from None
 
 
 @alarms.get("/fleet/health", response_model=FleetHealth, summary="Devices per state and open alarms per cause")

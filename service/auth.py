@@ -60,7 +60,7 @@ class TokenAuth:
         """The live token's row (id, scope), or None. Every live token's hash is compared, each in constant time."""
         wanted = _digest(token)
         found = None
-        for row in self.store._rows("SELECT id, scope, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
+        for row in self.store._rows("SELECT id, name, scope, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
             if hmac.compare_digest(row["token_sha256"], wanted):
                 found = row
         return found
@@ -154,11 +154,12 @@ def authorize(request: Request, credentials: Credentials) -> str | None:
         return None
     if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
         raise _unauthorized("a bearer token is required (encoder-fleet token create)")
-    scope = auth.scope_of(credentials.credentials)
-    if scope is None:
+    row = auth._live(credentials.credentials)
+    if row is None:
         raise _unauthorized("the token is not valid")
-    request.state.scope = scope
-    return scope
+    request.state.scope = row["scope"]
+    request.state.token = f"token {row['id']} ({row['name']})"  # who did it, for what a change records
+    return row["scope"]
 
 
 def require_admin(request: Request) -> None:

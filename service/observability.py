@@ -100,6 +100,14 @@ class FleetCollector(Collector):
         yield from self.service.counters.refit_latency.collect()
         alarms = self.store.open_alarm_counts()
         yield gauge("encoder_fleet_open_alarms", "Open drift alarms, by cause.", "cause", alarms, alarms)
+        unacked = self.store.unacked_alarm_counts()
+        yield gauge(
+            "encoder_fleet_unacknowledged_alarms",
+            "Open drift alarms no operator acknowledged (POST /alarms/{id}/ack), by cause.",
+            "cause",
+            unacked,
+            alarms,  # a cause with open alarms all acknowledged reads 0, not absent: an alert on it resolves
+        )
 
 
 def gauge(name: str, documentation: str, label: str, counts: dict[str, int], values) -> GaugeMetricFamily:

@@ -1461,6 +1461,9 @@ class Store:
             "evidence": r["evidence"],
             "raised_at": r["raised_at"],
             "cleared_at": r["cleared_at"],
+            "acked_at": r["acked_at"],
+            "acked_by": r["acked_by"],
+            "ack_note": r["ack_note"],
         }
 
     def alarms(
@@ -1473,6 +1476,7 @@ class Store:
         before: int | None = None,
         limit: int | None = 1000,
         audit: bool = False,
+        acked: bool | None = None,
     ) -> list[dict]:
         """Alarms (the GET /alarms contract's objects), newest first; before: only those of a lower id (the next
         page's); limit None: every one. audit: with when the service raised each (`created_at`, its clock) and what
@@ -1489,12 +1493,39 @@ class Store:
             args.append(cause)
         if open_ is not None:
             where.append("cleared_at IS NULL" if open_ else "cleared_at IS NOT NULL")
+        if acked is not None:
+            where.append("acked_at IS NOT NULL" if acked else "acked_at IS NULL")
         if ids is not None:
             where.append(f"id IN ({', '.join('?' * len(ids))})")
             args += list(ids)
         sql = "SELECT * FROM alarms" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id DESC LIMIT ?"
         bound = 2**62 if limit is None else limit  # no bound: SQLite reads -1 so, PostgreSQL does not
         return [self._alarm(r, audit) for r in self._rows(sql, (*args, bound))]
+
+    def ack_alarm(self, alarm_id: int, *, by: str, note: str, at: float | None = None) -> dict:
+        """Acknowledge an alarm, open or cleared (an operator may see it only after it cleared): who, when, the note.
+        KeyError: no such alarm; StoreError `already_acked`: it was, by someone (the first acknowledgement stands)."""
+        with self._tx() as c:
+            row = c.execute("SELECT acked_at, acked_by FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
+            if row is None:
+                raise KeyError(f"no alarm {alarm_id}")
+            if row["acked_at"] is not None:
+                raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
+            c.execute(
+                "UPDATE alarms SET acked_at = ?, acked_by = ?, ack_note = ? WHERE id = ?",
+                (time.time() if at is None else at, by, note, alarm_id),
+            )
+        return self.alarms(ids=[alarm_id])[0]
+
+    def unacked_alarm_counts(self) -> dict[str, int]:
+        """Open alarms nobody acknowledged, per cause, fleet-wide."""
+        return {
+            r["cause"]: r["n"]
+            for r in self._rows(
+                "SELECT cause, count(*) AS n FROM alarms WHERE cleared_at IS NULL AND acked_at IS NULL "
+                "GROUP BY cause ORDER BY cause"
+            )
+        }
 
     def open_alarm_counts(self) -> dict[str, int]:
         """Open alarms per cause, fleet-wide."""

@@ -211,6 +211,58 @@ def test_alarms_are_paged_newest_first_and_say_when_cut(client, store):
         assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "before"], r.text
 
 
+def test_an_operator_acknowledges_an_alarm_once_with_a_note_and_the_unacknowledged_count_falls(store):
+    """POST /alarms/{id}/ack (admin): who (the token), when, the note, kept with the alarm; the alarm stays open;
+    GET /alarms?acked=false lists the others; /metrics counts open alarms nobody acknowledged, which the alert
+    rules watch, so acknowledging one resolves its alert. A read token, an unknown alarm, a second
+    acknowledgement and an empty note are refused, and none of them changes the alarm."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from fleet_wire.session import loopback_endpoint
+    from service.auth import TokenAuth
+    from service.runtime import FleetService, open_session
+
+    first, second = _offline(store, "drive-001", 10.0), _offline(store, "drive-002", 20.0)
+    auth = TokenAuth(store)
+    admin_id, admin = auth.create("admin", "ops desk")
+    _, reader = auth.create("read", "wallboard")
+    session = open_session(listen=[loopback_endpoint()])
+    service = FleetService(store, session, refit_interval_s=0, monitor_interval_s=0).start()
+
+    def unacked() -> float:
+        text = api.get("/metrics", headers=as_admin).text
+        found = [s for f in text_string_to_metric_families(text) for s in f.samples]
+        return [
+            s.value for s in found if s.name == "encoder_fleet_unacknowledged_alarms" and s.labels["cause"] == "offline"
+        ][0]
+
+    try:
+        with TestClient(create_app(store, service, auth)) as api:
+            as_admin, as_reader = {"Authorization": f"Bearer {admin}"}, {"Authorization": f"Bearer {reader}"}
+            assert unacked() == 2
+            note = {"note": "site network down, the plant knows"}
+            refused = api.post(f"/alarms/{first}/ack", json=note, headers=as_reader)
+            assert refused.status_code == 403
+            for body in ({"note": ""}, {}, {"note": "x", "by": "someone else"}):
+                assert api.post(f"/alarms/{first}/ack", json=body, headers=as_admin).status_code == 422, body
+            assert api.post("/alarms/999/ack", json=note, headers=as_admin).status_code == 404
+            acked = api.post(f"/alarms/{first}/ack", json=note, headers=as_admin)
+            assert acked.status_code == 200, acked.text
+            got = acked.json()
+            assert got["acked_by"] == f"token {admin_id} (ops desk)" and got["ack_note"] == note["note"]
+            assert got["cleared_at"] is None and got["acked_at"] > 0  # still open: acknowledged is not cleared
+            again = api.post(f"/alarms/{first}/ack", json={"note": "me too"}, headers=as_admin)
+            assert again.status_code == 409 and "ops desk" in again.json()["detail"]
+            listed = api.get("/alarms", params={"acked": "false"}, headers=as_reader).json()["alarms"]
+            assert [a["id"] for a in listed] == [second]
+            listed = api.get("/alarms", params={"acked": "true"}, headers=as_reader).json()["alarms"]
+            assert [(a["id"], a["ack_note"]) for a in listed] == [(first, note["note"])]
+            assert unacked() == 1
+    finally:
+        service.stop()
+        session.close()
+
+
 @pytest.mark.parametrize(
     "params",
     [{"from": "yesterday"}, {"to": "nan"}, {"from": "inf"}, {"from": 10, "to": 5}, {"limit": 0}, {"stats": "maybe"}],

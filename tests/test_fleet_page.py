@@ -34,7 +34,8 @@ def served(tmp_path):
     # a planted alarm: what the drift monitor writes when drive-002's offsets jump
     step = {"kind": "raise", "cause": "offset_step", "at": 7200.0, "parameters": {"delta_d": 0.02, "delta_q": 0.0}}
     planted = [{**step, "evidence": "the offsets jumped (planted by the test)"}]
-    store.save_monitor("drive-002", {}, 8, planted, device_state="alarm")
+    (alarm,) = store.save_monitor("drive-002", {}, 8, planted, device_state="alarm")
+    store.ack_alarm(alarm["id"], by="token 2 (ops desk)", note="magnet re-glued at the next stop")
     spec = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 1, "soak_windows": 30}
     Rollouts(store).create(RolloutSpec(name="back to the bench", **spec))  # a rollout in progress
     port = free_port()
@@ -71,6 +72,7 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         # the planted alarm: listed among the open ones, and on drive-002's timeline
         open_alarms = page.locator("#open-alarms tbody tr").all_inner_texts()
         assert [a.split("\t")[:3] for a in open_alarms] == [["drive-002", "offset_step", "2.00"]]
+        assert open_alarms[0].split("\t")[4] == "token 2 (ops desk): magnet re-glued at the next stop"
         assert page.locator("#more-alarms").is_hidden()  # all of them listed
         timeline = page.evaluate("document.getElementById('alarm-timeline').data.map(t => [t.name, t.x])")
         assert timeline == [["offset_step (open)", [2.0, 3.0]]]

@@ -252,7 +252,12 @@ def test_alarms_in_rest_and_mcap_and_offline(tmp_path, aging):
         body = api.get("/alarms").json()
         assert {a["cause"] for a in body["alarms"]} == {"accelerated_aging", "offline"}
         for a in body["alarms"]:
-            assert set(a) == {"id", "device", "cause", "parameters", "evidence", "raised_at", "cleared_at"}
+            assert set(a) == {"id", "device", "cause", "parameters", "evidence", "raised_at", "cleared_at"} | {
+                "acked_at",  # an operator's acknowledgement (POST /alarms/{id}/ack): null until then
+                "acked_by",
+                "ack_note",
+            }
+            assert a["acked_at"] is a["acked_by"] is a["ack_note"] is None
         assert api.get("/alarms", params={"cause": "offline"}).json()["alarms"][0]["cleared_at"] is None
         assert api.get("/alarms", params={"device": "nobody"}).json() == {
             "alarms": [],

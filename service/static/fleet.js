@@ -82,6 +82,7 @@ async function showOpenAlarms() {
     cell(row, a.cause, "state-alarm");
     cell(row, (a.raised_at / 3600).toFixed(2));
     cell(row, a.evidence);
+    cell(row, a.acked_by ? `${a.acked_by}: ${a.ack_note}` : "");  // POST /alarms/{id}/ack
     row.addEventListener("click", () => showDevice(a.device));
   }
 }
