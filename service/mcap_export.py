@@ -166,6 +166,9 @@ SCHEMAS["encoder_fleet.Alarm"] = _object(
         "raised_at": {**NUMBER, "description": "Drive clock, s: end of the window that made the alarm certain."},
         "cleared_at": {**NUMBER, "description": "Drive clock, s; absent while the alarm is open."},
         "clear_evidence": {**STRING, "description": "What cleared it; absent while the alarm is open."},
+        "acked_at": {**NUMBER, "description": "Service clock, unix s: an operator acknowledged it; absent if none."},
+        "acked_by": {**STRING, "description": "The REST token that acknowledged it."},
+        "ack_note": {**STRING, "description": "What the operator said."},
         **{
             p: {**NUMBER, "description": "A parameter of the cause (present for its causes only)."}
             for p in ALARM_PARAMETERS
@@ -256,7 +259,17 @@ def coefficient_set_record(entry: dict) -> dict:
 
 def alarm_record(alarm: dict) -> dict:
     params = {k: float(v) for k, v in alarm["parameters"].items() if k in ALARM_PARAMETERS}
-    fields = ("id", "cause", "evidence", "raised_at", "cleared_at", "clear_evidence")
+    fields = (
+        "id",
+        "cause",
+        "evidence",
+        "raised_at",
+        "cleared_at",
+        "clear_evidence",
+        "acked_at",
+        "acked_by",
+        "ack_note",
+    )
     return _present({**{k: alarm.get(k) for k in fields}, **params})
 
 

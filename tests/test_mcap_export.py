@@ -230,8 +230,13 @@ def test_every_alarm_of_the_device_is_exported_not_the_newest_thousand(store):
                 {"kind": "clear", "cause": "offline", "at": 400.5 + i, "parameters": {}, "evidence": "back"},
             ],
         )  # fmt: skip
+    store.ack_alarm(7, by="token 2 (ops desk)", note="the site's switch", at=T0 + 5)
     alarms = _alarms(b"".join(iter_mcap(store, "drive-001")))
     assert [a["id"] for a in alarms] == list(range(1, 1006))
+    # who acknowledged what is part of the audit too (absent where nobody did, as the schema says)
+    assert [(a["id"], a["acked_by"], a["ack_note"], a["acked_at"]) for a in alarms if "acked_at" in a] == [
+        (7, "token 2 (ops desk)", "the site's switch", T0 + 5)
+    ]
 
 
 def test_every_cause_keeps_its_parameters(store):
