@@ -147,6 +147,7 @@ def _extensions():
         "encoder_fleet.bench_soak",
         "encoder_fleet.backup",
         "encoder_fleet.audit",
+        "encoder_fleet.alarms_cli",
     ):
         try:
             module = importlib.import_module(name)

@@ -5,51 +5,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import urllib.error
 import urllib.parse
-import urllib.request
-from pathlib import Path
 
-from encoder_core.samples import InputError
 from encoder_fleet.outputs import write_file
+from encoder_fleet.rest_client import add_rest_options, request
 
 from .argtypes import positive_float, positive_int
-
-
-def request(args, method: str, path: str, body: dict | None = None) -> dict | list:
-    """One REST call; every failure is one line (InputError), with the service's own `detail`."""
-    headers = {"Accept": "application/json"}
-    if args.token_file:
-        try:
-            headers["Authorization"] = "Bearer " + Path(args.token_file).read_text().strip()
-        except OSError as exc:
-            raise InputError(f"--token-file {args.token_file}: {exc.strerror}") from None
-        except UnicodeDecodeError:
-            raise InputError(f"--token-file {args.token_file}: not a token (not text)") from None
-    data = None
-    if body is not None:
-        data, headers["Content-Type"] = json.dumps(body).encode(), "application/json"
-    url = args.url.rstrip("/") + path
-    try:
-        with urllib.request.urlopen(urllib.request.Request(url, data, headers, method=method), timeout=30) as resp:
-            return json.loads(resp.read())
-    except urllib.error.HTTPError as exc:
-        try:
-            detail = json.loads(exc.read()).get("detail", "")
-        except ValueError:
-            detail = ""
-        if isinstance(detail, list):  # FastAPI's validation errors: where and what
-            detail = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', [])[1:])}: {d.get('msg')}" for d in detail)
-        hint = (
-            " (pass --token-file FILE: a token of `encoder-fleet token create`)"
-            if exc.code == 401 and not args.token_file
-            else ""
-        )
-        raise InputError(f"{method} {path}: {exc.code} {detail or exc.reason}{hint}") from None
-    except (urllib.error.URLError, OSError) as exc:
-        raise InputError(f"{url}: cannot reach the service ({getattr(exc, 'reason', exc)})") from None
-    except ValueError as exc:  # urllib's "unknown url type", or an answer that is not JSON
-        raise InputError(f"{url}: {exc} (--url is the service's REST address, e.g. http://127.0.0.1:8000)") from None
 
 
 def parse_abort(text: str) -> dict:
@@ -141,10 +102,7 @@ def register(sub) -> None:
     p = sub.add_parser("rollout", help="staged rollouts over the service's REST API (create, list, pause, ...)")
     rsub = p.add_subparsers(dest="rollout_command", required=True)
 
-    def common(q) -> None:
-        q.add_argument("--url", default="http://127.0.0.1:8000", help="the service's REST address")
-        q.add_argument("--token-file", metavar="FILE", help="a REST token (admin to change a rollout)")
-        q.add_argument("--json", metavar="FILE", help="also write the service's answer as JSON")
+    common = add_rest_options
 
     q = rsub.add_parser("create", help="start a rollout: waves, soak and abort criteria")
     q.add_argument("--name", required=True, help="what the change is, for the audit trail")
