@@ -35,7 +35,8 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
         raise InputError(f"{out}: its folder {out.parent} does not exist")
     partial = out.with_name(out.name + ".partial")
     partial.unlink(missing_ok=True)  # a backup stopped half way left it: never a backup
-    conn = sqlite3.connect(f"file:{source.resolve()}?mode=ro", uri=True, timeout=30.0)
+    # as_uri: a ?, # or % in the path is quoted, or the URI would open another file (created, and found empty)
+    conn = sqlite3.connect(f"{source.resolve().as_uri()}?mode=ro", uri=True, timeout=30.0)
     began = time.monotonic()
     try:
         try:

@@ -204,3 +204,14 @@ def test_a_backup_refuses_an_existing_file_a_postgres_url_and_a_file_that_is_no_
     done = backup_cli("--db", str(other), str(tmp_path / "b.sqlite"))
     assert done.returncode == 2 and "not the service's database" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "b.sqlite").exists() and not (tmp_path / "b.sqlite.partial").exists()
+
+
+def test_a_backup_of_a_database_whose_path_holds_a_question_mark_or_a_hash(tmp_path):
+    db = tmp_path / "fleet?v=2#site a%20.sqlite"  # each would end or change a file: URI written as is
+    with Store.open(db) as store:
+        store.insert_window(ws.window(seq=1))
+    done = backup_cli("--db", str(db), str(tmp_path / "b.sqlite"), "--json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["rows"]["windows"] == 1
+    # no stray file opened instead ("fleet", empty: the database was refused as not the service's)
+    assert {p.name for p in tmp_path.iterdir()} <= {"b.sqlite", db.name, db.name + "-wal", db.name + "-shm"}
