@@ -47,12 +47,15 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
         watcher = threading.Thread(target=_show_progress, args=(partial, source, done, progress), daemon=True)
         watcher.start()
         try:
-            conn.execute("VACUUM INTO ?", (str(partial),))
-        finally:
-            done.set()
-            watcher.join()
-        os.chmod(partial, 0o600)  # the fleet's whole history, tokens' hashes with it
-        held = _checked(partial)
+            try:
+                conn.execute("VACUUM INTO ?", (str(partial),))
+            finally:
+                done.set()
+                watcher.join()
+            os.chmod(partial, 0o600)  # the fleet's whole history, tokens' hashes with it
+            held = _checked(partial)
+        except sqlite3.Error as exc:  # a full disk, an I/O error: said in a line, as the CLI says an OSError
+            raise InputError(f"{out}: the copy failed ({exc}): no backup written") from None
         os.replace(partial, out)
     except BaseException:
         partial.unlink(missing_ok=True)

@@ -215,3 +215,27 @@ def test_a_backup_of_a_database_whose_path_holds_a_question_mark_or_a_hash(tmp_p
     assert json.loads(done.stdout)["rows"]["windows"] == 1
     # no stray file opened instead ("fleet", empty: the database was refused as not the service's)
     assert {p.name for p in tmp_path.iterdir()} <= {"b.sqlite", db.name, db.name + "-wal", db.name + "-shm"}
+
+
+def test_a_backup_onto_a_full_disk_says_so_in_one_line_and_leaves_no_file(tmp_path):
+    import resource
+    import signal
+
+    db = tmp_path / "fleet.sqlite"
+    with Store.open(db) as store:
+        store.ingest_many(
+            [(keys.key(DEVICE, keys.STATS), wire.encode("window", ws.window(seq=s))) for s in range(1, 200)]
+        )
+    size = db.stat().st_size
+
+    def disk_of_half_the_size() -> None:  # a write past it fails as on a full disk (EFBIG), the process lives on
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size // 2, size // 2))
+
+    out = tmp_path / "b.sqlite"
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "backup", "--db", str(db), str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, preexec_fn=disk_of_half_the_size)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.startswith("encoder-fleet backup: error: ") and len(done.stderr.splitlines()) == 1
+    assert "no backup written" in done.stderr
+    assert not out.exists() and not (tmp_path / "b.sqlite.partial").exists()
