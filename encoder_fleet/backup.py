@@ -29,11 +29,16 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
     source = Path(sqlite_path(db))
     if not source.is_file() or source.stat().st_size == 0:
         raise InputError(f"--db {db}: no such database (or an empty file)")
+    partial = out.with_name(out.name + ".partial")
+    # the database's -wal, -shm or -journal is absent while the service is stopped: a backup named so was taken for
+    # the database's WAL at its next start and deleted, and a .partial of that name was removed below
+    own = {source.resolve().with_name(source.resolve().name + suffix) for suffix in ("", "-wal", "-shm", "-journal")}
+    if out.resolve() in own or partial.resolve() in own:
+        raise InputError(f"{out}: the name of one of the database's own files (or its .partial is); name another")
     if out.exists() or out.is_symlink():
         raise InputError(f"{out} exists: a backup never replaces a file; name a new one")
     if not out.parent.is_dir():
         raise InputError(f"{out}: its folder {out.parent} does not exist")
-    partial = out.with_name(out.name + ".partial")
     partial.unlink(missing_ok=True)  # a backup stopped half way left it: never a backup
     # as_uri: a ?, # or % in the path is quoted, or the URI would open another file (created, and found empty)
     conn = sqlite3.connect(f"{source.resolve().as_uri()}?mode=ro", uri=True, timeout=30.0)

@@ -239,3 +239,20 @@ def test_a_backup_onto_a_full_disk_says_so_in_one_line_and_leaves_no_file(tmp_pa
     assert done.stderr.startswith("encoder-fleet backup: error: ") and len(done.stderr.splitlines()) == 1
     assert "no backup written" in done.stderr
     assert not out.exists() and not (tmp_path / "b.sqlite.partial").exists()
+
+
+@pytest.mark.parametrize("name", ["fleet.sqlite-wal", "fleet.sqlite-shm", "fleet.sqlite-journal", "fleet"])
+def test_a_backup_never_takes_the_name_of_one_of_the_databases_own_files(tmp_path, name):
+    # with the service stopped its -wal and -shm are gone: a backup written as one was read as the database's WAL,
+    # found no WAL, and deleted at the next start; `fleet` would remove fleet.partial, a database of that name
+    db = tmp_path / ("fleet.partial" if name == "fleet" else "fleet.sqlite")
+    with Store.open(db) as store:
+        store.insert_window(ws.window(seq=1))
+    assert not db.with_name(db.name + "-wal").exists()
+    via_link = tmp_path / "link"
+    via_link.symlink_to(tmp_path, target_is_directory=True)  # the same files, named another way
+    done = backup_cli("--db", str(db), str(via_link / name))
+    assert done.returncode == 2 and "one of the database's own files" in done.stderr, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([db.name, "link"])
+    with Store.open(db) as store:
+        assert seqs(store) == [1]
