@@ -42,6 +42,7 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
     partial.unlink(missing_ok=True)  # a backup stopped half way left it: never a backup
     # as_uri: a ?, # or % in the path is quoted, or the URI would open another file (created, and found empty)
     conn = sqlite3.connect(f"{source.resolve().as_uri()}?mode=ro", uri=True, timeout=30.0)
+    _interruptible(conn)
     began = time.monotonic()
     try:
         try:
@@ -60,6 +61,8 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
             os.chmod(partial, 0o600)  # the fleet's whole history, tokens' hashes with it
             held = _checked(partial)
         except sqlite3.Error as exc:  # a full disk, an I/O error: said in a line, as the CLI says an OSError
+            if str(exc) == "interrupted":  # Ctrl-C (_interruptible)
+                raise KeyboardInterrupt from None
             raise InputError(f"{out}: the copy failed ({exc}): no backup written") from None
         os.replace(partial, out)
     except BaseException:
@@ -79,9 +82,17 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
     }
 
 
+def _interruptible(conn: sqlite3.Connection) -> None:
+    """Ctrl-C stops the connection's statement at once: Python runs its signal handler only between its own steps,
+    so without them a VACUUM INTO ran to its end first (a large fleet's database: minutes). The handler's
+    KeyboardInterrupt, raised in this callback, makes SQLite abort the statement with "interrupted"."""
+    conn.set_progress_handler(lambda: 0, 10_000)
+
+
 def _checked(path: Path) -> dict[str, int]:
     """Rows per table of the copy, once SQLite has read every page of it and found it whole."""
     conn = sqlite3.connect(path)
+    _interruptible(conn)
     try:
         problems = [r[0] for r in conn.execute("PRAGMA integrity_check")]
         if problems != ["ok"]:
