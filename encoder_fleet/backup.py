@@ -29,7 +29,8 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
     source = Path(sqlite_path(db))
     if not source.is_file() or source.stat().st_size == 0:
         raise InputError(f"--db {db}: no such database (or an empty file)")
-    partial = out.with_name(out.name + ".partial")
+    # absolute: SQLite takes a name that begins "file:" for a URI (VACUUM INTO, and the check's connect), another file
+    partial = out.absolute().with_name(out.name + ".partial")
     # the database's -wal, -shm or -journal is absent while the service is stopped: a backup named so was taken for
     # the database's WAL at its next start and deleted, and a .partial of that name was removed below
     own = {source.resolve().with_name(source.resolve().name + suffix) for suffix in ("", "-wal", "-shm", "-journal")}

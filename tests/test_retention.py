@@ -279,3 +279,14 @@ def test_ctrl_c_stops_a_backup_mid_copy_at_once_and_leaves_no_file(tmp_path):
     assert time.monotonic() - sent < 1.0
     assert "Traceback" not in running.stderr.read()
     assert not out.exists() and not partial.exists()
+
+
+def test_a_backup_named_like_a_uri_is_written_under_that_name(tmp_path):
+    # the source's connection takes URIs: "file:b.sqlite.partial" named b.sqlite.partial to VACUUM INTO, a 0644 copy
+    # of the fleet's history left there when the chmod of the name asked for failed
+    Store.open(tmp_path / "fleet.sqlite").close()
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "backup", "--db", "fleet.sqlite", "file:b.sqlite"]
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert ((tmp_path / "file:b.sqlite").stat().st_mode & 0o777) == 0o600
+    assert not (tmp_path / "b.sqlite.partial").exists()
