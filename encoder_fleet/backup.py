@@ -54,12 +54,14 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
         watcher = threading.Thread(target=_show_progress, args=(partial, source, done, progress), daemon=True)
         watcher.start()
         try:
+            # made 0600 before its first byte (VACUUM INTO takes an empty file): the fleet's whole history, tokens'
+            # hashes with it, was readable by all while written, and to a reader who opened it then for good
+            os.close(os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
             try:
                 conn.execute("VACUUM INTO ?", (str(partial),))
             finally:
                 done.set()
                 watcher.join()
-            os.chmod(partial, 0o600)  # the fleet's whole history, tokens' hashes with it
             held = _checked(partial)
         except sqlite3.Error as exc:  # a full disk, an I/O error: said in a line, as the CLI says an OSError
             if str(exc) == "interrupted":  # Ctrl-C (_interruptible)

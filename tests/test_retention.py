@@ -272,6 +272,7 @@ def test_ctrl_c_stops_a_backup_mid_copy_at_once_and_leaves_no_file(tmp_path):
     running = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     partial = tmp_path / "b.sqlite.partial"
     assert wait_for(lambda: partial.exists() and partial.stat().st_size > 0, timeout=60)  # the copy has begun
+    assert (partial.stat().st_mode & 0o777) == 0o600  # from its first byte: not readable by all while written
     running.send_signal(signal.SIGINT)
     sent = time.monotonic()
     assert running.wait(timeout=60) == 130
