@@ -85,6 +85,9 @@ RESEND_AFTER_S = 60.0
 RESEND_AFTER_DRIVE_S = 1800.0
 # wall seconds between two retention passes (`service --keep-days`): each deletes what has aged out since the last
 PRUNE_EVERY_S = 600.0
+# … and the most one pass takes of the refit thread: the rest of a backlog (the first pass over a year of windows,
+# hours) goes on in the next passes, a refit pass between, from the device it stopped at
+PRUNE_PASS_S = 2.0
 
 
 @dataclass
@@ -226,6 +229,7 @@ class FleetService:
             raise InputError("--keep-days needs a positive number of days and a band horizon (--band-horizon-h)")
         self.keep_s = None if keep_days is None else keep_days * 86_400.0
         self._pruned_at: float | None = None  # monotonic: the last retention pass
+        self._prune_resume: str | None = None  # the device a pass out of time stopped at: the next one begins there
         self.online_recheck_s = online_recheck_s
         self._online_recheck_at: float | None = None  # monotonic; set when partitions are taken
         self._token_seen: dict[str, float] = {}  # device -> when (monotonic) its token last came or went
@@ -838,11 +842,13 @@ class FleetService:
             except Exception:  # the thread must outlive a pass: a dead one would never refit again
                 log.exception("refit pass failed")
             if self.keep_s is not None and (
-                self._pruned_at is None or time.monotonic() - self._pruned_at > PRUNE_EVERY_S
+                self._pruned_at is None
+                or self._prune_resume is not None
+                or time.monotonic() - self._pruned_at > PRUNE_EVERY_S
             ):
                 self._pruned_at = time.monotonic()
                 try:
-                    self.prune()
+                    self.prune(budget_s=PRUNE_PASS_S)
                 except Exception:  # the next pass tries again; nothing is lost by pruning late
                     log.exception("retention pass failed")
             if not self.partitions.leads():
@@ -922,17 +928,27 @@ class FleetService:
             self._changed |= later
         return published
 
-    def prune(self) -> dict[str, int]:
+    def prune(self, budget_s: float | None = None) -> dict[str, int]:
         """Retention (`--keep-days`): delete each served device's windows that ended more than keep_s of its own
         drive time before its newest, in small transactions with the writer served first. Kept whatever their age:
         every window above the contiguous watermark (the agent may still fill a gap below them), not yet seen by
         the drift monitor, run on a set on trial, or in a band's sum (Store.prune_windows), and each device's newest
         (its drive time, its offline alarm's date). Dead letters older than keep_s of the service's clock go too.
-        Returns {"windows": n, "dead_letters": n} deleted."""
+        A pass ends after the batch that passes `budget_s` (wall s; None: none) or once the service stops, and the
+        next begins at the device it stopped at. Returns {"windows": n, "dead_letters": n} deleted."""
         if self.keep_s is None:
             return {"windows": 0, "dead_letters": 0}
-        windows = 0
-        for device in filter(self.partitions.serves, self.store.device_ids()):
+        began = time.monotonic()
+
+        def out_of_time() -> bool:
+            return self._stop.is_set() or (budget_s is not None and time.monotonic() - began >= budget_s)
+
+        windows, resume, self._prune_resume = 0, self._prune_resume, None
+        devices = [d for d in self.store.device_ids() if resume is None or d >= resume]
+        for i, device in enumerate(filter(self.partitions.serves, devices)):
+            if self._prune_resume is not None or (i and out_of_time()):  # a fleet's walk alone may take its time
+                self._prune_resume = self._prune_resume or device
+                break
             self._store_first()
             with self.partitions.serving(device) as mine:
                 last = self.store.last_window(device) if mine else None
@@ -947,11 +963,17 @@ class FleetService:
                     device, ended_before=last[1] - self.keep_s, below_seq=below, keep_version=keep_version
                 ):
                     windows += n
+                    if out_of_time():  # the device may have more: the next pass begins with it
+                        self._prune_resume = device
+                        break
                     self._store_first()
         dead_letters = 0
-        if self.partitions.leads():  # the table is the whole fleet's: one process prunes it
+        if self._prune_resume is None and self.partitions.leads():  # the whole fleet's table: one process prunes it
             while n := self.store.prune_dead_letters(self._clock() - self.keep_s):
                 dead_letters += n
+                if out_of_time():
+                    self._prune_resume = ""  # before every device id: the next pass is a whole one
+                    break
                 self._store_first()
         with self._lock:
             self.counters.pruned_windows += windows

@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 
+import msgspec
 import numpy as np
 import pytest
 import zenoh
@@ -137,6 +138,41 @@ def test_the_service_prunes_behind_the_watermark_and_the_monitor_and_keeps_each_
         assert fleet.service.counters.snapshot()["pruned_windows"] == 54
     finally:
         fleet.close()
+
+
+def test_a_retention_pass_ends_at_its_time_budget_or_a_stop_and_the_next_goes_on_where_it_ended(tmp_path):
+    # the first pass over a long history took the refit thread for hours (no refit, trial or rollout step meanwhile)
+    # and held service.stop() as long
+    fleet = Fleet(tmp_path, keep_days=5 * 60 / 86_400, monitor_interval_s=0)
+    try:
+
+        def send(device: str, seq_from: int, seq_to: int) -> None:  # one window's statistics, at every seq
+            one = wire.window_from_dict(ws.window(device))
+            fleet.store.ingest_many(
+                [
+                    (keys.key(device, keys.STATS), wire.encode_window(msgspec.structs.replace(one, **at(s))))
+                    for s in range(seq_from, seq_to + 1)
+                ]
+            )
+
+        def at(seq: int) -> dict:
+            return {"seq": seq, "window_start": 60.0 * (seq - 1), "window_end": 60.0 * seq}
+
+        send(DEVICE, 1, 2500)
+        send("drive-002", 1, 1200)
+        passes = []
+        for _ in range(6):
+            passes.append((fleet.service.prune(budget_s=0.0)["windows"], len(seqs(fleet.store, "drive-002"))))
+        # a batch a pass (store.PRUNE_BATCH), the first device's to its end (seq 2494: five windows of drive time and
+        # the band's sum stay) before the second's: a pass out of time after a device's last batch does no other
+        assert passes == [(1000, 1200), (1000, 1200), (494, 1200), (0, 1200), (1000, 200), (194, 6)]
+        assert seqs(fleet.store) == list(range(2495, 2501))
+        assert fleet.service.prune() == {"windows": 0, "dead_letters": 0}
+        send(DEVICE, 2501, 4000)  # another backlog, then the service stops: a pass takes one batch, no more
+        fleet.service.stop()
+        assert fleet.service.prune()["windows"] == 1000
+    finally:
+        fleet.close()  # the service's stop a second time: a no-op
 
 
 def test_the_service_refuses_retention_without_a_band_horizon(tmp_path):
