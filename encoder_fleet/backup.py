@@ -40,11 +40,13 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
         raise InputError(f"{out} exists: a backup never replaces a file; name a new one")
     if not out.parent.is_dir():
         raise InputError(f"{out}: its folder {out.parent} does not exist")
-    partial.unlink(missing_ok=True)  # a backup stopped half way left it: never a backup
+    if partial.exists() or partial.is_symlink():  # removed, it was a running backup's: both then failed
+        raise InputError(f"{partial} exists: another backup to {out} is running, or one was killed: remove it")
     # as_uri: a ?, # or % in the path is quoted, or the URI would open another file (created, and found empty)
     conn = sqlite3.connect(f"{source.resolve().as_uri()}?mode=ro", uri=True, timeout=30.0)
     _interruptible(conn)
     began = time.monotonic()
+    made = False  # the .partial is this backup's, to remove on failure (one made meanwhile is another's)
     try:
         try:
             applied = [r[0] for r in conn.execute("SELECT version FROM schema_migrations ORDER BY version")]
@@ -57,6 +59,7 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
             # made 0600 before its first byte (VACUUM INTO takes an empty file): the fleet's whole history, tokens'
             # hashes with it, was readable by all while written, and to a reader who opened it then for good
             os.close(os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            made = True
             try:
                 conn.execute("VACUUM INTO ?", (str(partial),))
             finally:
@@ -69,7 +72,8 @@ def backup(db: str, out: Path, *, progress=sys.stderr) -> dict:
             raise InputError(f"{out}: the copy failed ({exc}): no backup written") from None
         os.replace(partial, out)
     except BaseException:
-        partial.unlink(missing_ok=True)
+        if made:
+            partial.unlink(missing_ok=True)
         raise
     finally:
         conn.close()

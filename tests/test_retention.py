@@ -327,3 +327,15 @@ def test_a_backup_named_like_a_uri_is_written_under_that_name(tmp_path):
     assert done.returncode == 0, done.stderr
     assert ((tmp_path / "file:b.sqlite").stat().st_mode & 0o777) == 0o600
     assert not (tmp_path / "b.sqlite.partial").exists()
+
+
+def test_a_backup_leaves_alone_a_partial_copy_it_did_not_make(tmp_path):
+    # another backup to the same name still copying (a slow nightly run overlapped by the next): it was deleted, and
+    # its cleanup then deleted the new one's, so both failed
+    db, out = tmp_path / "fleet.sqlite", tmp_path / "b.sqlite"
+    Store.open(db).close()
+    running = tmp_path / "b.sqlite.partial"
+    running.write_bytes(b"another backup's copy, half written")
+    done = backup_cli("--db", str(db), str(out))
+    assert done.returncode == 2 and "b.sqlite.partial exists: another backup" in done.stderr, done.stderr
+    assert running.read_bytes() == b"another backup's copy, half written" and not out.exists()
