@@ -339,3 +339,19 @@ def test_a_backup_leaves_alone_a_partial_copy_it_did_not_make(tmp_path):
     done = backup_cli("--db", str(db), str(out))
     assert done.returncode == 2 and "b.sqlite.partial exists: another backup" in done.stderr, done.stderr
     assert running.read_bytes() == b"another backup's copy, half written" and not out.exists()
+
+
+def test_a_windows_page_whose_cursor_retention_deleted_says_so(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+
+    with Store.open(tmp_path / "fleet.db", band_horizon_s=HORIZON_S) as store:
+        for s in range(1, 21):
+            store.insert_window(ws.window(seq=s, temp_c=23.0 if s < 20 else 43.0))
+        api = TestClient(create_app(store))
+        page = api.get(f"/devices/{DEVICE}/windows", params={"limit": 5}).json()
+        assert page["next"] == 5
+        assert store.prune_windows(DEVICE, ended_before=np.inf, below_seq=20, keep_version=None) > 5
+        r = api.get(f"/devices/{DEVICE}/windows", params={"limit": 5, "after": page["next"]})
+        assert r.status_code == 422 and "retention deleted the oldest windows" in r.json()["detail"][0]["msg"]
