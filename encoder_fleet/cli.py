@@ -148,6 +148,7 @@ def _extensions():
         "encoder_fleet.backup",
         "encoder_fleet.audit",
         "encoder_fleet.alarms_cli",
+        "encoder_fleet.status_cli",
     ):
         try:
             module = importlib.import_module(name)

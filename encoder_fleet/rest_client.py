@@ -18,8 +18,9 @@ def add_rest_options(q) -> None:
     q.add_argument("--json", metavar="FILE", help="also write the service's answer as JSON")
 
 
-def request(args, method: str, path: str, body: dict | None = None) -> dict | list:
-    """One REST call; every failure is one line (InputError), with the service's own `detail`."""
+def request(args, method: str, path: str, body: dict | None = None, *, answers: tuple[int, ...] = ()) -> dict | list:
+    """One REST call; every failure is one line (InputError), with the service's own `detail`. A status in
+    `answers` is an answer, not a failure (/readyz's 503 says which part is failing): its body is returned."""
     headers = {"Accept": "application/json"}
     if args.token_file:
         try:
@@ -36,9 +37,15 @@ def request(args, method: str, path: str, body: dict | None = None) -> dict | li
         with urllib.request.urlopen(urllib.request.Request(url, data, headers, method=method), timeout=30) as resp:
             return json.loads(resp.read())
     except urllib.error.HTTPError as exc:
+        raw = exc.read()
+        if exc.code in answers:
+            try:
+                return json.loads(raw)
+            except ValueError:
+                pass
         try:
-            detail = json.loads(exc.read()).get("detail", "")
-        except ValueError:
+            detail = json.loads(raw).get("detail", "")
+        except (ValueError, AttributeError):
             detail = ""
         if isinstance(detail, list):  # FastAPI's validation errors: where and what
             detail = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', [])[1:])}: {d.get('msg')}" for d in detail)

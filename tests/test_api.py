@@ -541,3 +541,40 @@ def test_the_alarms_command_lists_and_acknowledges_as_an_operator_on_shift_would
             assert twice.returncode == 2 and "409" in twice.stderr and "night shift" in twice.stderr
         finally:
             http.stop()
+
+
+def test_the_status_command_shows_the_fleet_at_a_glance_and_fails_while_a_part_of_the_service_does(tmp_path):
+    import subprocess
+    import sys
+
+    from fleet_wire.session import free_port, loopback_endpoint
+    from service.auth import TokenAuth
+    from service.runtime import FleetService, HttpServer, open_session
+
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        ids = [_offline(store, f"drive-{i:03d}", 3600.0 * i) for i in range(3)]
+        store.ack_alarm(ids[0], by="token 9 (day shift)", note="planned outage")
+        auth = TokenAuth(store)
+        reader = tmp_path / "read-token"
+        reader.write_text(auth.create("read")[1])
+        session = open_session(listen=[loopback_endpoint()])
+        service = FleetService(store, session, refit_interval_s=0, monitor_interval_s=0).start()
+        port = free_port()
+        http = HttpServer(store, port, service=service, auth=auth).start()
+        cmd = [sys.executable, "-m", "encoder_fleet.cli", "status", "--url", f"http://127.0.0.1:{port}"]
+        cmd += ["--token-file", str(reader)]
+        try:
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+            assert done.returncode == 0, done.stderr
+            lines = done.stdout.splitlines()
+            assert lines[0] == "service: ok" and lines[2] == "open alarms: 3 (offline 3)", done.stdout
+            listed = [line.split()[1] for line in lines[4:]]
+            assert lines[3] == "not acknowledged:" and listed == ["drive-002", "drive-001"]  # not drive-000's
+            service.counters.storage_error = "the database refused the last batch: database or disk is full"
+            failing = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+            assert failing.returncode == 1 and failing.stdout.startswith("service: failing\n")
+            assert "database or disk is full" in failing.stdout and not failing.stderr
+        finally:
+            http.stop()
+            service.stop()
+            session.close()

@@ -1,0 +1,52 @@
+"""`encoder-fleet status`: the fleet at a glance in a terminal, from the service's REST API (what the fleet page
+shows first): the service's checks, drives by state, open alarms and those nobody acknowledged, running rollouts."""
+
+from __future__ import annotations
+
+import json
+
+from encoder_fleet.outputs import write_file
+from encoder_fleet.rest_client import add_rest_options, request
+
+SHOWN = 10  # unacknowledged alarms listed, newest first
+
+
+def fleet_status(args) -> dict:
+    return {
+        "ready": request(args, "GET", "/readyz", answers=(503,)),
+        "health": request(args, "GET", "/fleet/health"),
+        "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&limit={SHOWN}"),
+        "rollouts": [r for r in request(args, "GET", "/rollouts") if r["state"] in ("running", "paused")],
+    }
+
+
+def cmd_status(args) -> int:
+    from encoder_fleet.alarms_cli import alarm_line
+    from encoder_fleet.rollout_cli import summary_line
+
+    status = fleet_status(args)
+    ready, health = status["ready"], status["health"]
+    failing = {k: v for k, v in ready["checks"].items() if v != "ok"}
+    print(f"service: {ready['status']}" + "".join(f"\n  {k}: {v}" for k, v in failing.items()))
+    drives = ", ".join(f"{n:,} {state}" for state, n in health["devices"].items() if n)
+    print(f"drives: {drives or 'none'}")
+    open_alarms = sum(health["open_alarms"].values())
+    by_cause = ", ".join(f"{cause} {n:,}" for cause, n in health["open_alarms"].items())
+    print(f"open alarms: {open_alarms:,}" + (f" ({by_cause})" if by_cause else ""))
+    unacked = status["unacknowledged"]
+    if unacked["alarms"]:
+        more = " (the newest; `encoder-fleet alarms list --open --unacked` lists all)" if unacked["truncated"] else ""
+        print(f"not acknowledged{more}:")
+        for a in unacked["alarms"]:
+            print("  " + alarm_line(a))
+    for r in status["rollouts"]:
+        print("rollout " + summary_line(r).strip())
+    if args.json:
+        write_file(args.json, json.dumps(status, indent=2) + "\n")
+    return 0 if ready["status"] == "ok" else 1  # a script's check: 1 while a part of the service fails
+
+
+def register(sub) -> None:
+    p = sub.add_parser("status", help="the fleet at a glance: the service's checks, drives, alarms, rollouts")
+    add_rest_options(p)
+    p.set_defaults(func=cmd_status)
