@@ -68,7 +68,16 @@ class EdgeAgent:
         query_timeout_s: float = 1.0,
         verifier=None,
         clock: Callable[[], float] = time.monotonic,
+        temp_range_c: tuple[float, float] = (wire.TEMP_MIN_C, wire.TEMP_MAX_C),
     ):
+        lo, hi = temp_range_c
+        if not (wire.TEMP_MIN_C <= lo < hi <= wire.TEMP_MAX_C):
+            raise InputError(
+                f"temperature range {lo:g}..{hi:g} °C: LO must be below HI, both within "
+                f"{wire.TEMP_MIN_C:g}..{wire.TEMP_MAX_C:g} °C (the wire's)"
+            )
+        # readings outside it are a broken sensor's (readable_temperatures): the drive's own rating, when given
+        self.temp_range_c = (float(lo), float(hi))
         self.device = device
         self.source = source
         self.session = session
@@ -298,14 +307,16 @@ class EdgeAgent:
         return True
 
     def readable_temperatures(self, block: Samples) -> Samples:
-        """The block with every temperature outside the wire's range (below absolute zero, above 300 °C: an open or
-        shorted thermistor, a converter's garbage) read as NaN, which is what it tells: its sample is rejected as
-        non_finite, its angle corrected at the die's last good estimate, and the estimate does not move. Summed into
-        the window, one such reading took its temperature past the range and the wire refused the whole window."""
+        """The block with every temperature outside the agent's range read as NaN: the wire's (below absolute zero,
+        above 300 °C), or the drive's rating when given (`--temp-range`). Such a reading is an open or shorted
+        thermistor's or a converter's garbage, and NaN is what it tells: its sample is rejected as non_finite, its
+        angle corrected at the die's last good estimate, and the estimate does not move. Summed into the window, one
+        such reading took its temperature past the range and the wire refused the whole window."""
         temp = block.temp_c
         if temp is None:
             return block
-        broken = (temp < wire.TEMP_MIN_C) | (temp > wire.TEMP_MAX_C)
+        lo, hi = self.temp_range_c
+        broken = (temp < lo) | (temp > hi)
         return replace(block, temp_c=np.where(broken, np.nan, temp)) if broken.any() else block
 
     def at_die_temperature(self, block: Samples) -> Samples:

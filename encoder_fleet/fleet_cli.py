@@ -97,7 +97,16 @@ def cmd_agent(args) -> int:
     except (sqlite3.Error, OSError) as exc:  # a directory there, another kind of file, no room
         session.close()
         raise InputError(f"--outbox {outbox_path}: cannot be used as the agent's outbox: {exc}") from None
-    agent = EdgeAgent(args.device, source, session, outbox, factory, window_s=args.window_s, verifier=verifier)
+    agent = EdgeAgent(
+        args.device,
+        source,
+        session,
+        outbox,
+        factory,
+        window_s=args.window_s,
+        verifier=verifier,
+        temp_range_c=args.temp_range,
+    )
     stop = threading.Event()
     set_on_signals(stop, signal.SIGTERM)
     try:
@@ -148,6 +157,21 @@ def agent_security(args):
     if plain:
         raise SecurityError(f"with --pki every endpoint must be tls/HOST:PORT, not {', '.join(plain)}")
     return Identity.load(args.pki, args.device, ROLE_DEVICE), SetVerifier.load(args.pki)
+
+
+def temperature_range(text: str) -> tuple[float, float]:
+    from fleet_wire.messages import TEMP_MAX_C, TEMP_MIN_C
+
+    lo, sep, hi = text.partition(",")
+    try:
+        low, high = finite_float(lo), finite_float(hi)
+    except argparse.ArgumentTypeError:
+        low = high = None
+    if not sep or low is None or not (TEMP_MIN_C <= low < high <= TEMP_MAX_C):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected LO,HI in °C with LO below HI, within {TEMP_MIN_C:g},{TEMP_MAX_C:g} (e.g. -40,150)"
+        )
+    return low, high
 
 
 def cmd_service(args) -> int:
@@ -285,6 +309,14 @@ def register(sub) -> None:
     p.add_argument("--sim-hours", type=positive_float, default=24.0, help="sim: hours of drive time to run")
     p.add_argument("--sample-hz", type=positive_float, default=20.0, help="sim: samples per second")
     p.add_argument("--window-s", type=positive_float, default=60.0, help="seconds of drive time per window")
+    p.add_argument(
+        "--temp-range",
+        type=temperature_range,
+        default=(-273.15, 300.0),
+        metavar="LO,HI",
+        help="°C the drive's thermistor can read (its rating, e.g. -40,150): a reading outside is a broken sensor's, "
+        "rejected, and the angle corrected at the last good temperature (default: the wire's, -273.15,300)",
+    )
     p.add_argument(
         "--real-time-factor",
         type=non_negative_float,

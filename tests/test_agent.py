@@ -11,6 +11,7 @@ import zenoh
 from edge_agent.agent import EdgeAgent, factory_message
 from edge_agent.outbox import Outbox
 from edge_agent.sources import SimulatedDrive, drive_model, factory_calibration
+from encoder_core.samples import InputError
 from fleet_wire import keys
 from fleet_wire import messages as wire
 from fleet_wire.session import loopback_endpoint, session_config
@@ -188,7 +189,7 @@ def test_a_window_with_no_usable_sample_is_skipped_without_a_seq_and_the_agent_g
     agent.close()
 
 
-def two_minutes_at_25_c(setup, outbox_path, spoil):
+def two_minutes_at_25_c(setup, outbox_path, spoil, **agent_options):
     """Two minutes of the drive at +25 °C replayed through a real agent, its temperature readings spoiled in place by
     `spoil(temp, rng)`: both windows sent and stored. The agent, the times, the samples and the temperatures."""
     import numpy as np
@@ -204,7 +205,7 @@ def two_minutes_at_25_c(setup, outbox_path, spoil):
     temp = s.temp_c.copy()
     spoil(temp, rng)
     agent = EdgeAgent(DEVICE, ReplaySource(Samples(t=t, d=s.d, q=s.q, temp_c=temp)), client, Outbox(outbox_path),
-                      factory)  # fmt: skip
+                      factory, **agent_options)  # fmt: skip
     agent.start()
     counters = agent.run()
     assert counters.windows == 2 and counters.unsent_windows == 0
@@ -752,6 +753,29 @@ def test_a_temperature_reading_no_drive_can_have_costs_its_sample_not_the_window
     assert angle[300] == pytest.approx(held[0], abs=1e-12) and abs(angle[300] - hot[0]) > 1e-4
     assert agent.correction.at(-200.0).w1 == pytest.approx(1.2)  # held at the coldest band, no further
     agent.close()
+
+
+def test_an_open_thermistor_inside_the_wires_range_is_refused_by_the_drives_own_rating(setup, tmp_path):
+    """An open NTC thermistor reads -200 °C here: inside the wire's range, so without the drive's rating its sample
+    was summed (the window's minimum -200 °C, its mean pulled 0.2 °C colder by one reading). With `--temp-range
+    -40,150` (the drive's rating) it is a broken sensor's reading, rejected as a NaN one is, and a range outside the
+    wire's, or upside down, is refused at start."""
+    from edge_agent.outbox import Outbox as OutboxFile
+
+    store, _, client, factory, _, _ = setup
+
+    def open_circuit(temp, _rng):
+        temp[300] = -200.0
+
+    agent, *_ = two_minutes_at_25_c(setup, tmp_path / "rated.sqlite", open_circuit, temp_range_c=(-40.0, 150.0))
+    first, second = store.monitor_windows(DEVICE, 0, 2)
+    assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"].temp_min > 20.0
+    assert second["rejected_by_reason"]["non_finite"] == 0
+    agent.close()
+    for bad in ((150.0, -40.0), (-300.0, 100.0), (0.0, 400.0)):
+        with pytest.raises(InputError, match="temperature range"):
+            EdgeAgent(DEVICE, SimulatedDrive(SEED, hours=1), client, OutboxFile(tmp_path / "x.sqlite"), factory,
+                      temp_range_c=bad)  # fmt: skip
 
 
 def test_an_outbox_damaged_on_disk_is_kept_aside_and_what_it_can_read_is_sent(setup, tmp_path, caplog):
