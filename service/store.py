@@ -1509,12 +1509,17 @@ class Store:
             row = c.execute("SELECT acked_at, acked_by FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
             if row is None:
                 raise KeyError(f"no alarm {alarm_id}")
+            if row["acked_at"] is None:
+                # only if still not acknowledged: on PostgreSQL another process's acknowledgement may commit between
+                # the read and this write (which waits for it), and it stands
+                acked = c.execute(
+                    "UPDATE alarms SET acked_at = ?, acked_by = ?, ack_note = ? WHERE id = ? AND acked_at IS NULL",
+                    (time.time() if at is None else at, by, note, alarm_id),
+                ).rowcount
+                if not acked:
+                    row = c.execute("SELECT acked_at, acked_by FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
             if row["acked_at"] is not None:
                 raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
-            c.execute(
-                "UPDATE alarms SET acked_at = ?, acked_by = ?, ack_note = ? WHERE id = ?",
-                (time.time() if at is None else at, by, note, alarm_id),
-            )
         return self.alarms(ids=[alarm_id])[0]
 
     def unacked_alarm_counts(self) -> dict[str, int]:

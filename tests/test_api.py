@@ -578,3 +578,50 @@ def test_the_status_command_shows_the_fleet_at_a_glance_and_fails_while_a_part_o
             http.stop()
             service.stop()
             session.close()
+
+
+def test_two_acknowledgements_at_once_on_postgresql_leave_the_first_and_refuse_the_second(postgres_url):
+    """Two service processes (a cluster's members) acknowledge one alarm at the same moment: both read it not yet
+    acknowledged, and the second's UPDATE, waiting on the first's row lock, overwrote it once that committed; both
+    answered 200 and the first operator's note was gone. The second is refused (409), the first stands."""
+    import threading
+    import time
+
+    import psycopg
+
+    from service.store import StoreError
+
+    with Store.open(postgres_url) as first, Store.open(postgres_url) as second:
+        alarm = _offline(first, "drive-001", 10.0)
+        outcome = {}
+
+        def ack_meanwhile():
+            try:
+                outcome["ack"] = second.ack_alarm(alarm, by="token 2 (day shift)", note="me too")
+            except StoreError as exc:
+                outcome["refused"] = exc
+
+        with psycopg.connect(postgres_url, autocommit=True) as watch:
+            with first._tx() as c:  # the first member's acknowledgement, not committed yet
+                c.execute(
+                    "UPDATE alarms SET acked_at = ?, acked_by = ?, ack_note = ? WHERE id = ?",
+                    (time.time(), "token 1 (night shift)", "switch replaced", alarm),
+                )
+                racer = threading.Thread(target=ack_meanwhile)
+                racer.start()
+                deadline = time.monotonic() + 10
+                while time.monotonic() < deadline:  # until the second waits on the row's lock
+                    waiting = (
+                        "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock' "
+                        "AND datname = current_database()"
+                    )
+                    if watch.execute(waiting).fetchone()[0]:
+                        break
+                    time.sleep(0.01)
+                else:
+                    raise AssertionError("the second acknowledgement never waited on the first")
+            racer.join(10)
+        (stored,) = first.alarms(ids=[alarm])
+    assert stored["acked_by"] == "token 1 (night shift)" and stored["ack_note"] == "switch replaced"
+    assert "ack" not in outcome and outcome["refused"].reason == "already_acked", outcome
+    assert "night shift" in str(outcome["refused"])
