@@ -1505,11 +1505,10 @@ class Store:
     def ack_alarm(self, alarm_id: int, *, by: str, note: str, at: float | None = None) -> dict:
         """Acknowledge an alarm, open or cleared (an operator may see it only after it cleared): who, when, the note.
         KeyError: no such alarm; StoreError `already_acked`: it was, by someone (the first acknowledgement stands)."""
+        # refused after the transaction, not inside it: an error inside drops every band sum kept in memory
         with self._tx() as c:
             row = c.execute("SELECT acked_at, acked_by FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
-            if row is None:
-                raise KeyError(f"no alarm {alarm_id}")
-            if row["acked_at"] is None:
+            if row is not None and row["acked_at"] is None:
                 # only if still not acknowledged: on PostgreSQL another process's acknowledgement may commit between
                 # the read and this write (which waits for it), and it stands
                 acked = c.execute(
@@ -1518,8 +1517,10 @@ class Store:
                 ).rowcount
                 if not acked:
                     row = c.execute("SELECT acked_at, acked_by FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
-            if row["acked_at"] is not None:
-                raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
+        if row is None:
+            raise KeyError(f"no alarm {alarm_id}")
+        if row["acked_at"] is not None:
+            raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
         return self.alarms(ids=[alarm_id])[0]
 
     def unacked_alarm_counts(self) -> dict[str, int]:

@@ -625,3 +625,23 @@ def test_two_acknowledgements_at_once_on_postgresql_leave_the_first_and_refuse_t
     assert stored["acked_by"] == "token 1 (night shift)" and stored["ack_note"] == "switch replaced"
     assert "ack" not in outcome and outcome["refused"].reason == "already_acked", outcome
     assert "night shift" in str(outcome["refused"])
+
+
+def test_a_refused_acknowledgement_keeps_the_band_sums_in_memory(client, store, caplog):
+    """An acknowledgement refused inside its transaction (no such alarm: 404; acknowledged already: 409) rolled it
+    back as a failed write, which drops every drive's band sums kept in memory, so the next window of each drive
+    rebuilt its bands from all their windows: an operator's mistyped id did that to the whole fleet. Nothing was
+    written: the sums are kept."""
+    import logging
+
+    for seq in range(1, 4):
+        store.insert_window(window(seq=seq))
+    alarm = _offline(store, "drive-002", 10.0)
+    note = {"note": "seen"}
+    assert client.post(f"/alarms/{alarm}/ack", json=note).status_code == 200
+    assert client.post(f"/alarms/{alarm}/ack", json=note).status_code == 409
+    assert client.post(f"/alarms/{alarm + 1}/ack", json=note).status_code == 404
+    caplog.set_level(logging.INFO, logger="service.store")
+    store.insert_window(window(seq=4))
+    assert "rebuilt" not in caplog.text
+    assert store.band_stats(DEVICE) and sum(n for _, n, _ in store.band_stats(DEVICE).values()) == 4
