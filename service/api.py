@@ -7,6 +7,7 @@ their own app around their own Store.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from importlib import resources
 from typing import TYPE_CHECKING, Annotated, Literal
@@ -18,7 +19,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from .auth import TokenAuth, authorize, require_admin, tokens
 from .mcap_export import iter_mcap
@@ -133,9 +134,21 @@ class Alarm(BaseModel):
     ack_note: str | None = Field(None, description="What the operator said (seen, and what will be done).")
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
 class AlarmAck(BaseModel):
     model_config = ConfigDict(extra="forbid")
     note: str = Field(min_length=1, max_length=500, description="Seen, and what will be done: kept with the alarm.")
+
+    @field_validator("note")
+    @classmethod
+    def one_line(cls, note: str) -> str:
+        # printed on one line (`alarms list`) and in a cell of the fleet page: a newline broke the line, an escape
+        # sequence reached the operator's terminal, a NUL was stored as U+FFFD on PostgreSQL (and kept on SQLite)
+        if _CONTROL.search(note) or not note.strip():
+            raise ValueError("a note is one line of text: no control characters (newline, tab, NUL, ESC), not blank")
+        return note
 
 
 class AlarmList(BaseModel):

@@ -645,3 +645,18 @@ def test_a_refused_acknowledgement_keeps_the_band_sums_in_memory(client, store, 
     store.insert_window(window(seq=4))
     assert "rebuilt" not in caplog.text
     assert store.band_stats(DEVICE) and sum(n for _, n, _ in store.band_stats(DEVICE).values()) == 4
+
+
+@pytest.mark.parametrize(
+    "note", ["seen\x00", "seen\nand on it", "\x1b[2J\x1b[Hall clear", "\t", "   ", "x" * 501, "seen\x7f"]
+)
+def test_a_note_is_one_line_of_text_or_the_acknowledgement_is_refused(client, store, note):
+    """A note is printed on one line by `alarms list` and in a cell of the fleet page: a newline broke the line, an
+    escape sequence reached the operator's terminal as a command, and a NUL was kept on SQLite but stored as U+FFFD
+    on PostgreSQL (another note than the one sent). Each is refused with 422 saying where, and nothing is kept."""
+    alarm = _offline(store, "drive-002", 10.0)
+    refused = client.post(f"/alarms/{alarm}/ack", json={"note": note})
+    assert refused.status_code == 422 and refused.json()["detail"][0]["loc"] == ["body", "note"], refused.text
+    assert store.alarms(ids=[alarm])[0]["acked_at"] is None
+    kept = client.post(f"/alarms/{alarm}/ack", json={"note": "Schalter getauscht – läuft wieder ✓"})
+    assert kept.status_code == 200 and kept.json()["ack_note"] == "Schalter getauscht – läuft wieder ✓"
