@@ -35,6 +35,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import threading
 import time
 from collections import Counter
@@ -79,6 +80,7 @@ class Change(BaseModel):
 
 
 DeviceId = Annotated[str, StringConstraints(pattern=keys.DEVICE_RE.pattern)]
+_WAVE = re.compile(r"[0-9]{1,10}")  # a wave in a page's cursor (devices_next): at most 2**31, as GET's wave
 
 
 class RolloutSpec(BaseModel):
@@ -289,7 +291,10 @@ class Rollouts:
         where, args = ["rollout = ?"], [rollout]
         if after is not None:
             after_wave, _, after_device = after.partition(":")
-            if not after_wave.isdigit() or not after_device or len(after) > 100:
+            # ASCII digits no longer than a wave can be, and a device's name: as a page's devices_next says it (a
+            # wave past 64 bits, which SQLite cannot bind, or a digit int() refuses (²) answered 500)
+            valid = _WAVE.fullmatch(after_wave) and int(after_wave) <= 2**31 and keys.DEVICE_RE.fullmatch(after_device)
+            if not valid or len(after) > 100:
                 raise RolloutError(
                     422, f"after {after!r}: expected WAVE:DEVICE, a page's devices_next", ("query", "after")
                 )

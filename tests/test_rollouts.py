@@ -921,3 +921,30 @@ def test_a_rollouts_parts_come_in_pages_filtered_by_state_and_wave_and_the_comma
         assert third.returncode == 0 and third.stdout.count("wave 3 ") == 12 and "wave 2 " not in third.stdout
     finally:
         http.stop()
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+def test_a_cursor_the_service_never_gave_is_a_422_naming_after_not_a_500(backend, tmp_path, request):
+    """`after` is a page's devices_next, WAVE:DEVICE. A wave past a 64-bit integer (SQLite cannot bind it) or of a
+    digit Python's isdigit takes and int() does not (²) answered 500; a device no drive can be named read pages
+    of nothing. Each is refused with 422 at query.after; a cursor the service gave still reads the next page."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.rollout import Rollouts
+
+    target = tmp_path / "fleet.sqlite" if backend == "sqlite" else request.getfixturevalue("postgres_url")
+    with Store.open(target) as store:
+        for i in range(5):
+            store.set_online(f"drive-{i}", True)
+        spec = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 2, "soak_windows": 30}
+        Rollouts(store).create(RolloutSpec(name="reset", **spec))
+        api = TestClient(create_app(store), raise_server_exceptions=False)
+        hostile = ("9" * 30 + ":drive-1", f"{2**63}:drive-1", "²:drive-1", "٣:drive-1", "0:drive-1\x00", "0:drive-1\n")
+        for after in (*hostile, "0:-x"):
+            r = api.get("/rollouts/1", params={"after": after, "limit": 2})
+            assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "after"], (after, r.text)
+        first = api.get("/rollouts/1", params={"limit": 2}).json()
+        assert first["devices_next"] == "0:drive-1"
+        then = api.get("/rollouts/1", params={"limit": 2, "after": first["devices_next"]}).json()
+        assert [d["device"] for d in then["devices"]] == ["drive-2", "drive-3"]
