@@ -3,7 +3,8 @@
 One row a set (the factory's, fits, moves, rollbacks, rollouts' sets), in the order they went out on the service's
 clock, with whether and when the drive applied or rejected it, its guard state, what a rollback restored, the
 rollout it was part of and the SHA-256 of the message as stored. The per-device MCAP export has the same sets with
-the windows around them; this is the view across the fleet ("what changed on which drives in March")."""
+the windows around them; this is the view across the fleet ("what changed on which drives in March"). A reason a
+spreadsheet would run as a formula is written with a leading ' (as_text)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,8 @@ COLUMNS = (
     "rejected_reason",
     "message_sha256",
 )
+TEXT_COLUMNS = ("state_reason", "rejected_reason")  # free text: the guard's words and the drive's own
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")  # what a spreadsheet runs as a formula, begun with
 PAGE = 5000  # sets read at a time (an audit of a year of a big fleet is millions of rows: never all in memory)
 
 
@@ -114,6 +117,12 @@ def audit_rows(store, t_from: float, t_to: float, devices: list[str] | None = No
         after = (last["published_at"], last["device"], last["version"])
 
 
+def as_text(row: dict) -> dict:
+    """The row as the CSV holds it: a free-text cell that a spreadsheet would run as a formula (a drive's rejection
+    reason is anything it sends: =HYPERLINK(...)) begins with a ', which a spreadsheet shows as text."""
+    return {k: "'" + v if k in TEXT_COLUMNS and v.startswith(FORMULA_START) else v for k, v in row.items()}
+
+
 def cmd_audit(args) -> int:
     from encoder_fleet.fleet_cli import open_evidence
     from encoder_fleet.outputs import replaced
@@ -133,7 +142,7 @@ def cmd_audit(args) -> int:
             writer = csv.DictWriter(out, COLUMNS, lineterminator="\n")
             writer.writeheader()
             for row in audit_rows(store, t_from, t_to, args.device):
-                writer.writerow(row)
+                writer.writerow(as_text(row))
                 by_basis.setdefault(row["basis"], Counter())[row["outcome"]] += 1
                 devices.add(row["device"])
     finally:

@@ -111,3 +111,35 @@ def test_the_audit_command_writes_the_csv_and_refuses_bad_input_in_one_line(tmp_
         assert len(done.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.csv").exists()
     assert json.loads(json.dumps(rows))  # plain text cells: no object leaked into the CSV
+
+
+def test_a_reason_a_spreadsheet_would_run_as_a_formula_is_written_as_text(tmp_path):
+    """A rejection's reason is the drive's own text (the ack's `reason`, up to 1,000 characters of anything): one
+    beginning with = (or +, -, @) was written as it came, and the auditor's spreadsheet ran it as a formula
+    (=HYPERLINK(...) a link to anywhere, =cmd|... on some). Such a cell begins with a ' now, which a spreadsheet shows
+    as text and a reader strips; a newline inside a reason stays inside its cell."""
+    from fleet_wire import messages as wire
+
+    db, out = tmp_path / "fleet.sqlite", tmp_path / "audit.csv"
+    formula = '=HYPERLINK("http://example.invalid/x","coefficients out of range")'
+    with Store.open(db) as store:
+        for version, reason in ((1, formula), (2, "-12 V on the hall supply\nsecond line"), (3, "@SUM(A1)")):
+            store.insert_coefficient_set(ws.coefficients("drive-a", version=version, created_at=100.0 * version))
+            store.mark_published("drive-a", version, at=T0 + version)
+            rejected = wire.ack_message("drive-a", version, "rejected", 100.0 * version + 5, reason=reason)
+            store.insert_ack(rejected, received_at=T0 + version + 1)
+        store.set_state("drive-a", 1, "rolled_back", at=400.0, reason="+1 window worse")
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "audit", "--db", str(db), "--out", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["rejected_reason"] for r in rows] == [
+        "'" + formula,
+        "'-12 V on the hall supply\nsecond line",
+        "'@SUM(A1)",
+    ]
+    assert rows[0]["state_reason"] == "'+1 window worse" and rows[1]["state_reason"] == ""
+    assert all(
+        not cell.startswith(("=", "+", "-", "@")) for r in rows for k, cell in r.items() if k != "created_at_drive_s"
+    )
