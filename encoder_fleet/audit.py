@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import hashlib
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -125,12 +126,13 @@ def as_text(row: dict) -> dict:
 
 def cmd_audit(args) -> int:
     from encoder_fleet.fleet_cli import open_evidence
-    from encoder_fleet.outputs import replaced
+    from encoder_fleet.outputs import is_stdout, replaced
 
     t_from = float("-inf") if args.t_from is None else service_time(args.t_from)
     t_to = float("inf") if args.t_to is None else service_time(args.t_to)
     if t_from >= t_to:
         raise InputError(f"--from {args.t_from} is not before --to {args.t_to}")
+    to_stdout = is_stdout(args.out)
     store = open_evidence(args.db, args.migrate, out=args.out)
     by_basis: dict[str, Counter] = {}
     devices = set()
@@ -148,11 +150,12 @@ def cmd_audit(args) -> int:
     finally:
         store.close()
     total = sum(sum(c.values()) for c in by_basis.values())
-    print(f"wrote {args.out}: {total:,} coefficient sets published to {len(devices):,} drives")
-    print("| basis | sets | applied | rejected | no ack | the drive's own |\n|---|---|---|---|---|---|")
+    summary = sys.stderr if to_stdout else sys.stdout  # the CSV on stdout is the CSV alone
+    print(f"wrote {args.out}: {total:,} coefficient sets published to {len(devices):,} drives", file=summary)
+    print("| basis | sets | applied | rejected | no ack | the drive's own |\n|---|---|---|---|---|---|", file=summary)
     for basis, c in sorted(by_basis.items()):
         counts = " | ".join(f"{c[k]:,}" for k in ("applied", "rejected", "no ack", "the drive's own"))
-        print(f"| {basis} | {sum(c.values()):,} | {counts} |")
+        print(f"| {basis} | {sum(c.values()):,} | {counts} |", file=summary)
     return 0
 
 

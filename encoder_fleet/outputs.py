@@ -64,6 +64,12 @@ def write_file(path: str | Path, data: str | bytes, *, perms: int | None = None)
         out.write(data)
 
 
+def is_stdout(path: str | Path) -> bool:
+    """`path` names this process's stdout (/dev/stdout, /proc/self/fd/1): what the command prints besides goes to
+    stderr, or it is mixed into the output."""
+    return _own_stream(Path(path)) is sys.stdout
+
+
 def _own_stream(path: Path):
     """sys.stdout or sys.stderr when the stream `path` names (/dev/stdout, /proc/self/fd/1) is the same file as one."""
     for std in (sys.stdout, sys.stderr):

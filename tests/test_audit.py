@@ -143,3 +143,17 @@ def test_a_reason_a_spreadsheet_would_run_as_a_formula_is_written_as_text(tmp_pa
     assert all(
         not cell.startswith(("=", "+", "-", "@")) for r in rows for k, cell in r.items() if k != "created_at_drive_s"
     )
+
+
+def test_the_audit_to_stdout_is_the_csv_alone_and_the_summary_goes_to_stderr(tmp_path):
+    """`audit --out /dev/stdout > audit.csv` (or piped on): the CSV went to stdout and the summary after it, so the
+    file ended in "wrote /dev/stdout: ..." and a markdown table, read as rows of junk. The summary goes to stderr."""
+    db = tmp_path / "fleet.sqlite"
+    with Store.open(db) as store:
+        history(store)
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "audit", "--db", str(db), "--out", "/dev/stdout"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    rows = list(csv.reader(done.stdout.splitlines()))
+    assert rows[0] == list(audit.COLUMNS) and len(rows) == 8 and all(len(r) == len(audit.COLUMNS) for r in rows)
+    assert "7 coefficient sets published to 2 drives" in done.stderr and "| fit | 4 |" in done.stderr
