@@ -227,11 +227,12 @@ def open_evidence(db: str, migrate: bool, *, out) -> Store:
 
 
 def cmd_export(args) -> int:
-    from encoder_fleet.outputs import replaced
+    from encoder_fleet.outputs import is_stdout, replaced
     from service.mcap_export import export_mcap
 
     if args.t_from is not None and args.t_to is not None and args.t_from > args.t_to:
         raise InputError(f"--from {args.t_from} is after --to {args.t_to}")
+    to_stdout = is_stdout(args.out)
     store = open_evidence(args.db, args.migrate, out=args.out)
     try:
         if store.device(args.device) is None:
@@ -240,7 +241,7 @@ def cmd_export(args) -> int:
             export_mcap(store, args.device, out, t_from=args.t_from, t_to=args.t_to)
     finally:
         store.close()
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out}", file=sys.stderr if to_stdout else sys.stdout)  # the MCAP file on stdout alone
     return 0
 
 

@@ -198,6 +198,32 @@ def test_export_refuses_to_write_over_its_own_database(tmp_path):
     assert done.returncode == 0 and (tmp_path / "drive-001.mcap").stat().st_size > 0, done.stderr
 
 
+def test_an_export_to_stdout_is_the_mcap_file_alone(tmp_path):
+    """`export --out /dev/stdout > drive.mcap` (or piped into another tool): "wrote /dev/stdout" was printed after
+    the MCAP file's last byte, so the file read as truncated garbage at its end. That line goes to stderr."""
+    import io
+
+    from mcap.reader import make_reader
+
+    from fleet_wire import keys
+    from fleet_wire import messages as wire
+    from service.store import Store
+    from tests.wire_samples import window
+
+    db = tmp_path / "fleet.sqlite"
+    with Store.open(db) as store:
+        store.ingest_many([(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=s))) for s in (1, 2)])
+    done = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "export", "--db", str(db), "--device", "drive-001"]
+        + ["--out", "/dev/stdout"],
+        capture_output=True,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.endswith(b"\x89MCAP0\r\n")  # the magic that ends every MCAP file
+    assert sum(1 for _ in make_reader(io.BytesIO(done.stdout)).iter_messages()) >= 2
+    assert b"wrote /dev/stdout" in done.stderr
+
+
 def test_export_changes_no_file_it_reads(tmp_path):
     """An export of a database an older encoder-fleet wrote migrated it in place (the audit's evidence rewritten,
     and any SQLite file named by --db given the service's tables). Now such a database is refused in one line,
