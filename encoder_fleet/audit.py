@@ -40,12 +40,25 @@ PAGE = 5000  # sets read at a time (an audit of a year of a big fleet is million
 
 def service_time(text: str) -> float:
     """A time on the service's clock: unix seconds, or an ISO 8601 date or date-time (UTC unless it says)."""
+    if len(text) == 8 and text.isascii() and text.isdigit() and _is_date(text):
+        # ISO 8601's basic date (`date +%Y%m%d`) read as seconds is a day of 1970: an audit of nothing, said as such
+        raise InputError(
+            f"{text!r}: the date {text[:4]}-{text[4:6]}-{text[6:]} or unix seconds? Write the date so, or {text}.0"
+        )
     try:
         return float(text) if text.replace(".", "", 1).isdigit() else _iso(text)
     except ValueError:
         raise InputError(
             f"{text!r}: not a time (unix seconds, or ISO 8601 such as 2026-03-01 or 2026-03-01T08:00Z)"
         ) from None
+
+
+def _is_date(text: str) -> bool:
+    try:
+        dt.date.fromisoformat(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _iso(text: str) -> float:

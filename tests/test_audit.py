@@ -157,3 +157,15 @@ def test_the_audit_to_stdout_is_the_csv_alone_and_the_summary_goes_to_stderr(tmp
     rows = list(csv.reader(done.stdout.splitlines()))
     assert rows[0] == list(audit.COLUMNS) and len(rows) == 8 and all(len(r) == len(audit.COLUMNS) for r in rows)
     assert "7 coefficient sets published to 2 drives" in done.stderr and "| fit | 4 |" in done.stderr
+
+
+def test_a_time_that_reads_as_a_date_and_as_unix_seconds_is_refused_not_guessed():
+    """--from 20260301 (ISO 8601's basic date, as `date +%Y%m%d` prints it) was read as unix seconds: 1970-08-23,
+    so `--to 20260401` audited nothing and said so, 0 sets, as if no set had gone out. An all-digit time that is
+    also a date is refused, saying both readings; 2026-03-01 and 20260301.0 say which."""
+    with pytest.raises(audit.InputError, match=r"'20260301'.*2026-03-01.*20260301\.0"):
+        audit.service_time("20260301")
+    assert audit.service_time("2026-03-01") == 1_772_323_200.0
+    assert audit.service_time("20260301.0") == 20_260_301.0
+    assert audit.service_time("99999999") == 99_999_999.0  # no date: seconds
+    assert audit.service_time(str(int(T0))) == T0
