@@ -275,3 +275,22 @@ def test_the_compose_operator_gets_an_admin_token_and_prometheus_a_read_token(tm
     parser = build_parser()
     members = [parser.parse_args(s["command"]) for s in services.values() if "--member" in s.get("command", [])]
     assert len(members) == 3 and len({m.admin_token_file for m in members}) == 1
+
+
+def test_every_alarm_cause_is_watched_by_an_alerting_rule():
+    """Each cause the drift monitor raises is watched by a rule on the unacknowledged alarms, but `offline` (which
+    EncoderFleetManyOffline watches fleet-wide): the `outliers` cause (a sensor dropping reads, samples off the
+    circle) was in none, so an open outliers alarm paged nobody, while the README said sensor alarms alert."""
+    import promql_parser
+
+    from encoder_core.monitor_causes import CAUSES
+
+    rules = [r for g in yaml.safe_load((ROOT / "ops" / "alerts.yml").read_text())["groups"] for r in g["rules"]]
+    watched = set()
+    for rule in rules:
+        for vs in selectors(promql_parser.parse(rule["expr"])):
+            if vs.name == "encoder_fleet_unacknowledged_alarms":
+                watched |= {v for m in vs.matchers.matchers if m.name == "cause" for v in str(m.value).split("|")}
+    assert watched == set(CAUSES) - {"offline"}, set(CAUSES) - {"offline"} - watched
+    offline = [r for r in rules if r["alert"] == "EncoderFleetManyOffline"]
+    assert offline and 'encoder_fleet_devices{state="offline"}' in offline[0]["expr"]
