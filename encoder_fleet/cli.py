@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 
 import numpy as np
@@ -84,6 +85,12 @@ def package_version() -> str:
 
 class OneLineParser(argparse.ArgumentParser):
     """A bad argument is one line on stderr and exit 2 (the usage is one --help away)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # a word beginning with a minus and a digit is a value, never an option (none is named so): argparse's own
+        # rule takes only -40 and -.5 so, and refused `--temp-range -40,150` or `--from -1e3` as "expected one argument"
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message}\n")

@@ -148,6 +148,24 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
     assert not (tmp_path / "a").exists()  # an agent that could not connect: no outbox made (there was one)
 
 
+def test_a_value_beginning_with_a_minus_and_a_digit_is_taken_as_written(capsys):
+    """`agent --temp-range -40,150`, as its help and the README write it: argparse took a value beginning with a minus
+    for an option unless it was a plain number (-40, -.5), and refused the range as "expected one argument"; the
+    only way in was --temp-range=-40,150. So was a time such as `export --from -1e3`."""
+    from encoder_fleet.cli import build_parser
+
+    agent = ["agent", "--device", "d1", "--insecure", "--connect", "tcp/127.0.0.1:1"]
+    parser = build_parser()
+    assert parser.parse_args([*agent, "--temp-range", "-40,150"]).temp_range == (-40.0, 150.0)
+    assert parser.parse_args([*agent, "--temp-range", "-40,-10"]).temp_range == (-40.0, -10.0)
+    export = ["export", "--device", "d1", "--out", "o.mcap"]
+    assert parser.parse_args([*export, "--from", "-1e3", "--to", "-5"]).t_from == -1000.0
+    code, err = run_main(capsys, *agent, "--temp-range", "-40,-50")  # upside down: the range's own reason
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "LO below HI" in err, err
+    code, err = run_main(capsys, *agent, "--temp-range", "-x")  # an option it is not: still refused as one
+    assert code == 2 and "--temp-range" in err, err
+
+
 def test_bench_fleet_stores_every_window_through_a_real_router_and_times_them_from_the_first_put(tmp_path):
     """`encoder-fleet bench-fleet` on a small fleet, as a user runs it: the publisher process's windows all stored
     (none rejected), every device refitted and rolled out, and windows/s timed from the publisher's first put (the
