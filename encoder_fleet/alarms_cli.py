@@ -7,7 +7,7 @@ import json
 import urllib.parse
 
 from encoder_fleet.outputs import write_file
-from encoder_fleet.rest_client import add_rest_options, request
+from encoder_fleet.rest_client import add_rest_options, request, text_out
 
 from .argtypes import device_name, positive_int
 
@@ -37,7 +37,7 @@ def cmd_alarms(args) -> int:
             lines.append(f"... more match: --limit, or GET /alarms?before={result['next']}")
     if args.json:
         write_file(args.json, json.dumps(result, indent=2) + "\n")
-    print("\n".join(lines))
+    print("\n".join(lines), file=text_out(args))
     return 0
 
 

@@ -4,18 +4,26 @@ with the service's own reason."""
 from __future__ import annotations
 
 import json
+import sys
 import urllib.error
 import urllib.parse
 import urllib.request
 from pathlib import Path
 
 from encoder_core.samples import InputError
+from encoder_fleet.outputs import is_stdout
 
 
 def add_rest_options(q) -> None:
     q.add_argument("--url", default="http://127.0.0.1:8000", help="the service's REST address")
     q.add_argument("--token-file", metavar="FILE", help="a REST token (admin to change anything)")
     q.add_argument("--json", metavar="FILE", help="also write the service's answer as JSON")
+
+
+def text_out(args):
+    """Where a command prints its lines: stderr when --json names this process's stdout (the JSON there is the JSON
+    alone, as audit's CSV is), else stdout."""
+    return sys.stderr if args.json and is_stdout(args.json) else sys.stdout
 
 
 def request(args, method: str, path: str, body: dict | None = None, *, answers: tuple[int, ...] = ()) -> dict | list:

@@ -8,7 +8,7 @@ import json
 import urllib.parse
 
 from encoder_fleet.outputs import write_file
-from encoder_fleet.rest_client import add_rest_options, request
+from encoder_fleet.rest_client import add_rest_options, request, text_out
 
 from .argtypes import positive_float, positive_int
 
@@ -35,17 +35,18 @@ def summary_line(r: dict) -> str:
     return f"{r['id']:>4} {r['state']:<9} {wave:<10} {r['percent_done']:>5.1f} %  {r['name']}  [{outcomes}]"
 
 
-def show(r: dict) -> None:
-    print(summary_line(r))
+def show(r: dict, out=None) -> None:
+    print(summary_line(r), file=out)
     if r.get("reason"):
-        print(f"     {r['reason']}")
+        print(f"     {r['reason']}", file=out)
     for part in r.get("devices", []):
         version = "–" if part["version"] is None else f"v{part['before_version']} -> v{part['version']}"
         where = f"wave {part['wave'] + 1:<3} {part['device']:<24}"
-        print(f"     {where} {part['state']:<12} {version:<12} {part['reason'] or ''}")
+        print(f"     {where} {part['state']:<12} {version:<12} {part['reason'] or ''}", file=out)
     if r.get("devices_next"):
         print(
-            f"     ... the first {len(r['devices'])} of {r['devices_total']} parts: `rollout show {r['id']}` lists all"
+            f"     ... the first {len(r['devices'])} of {r['devices_total']} parts: `rollout show {r['id']}` lists all",
+            file=out,
         )
 
 
@@ -89,12 +90,13 @@ def cmd_rollout(args) -> int:
         result = request(args, "POST", f"/rollouts/{args.id}/{action}")
     if args.json:
         write_file(args.json, json.dumps(result, indent=2) + "\n")
+    out = text_out(args)
     if action != "list":
-        show(result)
+        show(result, out)
     for r in result if action == "list" else []:
-        print(summary_line(r))
+        print(summary_line(r), file=out)
     if action == "list" and not result:
-        print("no rollouts")
+        print("no rollouts", file=out)
     return 0
 
 

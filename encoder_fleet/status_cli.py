@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 from encoder_fleet.outputs import write_file
-from encoder_fleet.rest_client import add_rest_options, request
+from encoder_fleet.rest_client import add_rest_options, request, text_out
 
 SHOWN = 10  # unacknowledged alarms listed, newest first
 
@@ -25,22 +25,23 @@ def cmd_status(args) -> int:
     from encoder_fleet.rollout_cli import summary_line
 
     status = fleet_status(args)
+    out = text_out(args)
     ready, health = status["ready"], status["health"]
     failing = {k: v for k, v in ready["checks"].items() if v != "ok"}
-    print(f"service: {ready['status']}" + "".join(f"\n  {k}: {v}" for k, v in failing.items()))
+    print(f"service: {ready['status']}" + "".join(f"\n  {k}: {v}" for k, v in failing.items()), file=out)
     drives = ", ".join(f"{n:,} {state}" for state, n in health["devices"].items() if n)
-    print(f"drives: {drives or 'none'}")
+    print(f"drives: {drives or 'none'}", file=out)
     open_alarms = sum(health["open_alarms"].values())
     by_cause = ", ".join(f"{cause} {n:,}" for cause, n in health["open_alarms"].items())
-    print(f"open alarms: {open_alarms:,}" + (f" ({by_cause})" if by_cause else ""))
+    print(f"open alarms: {open_alarms:,}" + (f" ({by_cause})" if by_cause else ""), file=out)
     unacked = status["unacknowledged"]
     if unacked["alarms"]:
         more = " (the newest; `encoder-fleet alarms list --open --unacked` lists all)" if unacked["truncated"] else ""
-        print(f"not acknowledged{more}:")
+        print(f"not acknowledged{more}:", file=out)
         for a in unacked["alarms"]:
-            print("  " + alarm_line(a))
+            print("  " + alarm_line(a), file=out)
     for r in status["rollouts"]:
-        print("rollout " + summary_line(r).strip())
+        print("rollout " + summary_line(r).strip(), file=out)
     if args.json:
         write_file(args.json, json.dumps(status, indent=2) + "\n")
     return 0 if ready["status"] == "ok" else 1  # a script's check: 1 while a part of the service fails

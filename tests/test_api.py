@@ -580,6 +580,39 @@ def test_the_status_command_shows_the_fleet_at_a_glance_and_fails_while_a_part_o
             session.close()
 
 
+def test_the_rest_commands_json_on_stdout_is_the_json_alone(tmp_path):
+    """`status --json /dev/stdout | jq` (and alarms', rollout's): the JSON on stdout is the JSON alone, the lines
+    the command prints go to stderr, as `audit --out /dev/stdout` does; they were printed on stdout before the JSON
+    (status, alarms) or after it (rollout list), and a script's JSON reader failed at the first line."""
+    import subprocess
+    import sys
+
+    from fleet_wire.session import free_port
+    from service.runtime import HttpServer
+
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        _offline(store, "drive-001", 3600.0)
+        port = free_port()
+        http = HttpServer(store, port).start()  # REST open
+        try:
+            for command, text in (
+                (["status"], "open alarms: 1 (offline 1)"),
+                (["alarms", "list"], "drive-001"),
+                (["rollout", "list"], "no rollouts"),
+            ):
+                cmd = [sys.executable, "-m", "encoder_fleet.cli", *command, "--url", f"http://127.0.0.1:{port}"]
+                done = subprocess.run([*cmd, "--json", "/dev/stdout"], capture_output=True, text=True, timeout=60)
+                assert done.returncode == 0, (command, done.stderr)
+                answer = json.loads(done.stdout)  # nothing but the JSON
+                assert isinstance(answer, (dict, list)) and text in done.stderr, (command, done.stdout, done.stderr)
+                kept = tmp_path / "answer.json"  # to a file, the lines stay on stdout
+                done = subprocess.run([*cmd, "--json", str(kept)], capture_output=True, text=True, timeout=60)
+                assert done.returncode == 0 and text in done.stdout and not done.stderr, (command, done.stderr)
+                assert json.loads(kept.read_text()) == answer
+        finally:
+            http.stop()
+
+
 def test_two_acknowledgements_at_once_on_postgresql_leave_the_first_and_refuse_the_second(postgres_url):
     """Two service processes (a cluster's members) acknowledge one alarm at the same moment: both read it not yet
     acknowledged, and the second's UPDATE, waiting on the first's row lock, overwrote it once that committed; both
