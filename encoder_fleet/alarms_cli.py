@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import urllib.parse
 
+from encoder_core.monitor_causes import CAUSES
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
@@ -46,7 +47,8 @@ def register(sub) -> None:
     asub = p.add_subparsers(dest="alarms_command", required=True)
     q = asub.add_parser("list", help="alarms, newest first (drive hours)")
     q.add_argument("--device", type=device_name, help="only this drive's")
-    q.add_argument("--cause", help="only this cause's (offset_step, offline, ...)")
+    # the monitor's causes only: the service filters by any word, and a misspelt one listed "no alarms"
+    q.add_argument("--cause", choices=tuple(CAUSES), metavar="CAUSE", help=f"only this cause's: {', '.join(CAUSES)}")
     q.add_argument("--open", action="store_true", help="open alarms only")
     q.add_argument("--unacked", action="store_true", help="only those nobody acknowledged")
     q.add_argument("--limit", type=positive_int, default=100, help="most alarms listed (default 100)")

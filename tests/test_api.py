@@ -580,6 +580,30 @@ def test_the_status_command_shows_the_fleet_at_a_glance_and_fails_while_a_part_o
             session.close()
 
 
+def test_alarms_list_refuses_a_cause_the_monitor_never_raises(tmp_path):
+    """`alarms list --cause offline-` (a typo) said "no alarms" with an offline alarm open: the service filters by
+    whatever it is given. The command refuses a cause that is none of the monitor's, in one line naming them."""
+    import subprocess
+    import sys
+
+    from fleet_wire.session import free_port
+    from service.runtime import HttpServer
+
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        _offline(store, "drive-001", 3600.0)
+        port = free_port()
+        http = HttpServer(store, port).start()  # REST open
+        cmd = [sys.executable, "-m", "encoder_fleet.cli", "alarms", "list", "--url", f"http://127.0.0.1:{port}"]
+        try:
+            typo = subprocess.run([*cmd, "--cause", "offline-"], capture_output=True, text=True, timeout=60)
+            assert typo.returncode == 2 and not typo.stdout, typo.stdout
+            assert len(typo.stderr.strip().splitlines()) == 1 and "offset_step" in typo.stderr, typo.stderr
+            found = subprocess.run([*cmd, "--cause", "offline"], capture_output=True, text=True, timeout=60)
+            assert found.returncode == 0 and "drive-001" in found.stdout, found.stderr
+        finally:
+            http.stop()
+
+
 def test_the_rest_commands_json_on_stdout_is_the_json_alone(tmp_path):
     """`status --json /dev/stdout | jq` (and alarms', rollout's): the JSON on stdout is the JSON alone, the lines
     the command prints go to stderr, as `audit --out /dev/stdout` does; they were printed on stdout before the JSON
