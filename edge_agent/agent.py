@@ -54,6 +54,17 @@ class AgentCounters:
     bad_messages: int = 0  # every payload on the coefficients key refused, whatever the reason
 
 
+def temperature_range(lo: float, hi: float) -> tuple[float, float]:
+    """A drive's thermistor rating as the agent reads temperatures in it (`agent --temp-range LO,HI`): LO below HI,
+    both within the wire's range, or InputError."""
+    if not (wire.TEMP_MIN_C <= lo < hi <= wire.TEMP_MAX_C):
+        raise InputError(
+            f"temperature range {lo:g},{hi:g} °C: LO must be below HI, both within "
+            f"{wire.TEMP_MIN_C:g},{wire.TEMP_MAX_C:g} °C (the wire's)"
+        )
+    return float(lo), float(hi)
+
+
 class EdgeAgent:
     def __init__(
         self,
@@ -70,14 +81,8 @@ class EdgeAgent:
         clock: Callable[[], float] = time.monotonic,
         temp_range_c: tuple[float, float] = (wire.TEMP_MIN_C, wire.TEMP_MAX_C),
     ):
-        lo, hi = temp_range_c
-        if not (wire.TEMP_MIN_C <= lo < hi <= wire.TEMP_MAX_C):
-            raise InputError(
-                f"temperature range {lo:g}..{hi:g} °C: LO must be below HI, both within "
-                f"{wire.TEMP_MIN_C:g}..{wire.TEMP_MAX_C:g} °C (the wire's)"
-            )
         # readings outside it are a broken sensor's (readable_temperatures): the drive's own rating, when given
-        self.temp_range_c = (float(lo), float(hi))
+        self.temp_range_c = temperature_range(*temp_range_c)
         self.device = device
         self.source = source
         self.session = session

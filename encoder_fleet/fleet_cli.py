@@ -160,18 +160,18 @@ def agent_security(args):
 
 
 def temperature_range(text: str) -> tuple[float, float]:
-    from fleet_wire.messages import TEMP_MAX_C, TEMP_MIN_C
+    """`--temp-range LO,HI`, checked as the agent checks it (edge_agent.agent.temperature_range)."""
+    from edge_agent.agent import temperature_range as rated
 
-    lo, sep, hi = text.partition(",")
+    lo, _, hi = text.partition(",")
     try:
         low, high = finite_float(lo), finite_float(hi)
     except argparse.ArgumentTypeError:
-        low = high = None
-    if not sep or low is None or not (TEMP_MIN_C <= low < high <= TEMP_MAX_C):
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected LO,HI in °C with LO below HI, within {TEMP_MIN_C:g},{TEMP_MAX_C:g} (e.g. -40,150)"
-        )
-    return low, high
+        raise argparse.ArgumentTypeError(f"{text!r}: expected LO,HI, two numbers in °C (e.g. -40,150)") from None
+    try:
+        return rated(low, high)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def cmd_service(args) -> int:
@@ -302,6 +302,8 @@ def cmd_bench_monitor(args) -> int:
 
 
 def register(sub) -> None:
+    from fleet_wire.messages import TEMP_MAX_C, TEMP_MIN_C
+
     p = sub.add_parser("agent", help="run an edge agent next to a drive")
     p.add_argument("--device", required=True, type=device_name, help="the drive's id (its Zenoh key segment)")
     p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
@@ -313,10 +315,11 @@ def register(sub) -> None:
     p.add_argument(
         "--temp-range",
         type=temperature_range,
-        default=(-273.15, 300.0),
+        default=(TEMP_MIN_C, TEMP_MAX_C),
         metavar="LO,HI",
         help="°C the drive's thermistor can read (its rating, e.g. -40,150): a reading outside is a broken sensor's, "
-        "rejected, and the angle corrected at the last good temperature (default: the wire's, -273.15,300)",
+        "rejected, and the angle corrected at the last good temperature "
+        f"(default: the wire's, {TEMP_MIN_C:g},{TEMP_MAX_C:g})",
     )
     p.add_argument(
         "--real-time-factor",

@@ -161,7 +161,7 @@ def test_a_value_beginning_with_a_minus_and_a_digit_is_taken_as_written(capsys):
     export = ["export", "--device", "d1", "--out", "o.mcap"]
     assert parser.parse_args([*export, "--from", "-1e3", "--to", "-5"]).t_from == -1000.0
     code, err = run_main(capsys, *agent, "--temp-range", "-40,-50")  # upside down: the range's own reason
-    assert code == 2 and len(err.strip().splitlines()) == 1 and "LO below HI" in err, err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "LO must be below HI" in err, err
     code, err = run_main(capsys, *agent, "--temp-range", "-x")  # an option it is not: still refused as one
     assert code == 2 and "--temp-range" in err, err
 
