@@ -1,5 +1,5 @@
-"""A REST call to the service, as the operator's commands make it (`rollout`, `alarms`): one line for any failure,
-with the service's own reason."""
+"""A REST call to the service, as the operator's commands make it (`rollout`, `alarms`, `status`): one line for any
+failure, with the service's own reason."""
 
 from __future__ import annotations
 
@@ -45,23 +45,17 @@ def request(args, method: str, path: str, body: dict | None = None, *, answers: 
         with urllib.request.urlopen(urllib.request.Request(url, data, headers, method=method), timeout=30) as resp:
             return json.loads(resp.read())
     except urllib.error.HTTPError as exc:
-        raw = exc.read()
-        if exc.code in answers:
-            try:
-                return json.loads(raw)
-            except ValueError:
-                pass
         try:
-            detail = json.loads(raw).get("detail", "")
-        except (ValueError, AttributeError):
-            detail = ""
+            answer = json.loads(exc.read())
+        except ValueError:  # a proxy's HTML page, say
+            answer = None
+        if exc.code in answers and answer is not None:
+            return answer
+        detail = answer.get("detail", "") if isinstance(answer, dict) else ""
         if isinstance(detail, list):  # FastAPI's validation errors: where and what
             detail = "; ".join(f"{'.'.join(str(x) for x in d.get('loc', [])[1:])}: {d.get('msg')}" for d in detail)
-        hint = (
-            " (pass --token-file FILE: a token of `encoder-fleet token create`)"
-            if exc.code == 401 and not args.token_file
-            else ""
-        )
+        # the service's own 401 names `encoder-fleet token create`: the option is what the command adds
+        hint = "; pass --token-file FILE" if exc.code == 401 and not args.token_file else ""
         raise InputError(f"{method} {path}: {exc.code} {detail or exc.reason}{hint}") from None
     except (urllib.error.URLError, OSError) as exc:
         raise InputError(f"{url}: cannot reach the service ({getattr(exc, 'reason', exc)})") from None
