@@ -104,8 +104,6 @@ def register(sub) -> None:
     p = sub.add_parser("rollout", help="staged rollouts over the service's REST API (create, list, pause, ...)")
     rsub = p.add_subparsers(dest="rollout_command", required=True)
 
-    common = add_rest_options
-
     q = rsub.add_parser("create", help="start a rollout: waves, soak and abort criteria")
     q.add_argument("--name", required=True, help="what the change is, for the audit trail")
     q.add_argument("--change", choices=["reset_to_factory", "refit"], required=True, help="what every drive gets")
@@ -121,9 +119,9 @@ def register(sub) -> None:
         metavar="FAILURE:PERCENT:MIN[:ACTION]",
         help="abort criterion, repeatable: failure rejected|timed_out|regressed, e.g. regressed:10:5",
     )
-    common(q)
+    add_rest_options(q)
     q = rsub.add_parser("list", help="every rollout, newest first")
-    common(q)
+    add_rest_options(q)
     for name, text in (
         ("show", "one rollout, with every device's part"),
         ("pause", "start nobody new (soaks are still judged)"),
@@ -135,5 +133,5 @@ def register(sub) -> None:
         if name == "show":
             q.add_argument("--state", help="only the parts in this state (pending, in_progress, succeeded, ...)")
             q.add_argument("--wave", type=positive_int, help="only the parts of this wave (1: the first)")
-        common(q)
+        add_rest_options(q)
     p.set_defaults(func=cmd_rollout)

@@ -8,14 +8,14 @@ import json
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
-SHOWN = 10  # unacknowledged alarms listed, newest first
+UNACKED_LISTED = 10  # open alarms nobody acknowledged, the newest, listed
 
 
 def fleet_status(args) -> dict:
     return {
         "ready": request(args, "GET", "/readyz", answers=(503,)),
         "health": request(args, "GET", "/fleet/health"),
-        "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&limit={SHOWN}"),
+        "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&limit={UNACKED_LISTED}"),
         "rollouts": [r for r in request(args, "GET", "/rollouts") if r["state"] in ("running", "paused")],
     }
 
@@ -36,7 +36,7 @@ def cmd_status(args) -> int:
     print(f"open alarms: {open_alarms:,}" + (f" ({by_cause})" if by_cause else ""), file=out)
     unacked = status["unacknowledged"]
     if unacked["alarms"]:
-        more = " (the newest; `encoder-fleet alarms list --open --unacked` lists all)" if unacked["truncated"] else ""
+        more = " (the newest; `encoder-fleet alarms list --open --unacked` lists more)" if unacked["truncated"] else ""
         print(f"not acknowledged{more}:", file=out)
         for a in unacked["alarms"]:
             print("  " + alarm_line(a), file=out)

@@ -57,7 +57,8 @@ class TokenAuth:
             return cur.lastrowid, token
 
     def _live(self, token: str):
-        """The live token's row (id, scope), or None. Every live token's hash is compared, each in constant time."""
+        """The live token's row (id, name, scope), or None. Every live token's hash is compared, each in constant
+        time."""
         wanted = _digest(token)
         found = None
         for row in self.store._rows("SELECT id, name, scope, token_sha256 FROM api_tokens WHERE revoked_at IS NULL"):
