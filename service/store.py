@@ -764,8 +764,9 @@ class Store:
             return cur.lastrowid
 
     def prune_dead_letters(self, received_before: float, limit: int = PRUNE_BATCH) -> int:
-        """Delete up to `limit` of the oldest dead letters received before `received_before` (service clock).
-        Ids come in arrival order, so the look stops at the first one kept: a flood's table is not scanned whole."""
+        """Delete those of the `limit` oldest dead letters (by id: arrival order) received before `received_before`
+        (service clock). Only those are read, so a flood's table is not scanned whole: a page with none to delete
+        ends the caller's loop."""
         with self._tx() as c:
             rows = c.execute("SELECT id, received_at FROM dead_letters ORDER BY id LIMIT ?", (limit,)).fetchall()
             old = [(r["id"],) for r in rows if r["received_at"] < received_before]
