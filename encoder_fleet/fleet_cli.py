@@ -53,7 +53,8 @@ def cmd_agent(args) -> int:
     elif args.source.startswith("replay:"):
         from encoder_fleet.recording import read_recording
 
-        recording = read_recording(args.source.split(":", 1)[1])
+        # a reading below absolute zero costs its sample, as any broken sensor's (EdgeAgent.readable_temperatures)
+        recording = read_recording(args.source.split(":", 1)[1], broken_temperatures=True)
         if recording.temp_c is None:
             raise InputError(
                 f"{args.source}: a replayed recording needs the temp_c column (windows are banded by temperature)"

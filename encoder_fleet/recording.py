@@ -18,8 +18,10 @@ ABSOLUTE_ZERO_C = -273.15  # a temperature below it is a broken reading, not a c
 CHUNK_ROWS = 65536  # rows parsed into Python floats before they are moved into arrays
 
 
-def read_recording(path: str | Path) -> Samples:
-    """Parse a recording; any problem raises InputError naming the file, line and column."""
+def read_recording(path: str | Path, *, broken_temperatures: bool = False) -> Samples:
+    """Parse a recording; any problem raises InputError naming the file, line and column. broken_temperatures: a
+    temp_c below absolute zero (a logger's no-reading sentinel, an open sensor) is kept as read, for an agent's
+    replay, which rejects such a reading's sample as the drive's own agent would; else it is refused."""
     path = Path(path)
     try:
         handle = path.open(newline="", encoding="utf-8-sig")  # -sig: a byte-order mark before the header is dropped
@@ -28,7 +30,7 @@ def read_recording(path: str | Path) -> Samples:
     with handle:
         reader = csv.reader(handle)
         try:
-            return _parse(path, reader)
+            return _parse(path, reader, broken_temperatures)
         except UnicodeDecodeError as exc:
             raise InputError(
                 f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} "
@@ -37,7 +39,7 @@ def read_recording(path: str | Path) -> Samples:
             ) from None
 
 
-def _parse(path: Path, reader) -> Samples:
+def _parse(path: Path, reader, broken_temperatures: bool) -> Samples:
     """The rows of an open recording as Samples (read_recording's body; its errors name the line and column)."""
     try:
         header = [h.strip() for h in next(reader)]
@@ -90,7 +92,7 @@ def _parse(path: Path, reader) -> Samples:
                     raise InputError(f"{path}, line {line}, column '{name}': not a number: {cell!r}") from None
                 if not math.isfinite(value):
                     raise InputError(f"{path}, line {line}, column '{name}': not a finite number: {cell!r}")
-                if name == "temp_c" and value < ABSOLUTE_ZERO_C:
+                if name == "temp_c" and value < ABSOLUTE_ZERO_C and not broken_temperatures:
                     raise InputError(f"{path}, line {line}, column 'temp_c': {cell} °C is below absolute zero")
                 columns[name].append(value)
             if len(lines) >= CHUNK_ROWS:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from encoder_core.samples import InputError
 from fleet_wire.session import free_port
 
 
@@ -310,10 +311,10 @@ def test_an_agent_refuses_a_factory_file_that_is_not_a_coefficient_set(tmp_path)
         assert not outbox.exists(), name
 
 
-def _replay_agent(rec, factory, outbox, connect):
+def _replay_agent(rec, factory, outbox, connect, *options):
     command = [sys.executable, "-m", "encoder_fleet.cli", "agent", "--device", "drive-001", "--insecure"]
     command += ["--connect", connect, "--source", f"replay:{rec}", "--window-s", "60"]
-    command += ["--factory", str(factory), "--outbox", str(outbox), "--real-time-factor", "3600"]
+    command += ["--factory", str(factory), "--outbox", str(outbox), "--real-time-factor", "3600", *options]
     return subprocess.run(command, capture_output=True, text=True, timeout=120)
 
 
@@ -383,6 +384,46 @@ def test_a_recording_from_before_0_is_replayed_whole_from_0(tmp_path):
             time.sleep(0.1)
         stored = store.windows("drive-001")
         assert [round(w["window_start"]) for w in stored] == [0, 60, 120] and stored[-1]["window_end"] < 180
+    finally:
+        service.stop()
+        router.close()
+        store.close()
+
+
+def test_a_replayed_temperature_below_absolute_zero_costs_its_sample_not_the_replay(tmp_path):
+    """A drive's log whose temp_c holds a logger's no-reading sentinel (-999) on one row: the agent reads such a
+    temperature as a broken sensor's (NaN: the sample rejected as non_finite, as +999 or one past --temp-range), but
+    the replay refused the whole recording at that line, so a day of good samples was never sent. Now that sample
+    alone is rejected; a recording read for calibration or diagnosis still refuses it (read_recording)."""
+    import numpy as np
+
+    from encoder_fleet.recording import read_recording
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+    from service.store import Store
+
+    rec, factory = _recording_and_factory(tmp_path, "sentinel", np.arange(0.0, 120.0, 0.05))
+    lines = rec.read_text().splitlines(keepends=True)
+    header = lines[0].strip().split(",")
+    row = lines[301].rstrip("\n").split(",")
+    row[header.index("temp_c")] = "-999"
+    lines[301] = ",".join(row) + "\n"
+    rec.write_text("".join(lines))
+    with pytest.raises(InputError, match="line 302, column 'temp_c': -999 °C is below absolute zero"):
+        read_recording(rec)
+    endpoint = loopback_endpoint()
+    store = Store.open(tmp_path / "fleet.sqlite")
+    router = open_session(listen=[endpoint])
+    service = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        done = _replay_agent(rec, factory, tmp_path / "outbox.sqlite", endpoint)
+        assert done.returncode == 0 and "drive-001: 2 windows" in done.stdout, done.stderr
+        deadline = time.monotonic() + 10
+        while len(store.windows("drive-001")) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        first, second = store.monitor_windows("drive-001", 0, 2)
+        assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"].temp_min > 24.9
+        assert second["rejected_by_reason"]["non_finite"] == 0
     finally:
         service.stop()
         router.close()
