@@ -125,23 +125,27 @@ def _show_progress(partial: Path, source: Path, done: threading.Event, stream) -
 
 
 def cmd_backup(args) -> int:
-    result = backup(args.db, Path(args.out))
-    if args.json:
-        import json
+    from encoder_fleet.outputs import write_file
+    from encoder_fleet.rest_client import text_out
 
-        print(json.dumps(result, indent=2))
-        return 0
+    result = backup(args.db, Path(args.out))
+    out = text_out(args)  # stderr when --json is stdout: the JSON there alone
     mb = 2**20
     print(
         f"wrote {result['backup']} in {result['seconds']:.1f} s: {result['backup_bytes'] / mb:,.1f} MB "
         f"(the database and its WAL {result['source_bytes'] / mb:,.1f} MB), migration {result['migration']}, "
-        "integrity check ok"
+        "integrity check ok",
+        file=out,
     )
-    print("| table | rows |\n|---|---|")
+    print("| table | rows |\n|---|---|", file=out)
     for table, n in result["rows"].items():
-        print(f"| {table} | {n:,} |")
+        print(f"| {table} | {n:,} |", file=out)
     if result["migrations_unknown_here"]:
-        print(f"note: written by a newer encoder-fleet (migrations {result['migrations_unknown_here']})")
+        print(f"note: written by a newer encoder-fleet (migrations {result['migrations_unknown_here']})", file=out)
+    if args.json:
+        import json
+
+        write_file(args.json, json.dumps(result, indent=2) + "\n")
     return 0
 
 
@@ -152,5 +156,5 @@ def register(sub) -> None:
     )
     p.add_argument("out", help="the backup file to write (must not exist)")
     p.add_argument("--db", default="out/fleet.sqlite", help="the service's database (default out/fleet.sqlite)")
-    p.add_argument("--json", action="store_true", help="print what the backup holds as JSON")
+    p.add_argument("--json", metavar="FILE", help="also write what the backup holds as JSON (/dev/stdout for a script)")
     p.set_defaults(func=cmd_backup)

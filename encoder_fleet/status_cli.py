@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+from encoder_core.samples import InputError
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
@@ -12,8 +13,11 @@ UNACKED_LISTED = 10  # open alarms nobody acknowledged, the newest, listed
 
 
 def fleet_status(args) -> dict:
+    ready = request(args, "GET", "/readyz", answers=(503,))
+    if not (isinstance(ready, dict) and isinstance(ready.get("checks"), dict) and "status" in ready):
+        raise InputError(f"{args.url}/readyz: the answer is not the service's checks (is --url the service?)")
     return {
-        "ready": request(args, "GET", "/readyz", answers=(503,)),
+        "ready": ready,
         "health": request(args, "GET", "/fleet/health"),
         "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&limit={UNACKED_LISTED}"),
         "rollouts": [r for r in request(args, "GET", "/rollouts") if r["state"] in ("running", "paused")],

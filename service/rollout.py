@@ -97,7 +97,8 @@ class RolloutSpec(BaseModel):
     abort_criteria: list[AbortCriterion] = Field(default_factory=list, max_length=10)
 
 
-DEVICES_PAGE = 1000  # a rollout's parts in one page of GET /rollouts/{id} (100,000 of them made 18.8 MB, 1.8 s)
+# a rollout's parts in one page of GET /rollouts/{id}: 100,000 of them (waves of 100) made 13.9 MB, 0.8 s a read
+DEVICES_PAGE = 1000
 CREATE_LOCK = 0x454E4352  # the advisory lock ('ENCR') that makes a rollout's creation one step across processes
 
 

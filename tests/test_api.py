@@ -717,3 +717,39 @@ def test_a_note_is_one_line_of_text_or_the_acknowledgement_is_refused(client, st
     assert store.alarms(ids=[alarm])[0]["acked_at"] is None
     kept = client.post(f"/alarms/{alarm}/ack", json={"note": "Schalter getauscht – läuft wieder ✓"})
     assert kept.status_code == 200 and kept.json()["ack_note"] == "Schalter getauscht – läuft wieder ✓"
+
+
+def test_the_status_command_pointed_at_another_server_says_so_in_one_line():
+    """--url naming something that is not the service (another web server answering 503 with its own JSON): one
+    line and exit 2; it ended in a KeyError traceback."""
+    import http.server
+    import subprocess
+    import sys
+    import threading
+
+    class Other(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            body = b'{"detail": "maintenance"}'
+            self.send_response(503)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Other)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        done = subprocess.run(
+            [sys.executable, "-m", "encoder_fleet.cli", "status", "--url", url],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert done.returncode == 2 and "not the service's checks" in done.stderr and "Traceback" not in done.stderr
+    finally:
+        server.shutdown()
+        server.server_close()

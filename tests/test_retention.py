@@ -207,7 +207,7 @@ def test_a_backup_taken_while_windows_are_written_is_a_consistent_checked_copy_t
     writer = threading.Thread(target=write_on)
     writer.start()
     try:
-        done = backup_cli("--db", str(db), str(out), "--json")
+        done = backup_cli("--db", str(db), str(out), "--json", "/dev/stdout")
     finally:
         stop.set()
         writer.join()
@@ -246,7 +246,7 @@ def test_a_backup_of_a_database_whose_path_holds_a_question_mark_or_a_hash(tmp_p
     db = tmp_path / "fleet?v=2#site a%20.sqlite"  # each would end or change a file: URI written as is
     with Store.open(db) as store:
         store.insert_window(ws.window(seq=1))
-    done = backup_cli("--db", str(db), str(tmp_path / "b.sqlite"), "--json")
+    done = backup_cli("--db", str(db), str(tmp_path / "b.sqlite"), "--json", "/dev/stdout")
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["rows"]["windows"] == 1
     # no stray file opened instead ("fleet", empty: the database was refused as not the service's)
