@@ -35,6 +35,9 @@ def cmd_status(args) -> int:
     print(f"service: {ready['status']}" + "".join(f"\n  {k}: {v}" for k, v in failing.items()), file=out)
     drives = ", ".join(f"{n:,} {state}" for state, n in health["devices"].items() if n)
     print(f"drives: {drives or 'none'}", file=out)
+    if health.get("silent"):
+        named = ", ".join(health.get("silent_devices", []))
+        print(f"silent: {health['silent']:,} online but nothing stored for 30 min: {named}", file=out)
     open_alarms = sum(health["open_alarms"].values())
     by_cause = ", ".join(f"{cause} {n:,}" for cause, n in health["open_alarms"].items())
     print(f"open alarms: {open_alarms:,}" + (f" ({by_cause})" if by_cause else ""), file=out)

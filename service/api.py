@@ -160,6 +160,10 @@ class AlarmList(BaseModel):
 class FleetHealth(BaseModel):
     devices: dict[str, int] = Field(description="Devices per state: ok, watch, alarm, offline, unknown.")
     open_alarms: dict[str, int] = Field(description="Open alarms per cause.")
+    silent: int = Field(
+        0, description="Drives online (liveliness token up) with nothing stored for 30 min: no alarm can see them."
+    )
+    silent_devices: list[str] = Field(default_factory=list, description="The first 100 of them, by id.")
 
 
 class Health(BaseModel):

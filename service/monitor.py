@@ -24,6 +24,9 @@ from .store import Store
 
 log = logging.getLogger("service.monitor")
 STATES = ("ok", "watch", "alarm", "offline", "unknown")
+# an online drive with nothing stored for this long (service clock) is silent: three of the longest windows (600 s)
+SILENT_S = 1800.0
+SILENT_LISTED = 100  # silent drives named in GET /fleet/health (all are counted)
 PAGE = 500  # windows read and committed at a time (a device that sends 10,000 at once is taken in pages)
 # a device's state is written with its alarms at once, and otherwise after this many windows or this much drive time
 # since it was last written: a restart goes on from the state written and feeds the windows since then again (all
@@ -348,11 +351,17 @@ def _stored_states(store: Store, ids: list[str]) -> dict[str, str]:
 
 
 def fleet_health(store: Store, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None) -> dict:
-    """Devices per state and open alarms per cause."""
+    """Devices per state, open alarms per cause, and the drives online but silent (SILENT_S)."""
     counts = dict.fromkeys(STATES, 0)
     for state in device_states(store, monitor, serves).values():
         counts[state] += 1
-    return {"devices": counts, "open_alarms": store.open_alarm_counts()}
+    silent = store.silent_devices(SILENT_S)
+    return {
+        "devices": counts,
+        "open_alarms": store.open_alarm_counts(),
+        "silent": len(silent),
+        "silent_devices": silent[:SILENT_LISTED],
+    }
 
 
 def _span(seconds: float) -> str:

@@ -15,6 +15,7 @@ from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from .monitor import SILENT_S
 from .rollout import OUTCOMES, ROLLOUT_STATES, Rollouts
 from .store import Store
 
@@ -100,6 +101,11 @@ class FleetCollector(Collector):
         yield from self.service.counters.refit_latency.collect()
         alarms = self.store.open_alarm_counts()
         yield gauge("encoder_fleet_open_alarms", "Open drift alarms, by cause.", "cause", alarms, alarms)
+        yield GaugeMetricFamily(
+            "encoder_fleet_devices_silent",
+            "Drives online (their token up) with nothing stored for 30 minutes: a fault no drift alarm can see.",
+            value=len(self.store.silent_devices(SILENT_S)),
+        )
         unacked = self.store.unacked_alarm_counts()
         yield gauge(
             "encoder_fleet_unacknowledged_alarms",

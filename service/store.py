@@ -1151,6 +1151,17 @@ class Store:
             return f"database error: {exc}"
         return "ok"
 
+    def silent_devices(self, silent_s: float, *, limit: int | None = None, now: float | None = None) -> list[str]:
+        """Devices online (their agent's liveliness token up) that sent nothing stored for `silent_s` (service clock):
+        an agent that runs but whose windows cannot be made or are all refused (a thermistor broken for good, a
+        sensor gone, a clock the service refuses), which no alarm sees, the drift monitor having no window."""
+        cutoff = (time.time() if now is None else now) - silent_s
+        rows = self._rows(
+            "SELECT id FROM devices WHERE online = 1 AND last_seen < ? ORDER BY id LIMIT ?",
+            (cutoff, 2**62 if limit is None else limit),
+        )
+        return [r["id"] for r in rows]
+
     def device_counts(self) -> dict[str, int]:
         """Devices by liveliness state: {'online': n, 'offline': m}."""
         rows = self._rows("SELECT online, count(*) AS n FROM devices GROUP BY online")

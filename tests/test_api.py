@@ -753,3 +753,44 @@ def test_the_status_command_pointed_at_another_server_says_so_in_one_line():
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_drive_online_but_sending_nothing_is_named_silent_in_fleet_health_metrics_and_status(tmp_path):
+    """An agent that runs (its token up) but whose windows never come (a thermistor broken for good makes every
+    window unsendable; a sensor gone) gave no sign at all: no window, so no drift alarm, and the drive counted as
+    online. Online with nothing stored for 30 minutes is silent now: GET /fleet/health names it, /metrics counts
+    it (ops/alerts.yml's EncoderFleetDrivesSilent), `status` says so."""
+    import subprocess
+    import sys
+    import time
+
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from fleet_wire.session import free_port, loopback_endpoint
+    from service.runtime import FleetService, HttpServer, open_session
+
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        now = time.time()
+        store.set_online("drive-quiet", True, at=now - 3600)  # token up an hour ago, nothing since
+        store.set_online("drive-talks", True, at=now - 3600)
+        store.insert_window(window("drive-talks", seq=1))  # stored now: heard
+        store.set_online("drive-gone", True, at=now - 7200)
+        store.set_online("drive-gone", False, at=now - 7100)  # offline: its own state, not silent
+        assert store.silent_devices(1800.0) == ["drive-quiet"]
+        session = open_session(listen=[loopback_endpoint()])
+        service = FleetService(store, session, refit_interval_s=0, monitor_interval_s=0).start()
+        port = free_port()
+        http = HttpServer(store, port, service=service).start()
+        try:
+            api = TestClient(create_app(store, service))
+            health = api.get("/fleet/health").json()
+            assert health["silent"] == 1 and health["silent_devices"] == ["drive-quiet"]
+            samples = [s for f in text_string_to_metric_families(api.get("/metrics").text) for s in f.samples]
+            assert [s.value for s in samples if s.name == "encoder_fleet_devices_silent"] == [1.0]
+            cmd = [sys.executable, "-m", "encoder_fleet.cli", "status", "--url", f"http://127.0.0.1:{port}"]
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+            assert "silent: 1 online but nothing stored for 30 min: drive-quiet" in done.stdout, done.stdout
+        finally:
+            http.stop()
+            service.stop()
+            session.close()
