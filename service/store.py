@@ -1155,12 +1155,21 @@ class Store:
         """Devices online (their agent's liveliness token up) that sent nothing stored for `silent_s` (service clock):
         an agent that runs but whose windows cannot be made or are all refused (a thermistor broken for good, a
         sensor gone, a clock the service refuses), which no alarm sees, the drift monitor having no window."""
-        cutoff = (time.time() if now is None else now) - silent_s
-        rows = self._rows(
-            "SELECT id FROM devices WHERE online = 1 AND last_seen < ? ORDER BY id LIMIT ?",
-            (cutoff, 2**62 if limit is None else limit),
-        )
-        return [r["id"] for r in rows]
+        now = time.time() if now is None else now
+        silent = []
+        for r in self._rows(
+            "SELECT id, last_seen FROM devices WHERE online = 1 AND last_seen < ? ORDER BY id", (now - silent_s,)
+        ):
+            # a drive whose windows are longer than a third of silent_s is silent only past three of them
+            newest = self._rows(
+                "SELECT window_end - window_start AS span FROM windows WHERE device = ? ORDER BY seq DESC LIMIT 1",
+                (r["id"],),
+            )
+            if not newest or r["last_seen"] < now - 3 * newest[0]["span"]:
+                silent.append(r["id"])
+                if limit is not None and len(silent) >= limit:
+                    break
+        return silent
 
     def device_counts(self) -> dict[str, int]:
         """Devices by liveliness state: {'online': n, 'offline': m}."""

@@ -774,6 +774,8 @@ def test_a_drive_online_but_sending_nothing_is_named_silent_in_fleet_health_metr
         store.set_online("drive-quiet", True, at=now - 3600)  # token up an hour ago, nothing since
         store.set_online("drive-talks", True, at=now - 3600)
         store.insert_window(window("drive-talks", seq=1))  # stored now: heard
+        store.set_online("drive-slow", True, at=now - 3600)  # hour-long windows: silent only past three of them
+        store.insert_window({**window("drive-slow", seq=1), "window_end": 3600.0}, received_at=now - 3000)
         store.set_online("drive-gone", True, at=now - 7200)
         store.set_online("drive-gone", False, at=now - 7100)  # offline: its own state, not silent
         assert store.silent_devices(1800.0) == ["drive-quiet"]
