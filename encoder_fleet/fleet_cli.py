@@ -106,7 +106,8 @@ def cmd_agent(args) -> int:
         factory,
         window_s=args.window_s,
         verifier=verifier,
-        temp_range_c=args.temp_range,
+        # the wire's range unless the drive's rating is given (the parser of the command line loads no wire module)
+        **({} if args.temp_range is None else {"temp_range_c": args.temp_range}),
     )
     stop = threading.Event()
     set_on_signals(stop, signal.SIGTERM)
@@ -303,8 +304,6 @@ def cmd_bench_monitor(args) -> int:
 
 
 def register(sub) -> None:
-    from fleet_wire.messages import TEMP_MAX_C, TEMP_MIN_C
-
     p = sub.add_parser("agent", help="run an edge agent next to a drive")
     p.add_argument("--device", required=True, type=device_name, help="the drive's id (its Zenoh key segment)")
     p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
@@ -316,11 +315,10 @@ def register(sub) -> None:
     p.add_argument(
         "--temp-range",
         type=temperature_range,
-        default=(TEMP_MIN_C, TEMP_MAX_C),
         metavar="LO,HI",
         help="°C the drive's thermistor can read (its rating, e.g. -40,150): a reading outside is a broken sensor's, "
-        "rejected, and the angle corrected at the last good temperature "
-        f"(default: the wire's, {TEMP_MIN_C:g},{TEMP_MAX_C:g})",
+        "rejected, and the angle corrected at the last good temperature (default: the wire's whole range, from "
+        "absolute zero to 300 °C)",
     )
     p.add_argument(
         "--real-time-factor",
