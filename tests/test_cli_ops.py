@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import subprocess
@@ -334,6 +335,33 @@ def _recording_and_factory(tmp_path, name, t, temp=True):
     return rec, factory
 
 
+@contextlib.contextmanager
+def _service(tmp_path):
+    """(store, endpoint): the service on a real router and SQLite file, for a replaying agent to send to."""
+    from fleet_wire.session import loopback_endpoint
+    from service.runtime import FleetService, open_session
+    from service.store import Store
+
+    endpoint = loopback_endpoint()
+    store = Store.open(tmp_path / "fleet.sqlite")
+    router = open_session(listen=[endpoint])
+    service = FleetService(store, router, refit_interval_s=0).start()
+    try:
+        yield store, endpoint
+    finally:
+        service.stop()
+        router.close()
+        store.close()
+
+
+def _windows_stored(store, n: int, device: str = "drive-001") -> list[dict]:
+    """The device's windows once `n` are stored (or after 10 s, whatever is stored then)."""
+    deadline = time.monotonic() + 10
+    while len(store.windows(device)) < n and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return store.windows(device)
+
+
 def test_an_agent_refuses_a_recording_whose_clock_the_wire_cannot_carry(tmp_path):
     """A field recording with t in unix milliseconds: the wire carries a drive clock of 0 to 1e10 s, so every window
     was refused one by one, logged, and the command exited 0 having sent none. Now it says so in one line and exits 2
@@ -365,29 +393,14 @@ def test_a_recording_from_before_0_is_replayed_whole_from_0(tmp_path):
     command exited 0. Now the replay moves every t by the same amount so that the first is 0, and says so."""
     import numpy as np
 
-    from fleet_wire.session import loopback_endpoint
-    from service.runtime import FleetService, open_session
-    from service.store import Store
-
     rec, factory = _recording_and_factory(tmp_path, "trigger", np.arange(-60.0, 120.0, 0.05))
-    endpoint = loopback_endpoint()
-    store = Store.open(tmp_path / "fleet.sqlite")
-    router = open_session(listen=[endpoint])
-    service = FleetService(store, router, refit_interval_s=0).start()
-    try:
+    with _service(tmp_path) as (store, endpoint):
         done = _replay_agent(rec, factory, tmp_path / "outbox.sqlite", endpoint)
         assert done.returncode == 0, done.stderr
         assert "t starts at -60 s; replayed with every t moved by 60 s" in done.stderr
         assert "not sent" not in done.stderr and "drive-001: 3 windows" in done.stdout, done.stdout
-        deadline = time.monotonic() + 10
-        while len(store.windows("drive-001")) < 3 and time.monotonic() < deadline:
-            time.sleep(0.1)
-        stored = store.windows("drive-001")
+        stored = _windows_stored(store, 3)
         assert [round(w["window_start"]) for w in stored] == [0, 60, 120] and stored[-1]["window_end"] < 180
-    finally:
-        service.stop()
-        router.close()
-        store.close()
 
 
 def test_a_replayed_temperature_below_absolute_zero_costs_its_sample_not_the_replay(tmp_path):
@@ -398,9 +411,6 @@ def test_a_replayed_temperature_below_absolute_zero_costs_its_sample_not_the_rep
     import numpy as np
 
     from encoder_fleet.recording import read_recording
-    from fleet_wire.session import loopback_endpoint
-    from service.runtime import FleetService, open_session
-    from service.store import Store
 
     rec, factory = _recording_and_factory(tmp_path, "sentinel", np.arange(0.0, 120.0, 0.05))
     lines = rec.read_text().splitlines(keepends=True)
@@ -411,23 +421,13 @@ def test_a_replayed_temperature_below_absolute_zero_costs_its_sample_not_the_rep
     rec.write_text("".join(lines))
     with pytest.raises(InputError, match="line 302, column 'temp_c': -999 °C is below absolute zero"):
         read_recording(rec)
-    endpoint = loopback_endpoint()
-    store = Store.open(tmp_path / "fleet.sqlite")
-    router = open_session(listen=[endpoint])
-    service = FleetService(store, router, refit_interval_s=0).start()
-    try:
+    with _service(tmp_path) as (store, endpoint):
         done = _replay_agent(rec, factory, tmp_path / "outbox.sqlite", endpoint)
         assert done.returncode == 0 and "drive-001: 2 windows" in done.stdout, done.stderr
-        deadline = time.monotonic() + 10
-        while len(store.windows("drive-001")) < 2 and time.monotonic() < deadline:
-            time.sleep(0.1)
+        _windows_stored(store, 2)
         first, second = store.monitor_windows("drive-001", 0, 2)
         assert first["rejected_by_reason"]["non_finite"] == 1 and first["stats"].temp_min > 24.9
         assert second["rejected_by_reason"]["non_finite"] == 0
-    finally:
-        service.stop()
-        router.close()
-        store.close()
 
 
 def main_simulate(out) -> int:
