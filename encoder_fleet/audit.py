@@ -174,17 +174,12 @@ def cmd_audit(args) -> int:
 
 def register(sub) -> None:
     from encoder_fleet.argtypes import device_name
+    from encoder_fleet.fleet_cli import add_evidence_options
 
     p = sub.add_parser("audit", help="every coefficient set published, fleet-wide, as a CSV (applied, rejected, why)")
-    p.add_argument("--db", default="out/fleet.sqlite", help="the service's history: a SQLite path or postgresql:// URL")
+    add_evidence_options(p, "an audit")
     p.add_argument("--out", required=True, type=Path, help="the CSV file to write")
     p.add_argument("--from", dest="t_from", help="sets published from (service clock: unix s or ISO 8601, UTC)")
     p.add_argument("--to", dest="t_to", help="… until, not included")
     p.add_argument("--device", action="append", type=device_name, help="only this drive (repeatable)")
-    p.add_argument(
-        "--migrate",
-        action="store_true",
-        help="migrate a database an older encoder-fleet wrote, in place, first (without it such a database is "
-        "refused: an audit changes no file it reads)",
-    )
     p.set_defaults(func=cmd_audit)

@@ -228,6 +228,17 @@ def open_evidence(db: str, migrate: bool, *, out) -> Store:
     return Store.open(db)
 
 
+def add_evidence_options(p, what: str) -> None:
+    """--db and --migrate of a command that reads evidence from the service's database (open_evidence)."""
+    p.add_argument("--db", default="out/fleet.sqlite", help="the service's history: a SQLite path or postgresql:// URL")
+    p.add_argument(
+        "--migrate",
+        action="store_true",
+        help="migrate a database an older encoder-fleet wrote, in place, first (without it such a database is "
+        f"refused: {what} changes no file it reads)",
+    )
+
+
 def cmd_export(args) -> int:
     from encoder_fleet.outputs import is_stdout, replaced
     from service.mcap_export import export_mcap
@@ -398,17 +409,11 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_service)
 
     p = sub.add_parser("export", help="write a device's windows, coefficient sets and acks to MCAP")
-    p.add_argument("--db", default="out/fleet.sqlite", help="the service's history: a SQLite path or postgresql:// URL")
+    add_evidence_options(p, "an export")
     p.add_argument("--device", required=True, type=device_name, help="the device to export")
     p.add_argument("--out", required=True, help="the MCAP file to write")
     p.add_argument("--from", dest="t_from", type=finite_float, help="start, s on the drive's clock")
     p.add_argument("--to", dest="t_to", type=finite_float, help="end, s on the drive's clock")
-    p.add_argument(
-        "--migrate",
-        action="store_true",
-        help="migrate a database an older encoder-fleet wrote, in place, before exporting (without it such a "
-        "database is refused: the export changes no file it reads)",
-    )
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="a simulated fleet, the service and the rollout, with a summary")
