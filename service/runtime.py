@@ -946,8 +946,8 @@ class FleetService:
         windows, resume, self._prune_resume = 0, self._prune_resume, None
         devices = [d for d in self.store.device_ids() if resume is None or d >= resume]
         for i, device in enumerate(filter(self.partitions.serves, devices)):
-            if self._prune_resume is not None or (i and out_of_time()):  # a fleet's walk alone may take its time
-                self._prune_resume = self._prune_resume or device
+            if i and out_of_time():  # a fleet's walk alone may take its time
+                self._prune_resume = device
                 break
             self._store_first()
             with self.partitions.serving(device) as mine:
@@ -967,6 +967,8 @@ class FleetService:
                         self._prune_resume = device
                         break
                     self._store_first()
+            if self._prune_resume is not None:
+                break
         dead_letters = 0
         if self._prune_resume is None and self.partitions.leads():  # the whole fleet's table: one process prunes it
             while n := self.store.prune_dead_letters(self._clock() - self.keep_s):
