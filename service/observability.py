@@ -106,7 +106,7 @@ class FleetCollector(Collector):
             "Drives online (their token up) with nothing stored for 30 minutes: a fault no drift alarm can see.",
             value=len(self.store.silent_devices(SILENT_S)),
         )
-        unacked = self.store.unacked_alarm_counts()
+        unacked = self.store.open_alarm_counts(unacked=True)
         yield gauge(
             "encoder_fleet_unacknowledged_alarms",
             "Open drift alarms no operator acknowledged (POST /alarms/{id}/ack), by cause.",

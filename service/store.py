@@ -1156,20 +1156,14 @@ class Store:
         an agent that runs but whose windows cannot be made or are all refused (a thermistor broken for good, a
         sensor gone, a clock the service refuses), which no alarm sees, the drift monitor having no window."""
         now = time.time() if now is None else now
-        silent = []
-        for r in self._rows(
-            "SELECT id, last_seen FROM devices WHERE online = 1 AND last_seen < ? ORDER BY id", (now - silent_s,)
-        ):
-            # a drive whose windows are longer than a third of silent_s is silent only past three of them
-            newest = self._rows(
-                "SELECT window_end - window_start AS span FROM windows WHERE device = ? ORDER BY seq DESC LIMIT 1",
-                (r["id"],),
-            )
-            if not newest or r["last_seen"] < now - 3 * newest[0]["span"]:
-                silent.append(r["id"])
-                if limit is not None and len(silent) >= limit:
-                    break
-        return silent
+        # a drive whose windows are longer than a third of silent_s is silent only past three of them (its newest's)
+        rows = self._rows(
+            "SELECT d.id FROM devices d WHERE d.online = 1 AND d.last_seen < ? AND d.last_seen < ? - 3 * coalesce("
+            "(SELECT w.window_end - w.window_start FROM windows w WHERE w.device = d.id ORDER BY w.seq DESC LIMIT 1), "
+            "0) ORDER BY d.id LIMIT ?",
+            (now - silent_s, now, 2**62 if limit is None else limit),
+        )
+        return [r["id"] for r in rows]
 
     def device_counts(self) -> dict[str, int]:
         """Devices by liveliness state: {'online': n, 'offline': m}."""
@@ -1544,21 +1538,10 @@ class Store:
             raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
         return self.alarms(ids=[alarm_id])[0]
 
-    def unacked_alarm_counts(self) -> dict[str, int]:
-        """Open alarms nobody acknowledged, per cause, fleet-wide."""
+    def open_alarm_counts(self, *, unacked: bool = False) -> dict[str, int]:
+        """Open alarms per cause, fleet-wide; unacked: only those nobody acknowledged."""
+        where = "cleared_at IS NULL" + (" AND acked_at IS NULL" if unacked else "")
         return {
             r["cause"]: r["n"]
-            for r in self._rows(
-                "SELECT cause, count(*) AS n FROM alarms WHERE cleared_at IS NULL AND acked_at IS NULL "
-                "GROUP BY cause ORDER BY cause"
-            )
-        }
-
-    def open_alarm_counts(self) -> dict[str, int]:
-        """Open alarms per cause, fleet-wide."""
-        return {
-            r["cause"]: r["n"]
-            for r in self._rows(
-                "SELECT cause, count(*) AS n FROM alarms WHERE cleared_at IS NULL GROUP BY cause ORDER BY cause"
-            )
+            for r in self._rows(f"SELECT cause, count(*) AS n FROM alarms WHERE {where} GROUP BY cause ORDER BY cause")
         }

@@ -727,3 +727,17 @@ def test_a_transaction_a_failed_statement_ended_does_not_commit_as_if_stored(sto
     assert len(store.dead_letters()) == (0 if postgres else 1)
     store.dead_letter("fleet/drive-001/x", "schema", "after", b"{}")  # the connection is usable again
     assert [d["detail"] for d in store.dead_letters()][0] == "after"
+
+
+def test_silent_devices_are_online_and_unheard_past_three_of_their_windows(store):
+    """One query for SQLite and PostgreSQL: online, nothing stored for silent_s, and past three of the newest
+    window's length when that is longer (an hour-long window is not silence between windows)."""
+    now = time.time()
+    store.set_online("drive-quiet", True, at=now - 3600)
+    store.set_online("drive-slow", True, at=now - 3600)
+    store.insert_window({**window("drive-slow", seq=1), "window_end": 3600.0}, received_at=now - 3000)
+    store.set_online("drive-gone", True, at=now - 7200)
+    store.set_online("drive-gone", False, at=now - 7100)
+    assert store.silent_devices(1800.0, now=now) == ["drive-quiet"]
+    assert store.silent_devices(1800.0, now=now + 9000) == ["drive-quiet", "drive-slow"]  # three hours on
+    assert store.silent_devices(1800.0, now=now + 9000, limit=1) == ["drive-quiet"]
