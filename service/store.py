@@ -1202,10 +1202,7 @@ class Store:
         `gone_below`, the lowest seq it holds); `start` is a watermark known to hold. The mark may pass the highest
         seq stored: an agent that numbers anew goes on from it, so nothing is ever numbered beneath the floor (where
         a window lost on the way would count as gone, and the agent forget it unstored)."""
-        mark = start
-        floor = self._rows("SELECT seq_floor FROM devices WHERE id = ?", (device,))
-        if floor:
-            mark = max(mark, floor[0]["seq_floor"] - 1)
+        mark = max(start, self.seq_floor(device) - 1)
         while True:
             rows = self._rows(
                 "SELECT seq FROM windows WHERE device = ? AND seq > ? ORDER BY seq LIMIT 512", (device, mark)
@@ -1216,6 +1213,11 @@ class Store:
                 mark += 1
             if len(rows) < 512:
                 return mark
+
+    def seq_floor(self, device: str) -> int:
+        """The seq below which a window not stored is gone for good (the agent's gone_below, or retention); 0: none."""
+        rows = self._rows("SELECT seq_floor FROM devices WHERE id = ?", (device,))
+        return rows[0]["seq_floor"] if rows else 0
 
     def mark_gone_below(self, device: str, seq: int) -> bool:
         """The agent says every window of it below `seq` that is not stored is gone (its outbox dropped them): raise
