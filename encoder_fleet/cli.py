@@ -156,6 +156,7 @@ def _extensions():
         "encoder_fleet.audit",
         "encoder_fleet.alarms_cli",
         "encoder_fleet.status_cli",
+        "encoder_fleet.devices_cli",
     ):
         try:
             module = importlib.import_module(name)

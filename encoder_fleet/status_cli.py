@@ -19,7 +19,7 @@ def fleet_status(args) -> dict:
     return {
         "ready": ready,
         "health": request(args, "GET", "/fleet/health"),
-        "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&limit={UNACKED_LISTED}"),
+        "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&in_fleet=true&limit={UNACKED_LISTED}"),
         "rollouts": [r for r in request(args, "GET", "/rollouts") if r["state"] in ("running", "paused")],
     }
 

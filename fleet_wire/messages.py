@@ -39,8 +39,8 @@ class WireError(InputError):
     (a JSON path). Codes: too_large, too_deep (nested past MAX_DEPTH), not_json (neither JSON nor MessagePack),
     non_finite, schema, inconsistent, device_mismatch, bad_key, unknown_kind; with security on, unsigned and
     bad_signature (fleet_wire.security), and wrong_nonce (a watermark reply to another question).
-    service.store.Store.ingest adds unexpected_kind, seq_conflict, clock_backwards and normalisation_mismatch for
-    well-formed messages it cannot take."""
+    service.store.Store.ingest adds unexpected_kind, seq_conflict, clock_backwards, normalisation_mismatch and
+    device_retired for well-formed messages it cannot take."""
 
     def __init__(self, reason: str, message: str):
         super().__init__(message)

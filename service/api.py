@@ -8,6 +8,7 @@ their own app around their own Store.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from typing import TYPE_CHECKING, Annotated, Literal
@@ -86,6 +87,12 @@ class ErrorMessage(BaseModel):
     detail: str
 
 
+class Retired(BaseModel):
+    at: float = Field(description="Service clock, unix s.")
+    by: str = Field(description='The REST token that retired it, e.g. "token 3 (ops desk)".')
+    note: str
+
+
 class Device(BaseModel):
     id: str
     first_seen: float = Field(description="Service clock, unix s.")
@@ -94,8 +101,25 @@ class Device(BaseModel):
     current_version: int | None = Field(description="Coefficient version the agent last reported using.")
     windows: int = Field(description="Windows stored.")
     state: str = Field(
-        "unknown", description="Drift monitor: ok | watch | alarm | offline | unknown, as in /devices/{id}/health."
+        "unknown",
+        description="ok | watch | alarm | offline | unknown (the drift monitor, /devices/{id}/health), or retired.",
     )
+    retired: Retired | None = Field(
+        None, description="Taken out of the fleet (POST /devices/{id}/retire): who, when, why; null while in the fleet."
+    )
+
+
+class Retirement(BaseModel):
+    retired_at: float = Field(description="Service clock, unix s.")
+    retired_by: str
+    note: str
+    reinstated_at: float | None = Field(description="Service clock, unix s; null: still retired.")
+    reinstated_by: str | None
+    reinstate_note: str | None
+
+
+class DeviceDetail(Device):
+    retirements: list[Retirement] = Field(description="Every retirement of the device, oldest first.")
 
 
 class CoefficientsInUse(BaseModel):
@@ -137,9 +161,11 @@ class Alarm(BaseModel):
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
 
 
-class AlarmAck(BaseModel):
+class OperatorNote(BaseModel):
+    """An operator's note on an action (kept with it, shown on one line)."""
+
     model_config = ConfigDict(extra="forbid")
-    note: str = Field(min_length=1, max_length=500, description="Seen, and what will be done: kept with the alarm.")
+    note: str = Field(min_length=1, max_length=500, description="Why: kept with the action.")
 
     @field_validator("note")
     @classmethod
@@ -158,8 +184,8 @@ class AlarmList(BaseModel):
 
 
 class FleetHealth(BaseModel):
-    devices: dict[str, int] = Field(description="Devices per state: ok, watch, alarm, offline, unknown.")
-    open_alarms: dict[str, int] = Field(description="Open alarms per cause.")
+    devices: dict[str, int] = Field(description="Devices per state: ok, watch, alarm, offline, unknown, retired.")
+    open_alarms: dict[str, int] = Field(description="Open alarms per cause, retired devices' left out.")
     silent: int = Field(
         0, description="Drives online (liveliness token up) with nothing stored for 30 min: no alarm can see them."
     )
@@ -312,9 +338,42 @@ def list_devices(
     return [{**d, "state": states.get(d["id"], "unknown")} for d in found]
 
 
-@devices.get("/{device_id}", response_model=Device, responses=_UNKNOWN_DEVICE, summary="One device")
+@devices.get("/{device_id}", response_model=DeviceDetail, responses=_UNKNOWN_DEVICE, summary="One device")
 def get_device(device: DeviceDep, store: StoreDep, request: Request):
-    return {**device, "state": device_state(store, device["id"], *_monitor_view(request))}
+    state = device_state(store, device["id"], *_monitor_view(request))
+    return {**device, "state": state, "retirements": store.retirements(device["id"])}
+
+
+def _retirement_change(change: Callable, device_id: str, body: OperatorNote, store: Store, request: Request):
+    require_admin(request)
+    try:
+        device = change(device_id, by=getattr(request.state, "token", None) or "no token (REST open)", note=body.note)
+    except KeyError:
+        raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}") from None
+    except StoreError as e:
+        raise HTTPException(status_code=409, detail=str(e)) from None
+    state = device_state(store, device_id, *_monitor_view(request))
+    return {**device, "state": state, "retirements": store.retirements(device_id)}
+
+
+@devices.post(
+    "/{device_id}/retire",
+    response_model=DeviceDetail,
+    responses={**_UNKNOWN_DEVICE, 409: {"model": ErrorMessage, "description": "Already retired."}},
+    summary="Retire a device (admin): out of the fleet's counts, refits and rollouts; its history stays",
+)
+def retire_device(device_id: str, body: OperatorNote, store: StoreDep, request: Request):
+    return _retirement_change(store.retire_device, device_id, body, store, request)
+
+
+@devices.post(
+    "/{device_id}/reinstate",
+    response_model=DeviceDetail,
+    responses={**_UNKNOWN_DEVICE, 409: {"model": ErrorMessage, "description": "Not retired."}},
+    summary="Bring a retired device back into the fleet (admin)",
+)
+def reinstate_device(device_id: str, body: OperatorNote, store: StoreDep, request: Request):
+    return _retirement_change(store.reinstate_device, device_id, body, store, request)
 
 
 @devices.get("/{device_id}/health", response_model=Health, responses=_UNKNOWN_DEVICE, summary="Health of one device")
@@ -375,9 +434,12 @@ def list_alarms(
     acked: Annotated[
         bool | None, Query(description="true: acknowledged alarms only; false: those nobody acknowledged.")
     ] = None,
+    in_fleet: Annotated[
+        bool | None, Query(description="true: retired devices' alarms left out; false: only theirs.")
+    ] = None,
 ):
     # paged by id, newest first: an alarm raised meanwhile has a higher id and moves no page after the first
-    found = store.alarms(device, cause, open, before=before, limit=limit + 1, acked=acked)
+    found = store.alarms(device, cause, open, before=before, limit=limit + 1, acked=acked, in_fleet=in_fleet)
     truncated = len(found) > limit
     return AlarmList(alarms=found[:limit], truncated=truncated, next=found[limit - 1]["id"] if truncated else None)
 
@@ -391,7 +453,9 @@ def list_alarms(
     },
     summary="Acknowledge an alarm (admin): seen, with a note; it stays open until its condition clears",
 )
-def ack_alarm(alarm_id: Annotated[int, FastAPIPath(ge=1, le=2**62)], body: AlarmAck, store: StoreDep, request: Request):
+def ack_alarm(
+    alarm_id: Annotated[int, FastAPIPath(ge=1, le=2**62)], body: OperatorNote, store: StoreDep, request: Request
+):
     require_admin(request)
     try:
         return store.ack_alarm(

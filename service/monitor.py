@@ -23,7 +23,7 @@ from .refit import STEP_CAUSES
 from .store import Store
 
 log = logging.getLogger("service.monitor")
-STATES = ("ok", "watch", "alarm", "offline", "unknown")
+STATES = ("ok", "watch", "alarm", "offline", "unknown", "retired")  # retired: out of the fleet (Store.retire_device)
 # an online drive with nothing stored for this long (service clock) is silent: three of the longest windows (600 s)
 SILENT_S = 1800.0
 SILENT_LISTED = 100  # silent drives named in GET /fleet/health (all are counted)
@@ -316,9 +316,12 @@ def device_state(
     store: Store, device: str, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None
 ) -> str:
     """ok | watch | alarm | offline | unknown: from the running monitor where this process monitors the device
-    (`serves`: its partitions; None, every device), else as stored. In a cluster the monitor in memory holds the
-    other members' devices as they stood when this process started (or last handed them over): read from it, GET
-    /devices/{id}/health said "unknown" or "ok" beside the open alarms the other member wrote."""
+    (`serves`: its partitions; None, every device), else as stored; retired for a device out of the fleet. In a
+    cluster the monitor in memory holds the other members' devices as they stood when this process started (or last
+    handed them over): read from it, GET /devices/{id}/health said "unknown" or "ok" beside the open alarms the other
+    member wrote."""
+    if device in store.retired_device_ids():
+        return "retired"
     if monitor is not None and (serves is None or serves(device)):
         return monitor.state(device)
     return _stored_states(store, [device])[device]
@@ -333,10 +336,14 @@ def device_states(
 ) -> dict[str, str]:
     """Every device's state (device_state), or those of `ids`."""
     ids = store.device_ids() if ids is None else ids
+    retired = store.retired_device_ids()
+    in_fleet = [d for d in ids if d not in retired]
     if monitor is None:
-        return _stored_states(store, ids)
-    others = _stored_states(store, [d for d in ids if serves is not None and not serves(d)])
-    return {d: others[d] if d in others else monitor.state(d) for d in ids}
+        states = _stored_states(store, in_fleet)
+    else:
+        others = _stored_states(store, [d for d in in_fleet if serves is not None and not serves(d)])
+        states = {d: others[d] if d in others else monitor.state(d) for d in in_fleet}
+    return {d: states.get(d, "retired") for d in ids}
 
 
 def _stored_states(store: Store, ids: list[str]) -> dict[str, str]:

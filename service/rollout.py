@@ -151,11 +151,14 @@ class Rollouts:
     def create(self, spec: RolloutSpec) -> int:
         with self._lock:
             known = self.store.device_ids()  # not devices(): it counts every device's windows
-            devices = sorted(known) if spec.devices is None else list(dict.fromkeys(spec.devices))
-            unknown = sorted(set(devices) - set(known))
-            if unknown:
-                more = f" and {len(unknown) - 10} more" if len(unknown) > 10 else ""
-                raise RolloutError(422, f"unknown devices: {', '.join(unknown[:10])}{more}", ("body", "devices"))
+            retired = self.store.retired_device_ids()
+            in_fleet = [d for d in known if d not in retired]
+            devices = in_fleet if spec.devices is None else list(dict.fromkeys(spec.devices))
+            for what, names in (("unknown", set(devices) - set(known)), ("retired", set(devices) & retired)):
+                if names:
+                    names = sorted(names)
+                    more = f" and {len(names) - 10} more" if len(names) > 10 else ""
+                    raise RolloutError(422, f"{what} devices: {', '.join(names[:10])}{more}", ("body", "devices"))
             if not devices:
                 raise RolloutError(422, "no devices to roll out to: the fleet has none yet", ("body", "devices"))
             now = self.clock()

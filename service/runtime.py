@@ -872,7 +872,9 @@ class FleetService:
                     self._resume_pending |= resume
         with self._lock:
             pending, self._changed = deque(sorted(self._changed)), set()
-        published, later, done = [], set(), set()
+        # a retired drive gets no set (what it sends is not stored, so it comes here only from before it was retired)
+        done = self.store.retired_device_ids()
+        published, later = [], set()
         while (device := self._next_in_pass(pending, done)) is not None:
             self._store_first()
             # the device's partition is not handed over while this works on it (a hand-over now: left to its new owner)

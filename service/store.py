@@ -58,6 +58,11 @@ BANDS_WRITE_EVERY_S = 2.0
 # such at most (~10 ms of SQLite), never for a whole fleet's pruning
 PRUNE_BATCH = 1000
 
+# how often the writer reads which devices are retired (a retirement by another cluster member is seen within it;
+# this process's own at once)
+RETIRED_READ_EVERY_S = 5.0
+RETIRED_LETTER_EVERY_S = 3600.0  # a retired device's messages kept as dead letters: one per device in this (service s)
+
 TRANSACTION_ENDED = (
     "the database ended the transaction after an error inside it (a full disk, an I/O error, a lost connection): "
     "nothing of it is stored"
@@ -195,6 +200,9 @@ class Store:
         # device -> it had no stored window when its bands were read: a band of it that has no sum has no window
         # either, so a new band's sum starts at seq 1 without asking (a fleet's first windows, after a start)
         self._unwritten: dict[str, bool] = {}
+        self._retired: frozenset[str] = frozenset()  # devices retired (device_retirements), as read at _retired_read_at
+        self._retired_read_at = -math.inf
+        self._retired_letter_at: dict[str, float] = {}  # device -> when its last message was kept as a dead letter
 
     @classmethod
     def open(
@@ -474,6 +482,8 @@ class Store:
     def _ingest_one(self, batch: _Batch, key_expr: str, payload: bytes, now: float) -> str:
         try:
             device, kind = wire.parse_key(key_expr)
+            if device in self._retired_devices():
+                return self._refuse_retired(device, key_expr, payload, now)
             if kind == "window":
                 win = wire.decode_window(payload, key_device=device)
                 return "stored" if self._stage_window(batch, win) else "duplicate"
@@ -485,6 +495,20 @@ class Store:
         except (wire.WireError, StoreError) as exc:
             self.dead_letter(key_expr, exc.reason, str(exc), payload, received_at=now)
             return exc.reason
+
+    def _refuse_retired(self, device: str, key_expr: str, payload: bytes, now: float) -> str:
+        """A retired device's message, not stored: the first one in RETIRED_LETTER_EVERY_S kept as a dead letter, the
+        rest only counted (its agent, still running, resends its whole outbox every few seconds, and keeps it)."""
+        last = self._retired_letter_at.get(device)
+        if last is None or now - last >= RETIRED_LETTER_EVERY_S or now < last:
+            self._retired_letter_at[device] = now
+            detail = (
+                f"{device} is retired: nothing it sends is stored until it is reinstated (POST "
+                f"/devices/{device}/reinstate), and its agent keeps it; one message in {RETIRED_LETTER_EVERY_S:.0f} s "
+                "is kept here, the others counted"
+            )
+            self.dead_letter(key_expr, "device_retired", detail, payload, received_at=now)
+        return "device_retired"
 
     def insert_window(self, msg: dict, *, received_at: float | None = None) -> bool:
         """Store a window and add it to its band's sum in one transaction. False (nothing changed) for a duplicate."""
@@ -1139,9 +1163,18 @@ class Store:
             "online": bool(r["online"]),
             "current_version": r["current_version"],
             "windows": r["windows"],
+            "retired": None
+            if r["retired_at"] is None
+            else {"at": r["retired_at"], "by": r["retired_by"], "note": r["retired_note"]},
         }
 
-    _DEVICE_SQL = "SELECT d.*, (SELECT count(*) FROM windows w WHERE w.device = d.id) AS windows FROM devices d"
+    _DEVICE_SQL = (
+        "SELECT d.*, (SELECT count(*) FROM windows w WHERE w.device = d.id) AS windows, r.retired_at, r.retired_by, "
+        "r.note AS retired_note FROM devices d "
+        "LEFT JOIN device_retirements r ON r.device = d.id AND r.reinstated_at IS NULL"
+    )
+    # a device in the fleet: not retired (device_retirements), for the fleet's counts
+    _IN_FLEET = "NOT EXISTS (SELECT 1 FROM device_retirements r WHERE r.device = {} AND r.reinstated_at IS NULL)"
 
     def check(self) -> str:
         """'ok' when the database answers a read, else what went wrong (for /healthz)."""
@@ -1160,17 +1193,20 @@ class Store:
         rows = self._rows(
             "SELECT d.id FROM devices d WHERE d.online = 1 AND d.last_seen < ? AND d.last_seen < ? - 3 * coalesce("
             "(SELECT w.window_end - w.window_start FROM windows w WHERE w.device = d.id ORDER BY w.seq DESC LIMIT 1), "
-            "0) ORDER BY d.id LIMIT ?",
+            f"0) AND {self._IN_FLEET.format('d.id')} ORDER BY d.id LIMIT ?",
             (now - silent_s, now, 2**62 if limit is None else limit),
         )
         return [r["id"] for r in rows]
 
     def device_counts(self) -> dict[str, int]:
-        """Devices by liveliness state: {'online': n, 'offline': m}."""
-        rows = self._rows("SELECT online, count(*) AS n FROM devices GROUP BY online")
-        counts = {"online": 0, "offline": 0}
+        """Devices by liveliness state, the retired apart: {'online': n, 'offline': m, 'retired': k}."""
+        rows = self._rows(
+            f"SELECT CASE WHEN {self._IN_FLEET.format('d.id')} THEN d.online ELSE -1 END AS state, count(*) AS n "
+            "FROM devices d GROUP BY 1"
+        )
+        counts = {"online": 0, "offline": 0, "retired": 0}
         for r in rows:
-            counts["online" if r["online"] else "offline"] += r["n"]
+            counts["retired" if r["state"] == -1 else "online" if r["state"] else "offline"] += r["n"]
         return counts
 
     def devices(self, *, after: str | None = None, limit: int | None = None) -> list[dict]:
@@ -1185,8 +1221,73 @@ class Store:
         """The devices marked online (their liveliness token last seen coming), without the devices' window counts."""
         return [r["id"] for r in self._rows("SELECT id FROM devices WHERE online = 1 ORDER BY id")]
 
-    def device_ids(self) -> list[str]:
-        return [r["id"] for r in self._rows("SELECT id FROM devices ORDER BY id")]
+    def device_ids(self, *, in_fleet: bool = False) -> list[str]:
+        """Every device's id; in_fleet: the retired left out."""
+        where = f" WHERE {self._IN_FLEET.format('devices.id')}" if in_fleet else ""
+        return [r["id"] for r in self._rows(f"SELECT id FROM devices{where} ORDER BY id")]
+
+    def retired_device_ids(self) -> set[str]:
+        return {r["device"] for r in self._rows("SELECT device FROM device_retirements WHERE reinstated_at IS NULL")}
+
+    def _retired_devices(self) -> frozenset[str]:
+        """The retired devices as the writer checks them: read again every RETIRED_READ_EVERY_S."""
+        if time.monotonic() - self._retired_read_at > RETIRED_READ_EVERY_S:
+            self._retired = frozenset(self.retired_device_ids())
+            self._retired_read_at = time.monotonic()
+        return self._retired
+
+    def retire_device(self, device: str, *, by: str, note: str, at: float | None = None) -> dict:
+        """Take a device out of the fleet (replaced, scrapped): who, when, why. Its history stays. KeyError: no such
+        device; StoreError `already_retired`: it is (the first retirement stands)."""
+        return self._retirement(device, retire=True, by=by, note=note, at=at)
+
+    def reinstate_device(self, device: str, *, by: str, note: str, at: float | None = None) -> dict:
+        """Bring a retired device back into the fleet; its retirement stays in the history, closed by who and why.
+        KeyError: no such device; StoreError `not_retired`: it is in the fleet."""
+        return self._retirement(device, retire=False, by=by, note=note, at=at)
+
+    def _retirement(self, device: str, *, retire: bool, by: str, note: str, at: float | None) -> dict:
+        at = time.time() if at is None else at
+        # refused after the transaction, not inside it: an error inside drops every band sum kept in memory
+        with self._tx() as c:
+            known = c.execute("SELECT 1 FROM devices WHERE id = ?", (device,)).fetchone() is not None
+            if known and retire:
+                # the unique index allows one retirement in force: a second one, even at once from another cluster
+                # member, inserts nothing and is refused below
+                changed = c.execute(
+                    "INSERT INTO device_retirements (device, retired_at, retired_by, note) VALUES (?, ?, ?, ?) "
+                    "ON CONFLICT DO NOTHING",
+                    (device, at, by, note),
+                ).rowcount
+            elif known:
+                changed = c.execute(
+                    "UPDATE device_retirements SET reinstated_at = ?, reinstated_by = ?, reinstate_note = ? "
+                    "WHERE device = ? AND reinstated_at IS NULL",
+                    (at, by, note, device),
+                ).rowcount
+        if not known:
+            raise KeyError(f"no device {device}")
+        if not changed:
+            now = self.device(device)["retired"]
+            if retire:
+                raise StoreError("already_retired", f"{device} was retired by {now['by']}: {now['note']}")
+            raise StoreError("not_retired", f"{device} is not retired")
+        self._retired_read_at = -math.inf  # this process's writer sees it at its next batch
+        return self.device(device)
+
+    def retirements(self, device: str) -> list[dict]:
+        """The device's retirements, oldest first, each with its reinstatement (None while in force)."""
+        return [
+            {
+                "retired_at": r["retired_at"],
+                "retired_by": r["retired_by"],
+                "note": r["note"],
+                "reinstated_at": r["reinstated_at"],
+                "reinstated_by": r["reinstated_by"],
+                "reinstate_note": r["reinstate_note"],
+            }
+            for r in self._rows("SELECT * FROM device_retirements WHERE device = ? ORDER BY id", (device,))
+        ]
 
     def online_since(self, device: str) -> float | None:
         """When the device's liveliness token last came back after being gone (service clock; None: not seen)."""
@@ -1494,10 +1595,11 @@ class Store:
         limit: int | None = 1000,
         audit: bool = False,
         acked: bool | None = None,
+        in_fleet: bool | None = None,
     ) -> list[dict]:
         """Alarms (the GET /alarms contract's objects), newest first; before: only those of a lower id (the next
         page's); limit None: every one. audit: with when the service raised each (`created_at`, its clock) and what
-        cleared it (`clear_evidence`)."""
+        cleared it (`clear_evidence`). in_fleet: True, only retired devices' left out; False, only theirs."""
         where, args = [], []
         if before is not None:
             where.append("id < ?")
@@ -1512,6 +1614,8 @@ class Store:
             where.append("cleared_at IS NULL" if open_ else "cleared_at IS NOT NULL")
         if acked is not None:
             where.append("acked_at IS NOT NULL" if acked else "acked_at IS NULL")
+        if in_fleet is not None:
+            where.append(("" if in_fleet else "NOT ") + self._IN_FLEET.format("alarms.device"))
         if ids is not None:
             where.append(f"id IN ({', '.join('?' * len(ids))})")
             args += list(ids)
@@ -1542,7 +1646,13 @@ class Store:
 
     def open_alarm_counts(self, *, unacked: bool = False) -> dict[str, int]:
         """Open alarms per cause, fleet-wide; unacked: only those nobody acknowledged."""
-        where = "cleared_at IS NULL" + (" AND acked_at IS NULL" if unacked else "")
+        # a retired drive's alarms stay (its history), and leave the fleet's counts, which the alerting rules watch
+        where = (
+            "cleared_at IS NULL"
+            + (" AND acked_at IS NULL" if unacked else "")
+            + " AND "
+            + self._IN_FLEET.format("alarms.device")
+        )
         return {
             r["cause"]: r["n"]
             for r in self._rows(f"SELECT cause, count(*) AS n FROM alarms WHERE {where} GROUP BY cause ORDER BY cause")

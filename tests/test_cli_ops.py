@@ -251,8 +251,6 @@ def test_export_changes_no_file_it_reads(tmp_path):
     import hashlib
     import sqlite3
 
-    from fleet_wire import keys
-    from fleet_wire import messages as wire
     from service.store import Store, migration_files
     from tests.wire_samples import window
 
@@ -262,7 +260,7 @@ def test_export_changes_no_file_it_reads(tmp_path):
         (older / f.name).write_text(f.read_text())
     db = tmp_path / "old.sqlite"
     with Store.open(db, migrations_dir=older) as store:
-        store.ingest_many([(keys.key("drive-001", keys.STATS), wire.encode("window", window(seq=1)))])
+        store.insert_window(window(seq=1))  # as the older version stored it (its writer knew no retirements)
     other = tmp_path / "notes.sqlite"
     conn = sqlite3.connect(other)
     conn.execute("CREATE TABLE notes (x)")

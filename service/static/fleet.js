@@ -66,7 +66,8 @@ async function showFleet() {
 const OPEN_ALARMS_SHOWN = 200;
 
 async function showOpenAlarms() {
-  const { alarms, truncated } = await getJson(`/alarms?open=true&limit=${OPEN_ALARMS_SHOWN}`);
+  // a retired drive's alarms stay in its history, not on the fleet's glance
+  const { alarms, truncated } = await getJson(`/alarms?open=true&in_fleet=true&limit=${OPEN_ALARMS_SHOWN}`);
   document.getElementById("no-alarms").hidden = alarms.length > 0;
   const more = document.getElementById("more-alarms");
   more.hidden = !truncated;
