@@ -9,7 +9,7 @@ per field, no nulls (a missing value is a missing field), no arrays of arrays):
 | /encoders/<device>/metrics     | encoder_fleet.DriveMetrics    | window: flat numbers for the Plot panel  |
 | /encoders/<device>/coefficients| encoder_fleet.CoefficientSet  | coefficient set, harmonics flattened     |
 | /encoders/<device>/ack         | encoder_fleet.Ack             | ack                                      |
-| /encoders/<device>/log         | foxglove.Log                  | rollout decision, alarm raised           |
+| /encoders/<device>/log         | foxglove.Log                  | rollout decision, alarm raised, retired  |
 | /encoders/<device>/alarms      | encoder_fleet.Alarm           | drift alarm, parameters flattened        |
 | /encoders/<device>/rollout     | encoder_fleet.RolloutDevice   | the device's part in a staged rollout    |
 
@@ -18,7 +18,9 @@ drive's clock stays a field (window_end, created_at, at). The time range (from, 
 clock, as the REST API does, both ends included: windows by their start, acks by `at`, sets by `created_at`, and
 also the set published last before `from` (the one the drive ran when the range begins); alarms open at any time
 in the range (raised before `to`, not cleared before `from`); a staged rollout's record when the set it published
-is in the range (every record when no range is given: they carry the service's clock only). The file is produced
+is in the range (every record when no range is given: they carry the service's clock only); every retirement and
+reinstatement of the device, whatever the range (the service's clock only, and few: whether it was in the fleet is
+part of any audit of it). The file is produced
 as a stream of byte chunks, so the REST endpoint never holds it; messages are written kind by kind, and MCAP's index
 lets readers replay them by log_time.
 """
@@ -380,6 +382,12 @@ def _events(store: Store, device: str, t_from, t_to) -> Iterator[tuple[float, st
         yield alarm["created_at"], "alarms", alarm_record(alarm)
         text = f"alarm {alarm['cause']} raised at {alarm['raised_at'] / 3600:.2f} h drive time: {alarm['evidence']}"
         yield alarm["created_at"], "log", log_record(alarm["created_at"], WARNING, text, device)
+    for r in store.retirements(device):
+        text = f"retired from the fleet by {r['retired_by']}: {r['note']}"
+        yield r["retired_at"], "log", log_record(r["retired_at"], WARNING, text, device)
+        if r["reinstated_at"] is not None:
+            text = f"reinstated in the fleet by {r['reinstated_by']}: {r['reinstate_note']}"
+            yield r["reinstated_at"], "log", log_record(r["reinstated_at"], INFO, text, device)
     for msg in store.iter_windows(device, t_from, t_to, with_received_at=True):
         yield msg["received_at"], "stats", window_record(msg)
         yield msg["received_at"], "metrics", metrics_record(msg)

@@ -2,6 +2,7 @@
 what it still sends kept as dead letters until it is reinstated. Real stores (SQLite, PostgreSQL), the real REST app,
 the real service on a Zenoh session, the command in its own process."""
 
+import json
 import subprocess
 import sys
 import threading
@@ -265,3 +266,27 @@ def test_the_devices_command_retires_shows_and_reinstates_a_drive(tmp_path):
             assert len(shown.stdout.splitlines()) == 3  # the device, its retirement, its reinstatement
         finally:
             http.stop()
+
+
+def test_the_mcap_export_logs_each_retirement_and_reinstatement(store, tmp_path):
+    import io
+
+    from mcap.reader import make_reader
+
+    from service.mcap_export import export_mcap
+
+    store.insert_window(window("drive-001", 1))
+    store.retire_device("drive-001", by="token 1 (ops)", note="replaced by drive-004", at=2000.0)
+    store.reinstate_device("drive-001", by="token 2 (night)", note="mounted again", at=3000.0)
+    out = io.BytesIO()
+    export_mcap(store, "drive-001", out, t_from=0.0, t_to=30.0)  # a drive-clock range: retirements whatever it is
+    out.seek(0)
+    logs = [
+        (m.log_time, json.loads(m.data)["message"])
+        for _, c, m in make_reader(out).iter_messages()
+        if c.topic.endswith("/log") and "the fleet" in json.loads(m.data)["message"]
+    ]
+    assert logs == [
+        (2000 * 10**9, "retired from the fleet by token 1 (ops): replaced by drive-004"),
+        (3000 * 10**9, "reinstated in the fleet by token 2 (night): mounted again"),
+    ]
