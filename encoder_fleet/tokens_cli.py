@@ -15,9 +15,14 @@ TAKEN = (
 
 
 def cmd_token(args) -> int:
-    from service.auth import TokenAuth, write_token_file
+    from service.auth import TokenAuth, check_token_name, write_token_file
     from service.store import Store
 
+    if args.token_command == "create":
+        try:
+            check_token_name(args.name or "")
+        except ValueError as exc:  # before the database is opened or a file written
+            raise InputError(f"--name: {exc}") from None
     if getattr(args, "create_db", False):
         Path(args.db).parent.mkdir(parents=True, exist_ok=True)
     elif not Path(args.db).exists():

@@ -7,7 +7,6 @@ their own app around their own Store.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
@@ -22,7 +21,7 @@ from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from .auth import TokenAuth, authorize, require_admin, tokens
+from .auth import CONTROL_CHARACTERS, TokenAuth, authorize, require_admin, tokens
 from .mcap_export import iter_mcap
 from .monitor import device_state, device_states, fleet_health
 from .observability import health_checks, metrics_registry
@@ -158,9 +157,6 @@ class Alarm(BaseModel):
     ack_note: str | None = Field(None, description="What the operator said (seen, and what will be done).")
 
 
-_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
-
-
 class OperatorNote(BaseModel):
     """An operator's note on an action (kept with it, shown on one line)."""
 
@@ -170,9 +166,7 @@ class OperatorNote(BaseModel):
     @field_validator("note")
     @classmethod
     def one_line(cls, note: str) -> str:
-        # printed on one line (`alarms list`) and in a cell of the fleet page: a newline broke the line, an escape
-        # sequence reached the operator's terminal, a NUL was stored as U+FFFD on PostgreSQL (and kept on SQLite)
-        if _CONTROL.search(note) or not note.strip():
+        if CONTROL_CHARACTERS.search(note) or not note.strip():
             raise ValueError("a note is one line of text: no control characters (newline, tab, NUL, ESC), not blank")
         return note
 

@@ -13,6 +13,7 @@ import errno
 import hashlib
 import hmac
 import os
+import re
 import secrets
 import tempfile
 import time
@@ -22,7 +23,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Depends, HTTPException, Request, Response
 from fastapi import Path as PathParam
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
 from .store import Store
 
@@ -32,6 +33,22 @@ SCOPES = ("read", "admin")
 PUBLIC_PATHS = frozenset({"/healthz", "/", "/docs", "/docs/oauth2-redirect", "/redoc"})
 PUBLIC_PREFIX = "/static/"  # the page's script, style and Plotly.js: code, no data
 _PREFIX = {"read": "efr_", "admin": "efa_"}
+# text an operator reads on one line (a terminal, a cell of the fleet page): a newline broke the line, an escape
+# sequence reached the terminal, a NUL was stored as U+FFFD on PostgreSQL (and kept on SQLite)
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+TOKEN_NAME_MAX = 200
+
+
+def check_token_name(name: str) -> str:
+    """A token's name as it is shown (`token list`, and as who acknowledged an alarm or retired a drive): ValueError
+    for one that is not a line of text."""
+    if CONTROL_CHARACTERS.search(name):
+        raise ValueError(
+            f"a token's name is one line of text: no control characters (newline, tab, NUL, ESC): {name!r}"
+        )
+    if len(name) > TOKEN_NAME_MAX:
+        raise ValueError(f"a token's name is at most {TOKEN_NAME_MAX} characters, not {len(name)}")
+    return name
 
 
 def _digest(token: str) -> str:
@@ -48,6 +65,7 @@ class TokenAuth:
         """(id, token); the token is returned once and only its hash is kept."""
         if scope not in SCOPES:
             raise ValueError(f"scope must be one of {SCOPES}, not {scope!r}")
+        check_token_name(name)
         token = _PREFIX[scope] + secrets.token_urlsafe(32)
         with self.store._tx() as c:
             cur = c.execute(
@@ -178,7 +196,12 @@ class TokenInfo(BaseModel):
 
 class NewToken(BaseModel):
     scope: Literal["read", "admin"]
-    name: str = Field("", max_length=200, description="What the token is for (shown in the list).")
+    name: str = Field("", max_length=TOKEN_NAME_MAX, description="What the token is for (shown in the list).")
+
+    @field_validator("name")
+    @classmethod
+    def one_line(cls, name: str) -> str:
+        return check_token_name(name)
 
 
 class CreatedToken(TokenInfo):

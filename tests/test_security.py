@@ -536,6 +536,24 @@ def test_read_token_on_an_admin_endpoint_is_403(rest):
     assert client.get("/devices", headers={"Authorization": f"Bearer {created.json()['token']}"}).status_code == 401
 
 
+@pytest.mark.parametrize("name", ["ops\nadmin", "\x1b[2Jwiped", "nul\x00", "x" * 201])
+def test_a_token_name_is_one_line_of_text_on_rest_and_the_command_line(rest, tmp_path, name):
+    """A token's name is shown as who acknowledged an alarm or retired a drive (`alarms list`, `devices show`, the
+    fleet page): an escape sequence in it reached the operator's terminal. Refused on REST (422) and by `token
+    create` (one line, exit 2), and no token is made."""
+    client, _, admin, auth = rest
+    before = len(auth.tokens())
+    refused = client.post("/tokens", json={"scope": "read", "name": name}, headers={"Authorization": f"Bearer {admin}"})
+    assert refused.status_code == 422, refused.text
+    if "\x00" in name:
+        return  # no command line can carry a NUL
+    db = tmp_path / "fleet.sqlite"
+    cmd = [sys.executable, "-m", "encoder_fleet.cli", "token", "create", "--scope", "read", "--name", name]
+    done = subprocess.run([*cmd, "--db", str(db), "--create-db"], capture_output=True, text=True)
+    assert done.returncode == 2 and "--name" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not done.stdout and not db.exists() and len(auth.tokens()) == before
+
+
 def test_tokens_are_stored_hashed_and_never_logged(tmp_path, pki):
     db, token_file, http_port = tmp_path / "fleet.sqlite", tmp_path / "secrets" / "admin-token", free_port()
     command = [sys.executable, "-m", "encoder_fleet.cli", "service", "--db", str(db), "--pki", str(pki)]
