@@ -111,6 +111,9 @@ class EdgeAgent:
         self.pending_ack: int | None = None
         self.service_has_set = False  # until the service answers our question for a set (ask_for_set)
         self.watermark = 0  # the service's contiguous watermark, as its last reply said
+        # the service has retired this drive (its last reply said so): its windows are kept, not sent, until it is
+        # reinstated (every one sent was refused, and the outbox resent every few seconds)
+        self.retired = False
         # the statistics' normalisation stays fixed for the device's whole life: windows must merge
         self.scale = normalisation_scale(factory)
         self.die = DieTemperature()  # the die's temperature, lagged from what the drive reports (thermal_lag_s)
@@ -304,7 +307,7 @@ class EdgeAgent:
             return True
         self.seq += 1
         self.issued_end = msg["window_end"]
-        if self.resumed:  # before the service has said where it stands, a window's seq and time may still move
+        if self.resumed and not self.retired:  # before the service has said where it stands, seq and time may move
             self.put(self.keys["stats"], payload)
             self.outbox.mark_sent([("window", self.seq)], self.clock())
         self.counters.windows += 1
@@ -376,6 +379,15 @@ class EdgeAgent:
             self.pending_ack = self.version
         self.watermark = watermark
         self.outbox.confirm_through(watermark, acked)
+        retired = wire.says_retired(replies[0])
+        if retired != self.retired:
+            if retired:
+                log.warning("%s: the service has retired this drive: its windows are kept here, not sent", self.device)
+            else:
+                log.warning("%s: the service has reinstated this drive: sending its windows again", self.device)
+            self.retired = retired
+        if retired:
+            return True
         due = self.outbox.due(self.clock(), self.resend_after_s)
         for kind, _, payload in due:
             self.put(self.keys["ack" if kind == "ack" else "stats"], payload)
@@ -387,7 +399,7 @@ class EdgeAgent:
     def drain(self, timeout_s: float = 20.0) -> bool:
         """At the end: keep syncing until the service has every window (or time runs out)."""
         deadline = time.monotonic() + timeout_s
-        while (len(self.outbox) or self.outbox.pending_acks()) and time.monotonic() < deadline:
+        while (len(self.outbox) or self.outbox.pending_acks()) and not self.retired and time.monotonic() < deadline:
             self.apply_inbox()
             time.sleep(0.1 if self.sync() else 0.2)
         self.apply_inbox()

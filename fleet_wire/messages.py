@@ -897,15 +897,20 @@ def watermark_reply(
     *,
     nonce: str | None = None,
     signer=None,
+    retired: bool = False,
 ) -> bytes:
     """The service's answer on `received`: every window of `device` with seq <= contiguous_seq is stored, and
     an ack for every coefficient version <= acked_version (the agent stops resending those). `last`: the highest
     seq stored and that window's end (drive clock), where an agent that lost its outbox resumes. `nonce`: the one
     the question carried; `signer` (fleet_wire.security.SetSigner, security on) signs the reply with it, so an
-    agent takes it for its own question only."""
+    agent takes it for its own question only. `retired`: the drive is out of the fleet, and nothing it sends is
+    stored (the agent holds its windows until it is reinstated; signed with the rest, so no forged reply silences
+    a drive of a secured fleet)."""
     body = {"device": device, "contiguous_seq": int(contiguous_seq), "acked_version": int(acked_version)}
     if last is not None:
         body.update(max_seq=int(last[0]), last_window_end=float(last[1]))
+    if retired:
+        body["retired"] = True
     if nonce is not None:
         body["nonce"] = nonce
     if signer is not None:
@@ -969,6 +974,11 @@ def parse_watermark_reply(payload: bytes, device: str, *, verifier=None, nonce: 
         if body.get("nonce") != nonce:
             raise WireError("wrong_nonce", f"{what}: signed for another question, not the one just asked (replayed?)")
     return seq, acked
+
+
+def says_retired(payload: bytes) -> bool:
+    """Whether a watermark reply (checked by parse_watermark_reply first) says the drive is retired."""
+    return json.loads(payload).get("retired") is True
 
 
 def parse_resume_point(payload: bytes, device: str) -> tuple[int, float] | None:

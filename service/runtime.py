@@ -809,7 +809,9 @@ class FleetService:
         mark, acked, last = self.watermark(device), self.store.acked_version(device), self.store.last_window(device)
         # signed for this question (security on): whoever else can answer it (a meshed router's stolen key) cannot forge
         # a higher watermark, nor replay an old or another drive's reply, to make the agent drop windows never stored
-        query.reply(query.key_expr, wire.watermark_reply(device, mark, acked, last, nonce=nonce, signer=self.signer))
+        retired = self.store.is_retired(device)
+        reply = wire.watermark_reply(device, mark, acked, last, nonce=nonce, signer=self.signer, retired=retired)
+        query.reply(query.key_expr, reply)
 
     def _take_gone_below(self, device: str, gone_below: int) -> None:
         """An agent whose full outbox dropped windows names the seq below which what we lack is gone: without it the

@@ -1229,6 +1229,10 @@ class Store:
     def retired_device_ids(self) -> set[str]:
         return {r["device"] for r in self._rows("SELECT device FROM device_retirements WHERE reinstated_at IS NULL")}
 
+    def is_retired(self, device: str) -> bool:
+        """As the writer checks it (read again every RETIRED_READ_EVERY_S): the watermark reply says it."""
+        return device in self._retired_devices()
+
     def _retired_devices(self) -> frozenset[str]:
         """The retired devices as the writer checks them: read again every RETIRED_READ_EVERY_S."""
         if time.monotonic() - self._retired_read_at > RETIRED_READ_EVERY_S:

@@ -895,3 +895,30 @@ def test_a_replay_paced_at_a_real_time_factor_takes_its_gaps_time(setup, tmp_pat
     assert counters.windows == 4
     assert took >= (t[-1] - t[0]) / 3600.0 - 0.1, took
     agent.close()
+
+
+def test_a_retired_drives_agent_holds_its_windows_and_sends_them_once_reinstated(setup, caplog):
+    """The watermark reply says the drive is retired: the agent stops sending (each window was refused, and its
+    outbox resent every few seconds) and keeps what it makes; reinstated, it sends them all, and none is lost."""
+    store, _, client, _, make_agent, service = setup
+    agent = make_agent(client)
+    agent.start()
+    try:
+        for _ in range(2):
+            assert agent.step()
+        assert wait_for(lambda: store.max_seq(DEVICE) == 2)
+        store.retire_device(DEVICE, by="token 1", note="replaced")
+        with caplog.at_level("WARNING", logger="edge_agent"):
+            assert wait_for(lambda: agent.sync() and agent.retired)
+            for _ in range(3):
+                assert agent.step()
+        assert "the service has retired this drive" in caplog.text
+        refused = service.counters.ingested.get("device_retired", 0)
+        assert refused == 0 and store.dead_letters() == []  # nothing sent after the reply said so
+        assert store.max_seq(DEVICE) == 2 and len(agent.outbox) == 3
+        store.reinstate_device(DEVICE, by="token 1", note="not replaced after all")
+        assert wait_for(lambda: agent.sync() and not agent.retired)
+        assert wait_for(lambda: agent.sync() and store.contiguous_seq(DEVICE) == 5)
+        assert agent.drain()
+    finally:
+        agent.close()
