@@ -74,3 +74,10 @@ def member_name(text: str) -> str:
             f"{text!r} is not a member name: a letter or digit, then up to 63 letters, digits, '_', '.' or '-'"
         )
     return text
+
+
+def label_pair(text: str) -> str:
+    """NAME=VALUE, a device label (the service checks the rules: service/labels.py)."""
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE (a label, e.g. site=plant-3)")
+    return text

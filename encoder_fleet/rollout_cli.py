@@ -10,7 +10,7 @@ import urllib.parse
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
-from .argtypes import positive_float, positive_int
+from .argtypes import label_pair, positive_float, positive_int
 
 
 def parse_abort(text: str) -> dict:
@@ -81,6 +81,8 @@ def cmd_rollout(args) -> int:
         }
         if args.devices:
             spec["devices"] = args.devices.split(",")
+        if args.label:
+            spec["labels"] = dict(pair.split("=", 1) for pair in args.label)
         result = request(args, "POST", "/rollouts", spec)
     elif action == "list":
         result = request(args, "GET", "/rollouts")
@@ -107,7 +109,14 @@ def register(sub) -> None:
     q = rsub.add_parser("create", help="start a rollout: waves, soak and abort criteria")
     q.add_argument("--name", required=True, help="what the change is, for the audit trail")
     q.add_argument("--change", choices=["reset_to_factory", "refit"], required=True, help="what every drive gets")
-    q.add_argument("--devices", help="comma-separated device ids (default: every known device)")
+    q.add_argument("--devices", help="comma-separated device ids (default: every device in the fleet)")
+    q.add_argument(
+        "--label",
+        type=label_pair,
+        action="append",
+        metavar="NAME=VALUE",
+        help="instead of --devices: the drives carrying this label (repeatable: all of them)",
+    )
     q.add_argument("--base-per-minute", type=positive_int, required=True, help="devices in the first wave")
     q.add_argument("--increment-factor", type=positive_float, default=1.0, help="each wave this many times the last")
     q.add_argument("--soak-windows", type=positive_int, required=True, help="windows each drive runs before judging")

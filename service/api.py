@@ -22,6 +22,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from .auth import CONTROL_CHARACTERS, TokenAuth, authorize, require_admin, tokens
+from .labels import MAX_LABELS, NAME_RULE, VALUE_RULE, check_labels, parse_selectors
 from .mcap_export import iter_mcap
 from .monitor import device_state, device_states, fleet_health
 from .observability import health_checks, metrics_registry
@@ -79,6 +80,26 @@ def time_range(
 RangeDep = Annotated[TimeRange, Depends(time_range)]
 
 
+def label_selector(
+    label: Annotated[
+        list[str] | None,
+        Query(
+            description="NAME=VALUE: only devices that carry this label (PUT /devices/{id}/labels); "
+            "several: devices that carry them all."
+        ),
+    ] = None,
+) -> dict[str, str] | None:
+    try:
+        return parse_selectors(label) or None
+    except ValueError as exc:  # the same shape as every other 422
+        raise RequestValidationError(
+            [{"type": "value_error", "loc": ("query", "label"), "msg": str(exc), "input": label}]
+        ) from None
+
+
+LabelsDep = Annotated[dict[str, str] | None, Depends(label_selector)]
+
+
 # --- response models (for the OpenAPI docs; wire messages stay plain JSON objects) -------------
 
 
@@ -106,6 +127,21 @@ class Device(BaseModel):
     retired: Retired | None = Field(
         None, description="Taken out of the fleet (POST /devices/{id}/retire): who, when, why; null while in the fleet."
     )
+    labels: dict[str, str] = Field(default_factory=dict, description="NAME: VALUE, as PUT /devices/{id}/labels set.")
+
+
+class DeviceLabels(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    labels: dict[str, str] = Field(
+        description=f"Every label of the device (replacing those it had; {{}} removes them): at most {MAX_LABELS}, "
+        f"names {NAME_RULE}, values {VALUE_RULE}.",
+        examples=[{"site": "plant-3", "line": "7"}],
+    )
+
+    @field_validator("labels")
+    @classmethod
+    def by_the_rules(cls, labels: dict[str, str]) -> dict[str, str]:
+        return check_labels(labels)
 
 
 class Retirement(BaseModel):
@@ -319,10 +355,11 @@ def list_devices(
         str | None,
         Query(max_length=64, description="Only devices of a higher id: the last id of the page before."),
     ] = None,
+    labels: LabelsDep = None,
 ):
     # paged by id in the body's own shape (a list, as the fleet page and older clients read it): the next page is
     # named in a Link header, and a device seen meanwhile lands on whichever page its id falls in, moving no other
-    found = store.devices(after=after, limit=None if limit is None else limit + 1)
+    found = store.devices(after=after, limit=None if limit is None else limit + 1, labels=labels)
     if limit is not None and len(found) > limit:
         found = found[:limit]
         url = request.url.include_query_params(limit=limit, after=found[-1]["id"])
@@ -346,6 +383,23 @@ def _retirement_change(change: Callable, device_id: str, body: OperatorNote, sto
         raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}") from None
     except StoreError as e:
         raise HTTPException(status_code=409, detail=str(e)) from None
+    state = device_state(store, device_id, *_monitor_view(request))
+    return {**device, "state": state, "retirements": store.retirements(device_id)}
+
+
+@devices.put(
+    "/{device_id}/labels",
+    response_model=DeviceDetail,
+    responses=_UNKNOWN_DEVICE,
+    summary="Set a device's labels (admin): site, line, axis…, by which devices are listed and rolled out to",
+)
+def set_device_labels(device_id: str, body: DeviceLabels, store: StoreDep, request: Request):
+    require_admin(request)
+    try:
+        store.set_labels(device_id, body.labels)
+    except KeyError:
+        raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}") from None
+    device = store.device(device_id)
     state = device_state(store, device_id, *_monitor_view(request))
     return {**device, "state": state, "retirements": store.retirements(device_id)}
 
@@ -462,8 +516,8 @@ def ack_alarm(
 
 
 @alarms.get("/fleet/health", response_model=FleetHealth, summary="Devices per state and open alarms per cause")
-def get_fleet_health(store: StoreDep, request: Request):
-    return fleet_health(store, *_monitor_view(request))
+def get_fleet_health(store: StoreDep, request: Request, labels: LabelsDep = None):
+    return fleet_health(store, *_monitor_view(request), labels=labels)
 
 
 @devices.get(

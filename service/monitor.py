@@ -357,15 +357,23 @@ def _stored_states(store: Store, ids: list[str]) -> dict[str, str]:
     return out
 
 
-def fleet_health(store: Store, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None) -> dict:
-    """Devices per state, open alarms per cause, and the drives online but silent (SILENT_S)."""
+def fleet_health(
+    store: Store,
+    monitor: Monitor | None = None,
+    serves: Callable[[str], bool] | None = None,
+    *,
+    labels: dict[str, str] | None = None,
+) -> dict:
+    """Devices per state, open alarms per cause, and the drives online but silent (SILENT_S); labels: of the devices
+    that carry all of them only (a site, a line)."""
     counts = dict.fromkeys(STATES, 0)
-    for state in device_states(store, monitor, serves).values():
+    ids = None if labels is None else store.device_ids(labels=labels)
+    for state in device_states(store, monitor, serves, ids=ids).values():
         counts[state] += 1
-    silent = store.silent_devices(SILENT_S)
+    silent = store.silent_devices(SILENT_S, labels=labels)
     return {
         "devices": counts,
-        "open_alarms": store.open_alarm_counts(),
+        "open_alarms": store.open_alarm_counts(labels=labels),
         "silent": len(silent),
         "silent_devices": silent[:SILENT_LISTED],
     }

@@ -42,10 +42,11 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator, model_validator
 
 from fleet_wire import keys
 
+from .labels import check_labels
 from .store import NothingWritten
 
 if TYPE_CHECKING:
@@ -88,13 +89,35 @@ class RolloutSpec(BaseModel):
     name: str = Field(min_length=1, max_length=200)
     change: Change
     devices: list[DeviceId] | None = Field(
-        None, min_length=1, max_length=1_000_000, description="Known devices to include; all known if left out."
+        None,
+        min_length=1,
+        max_length=1_000_000,
+        description="Known devices to include; left out, every device in the fleet (or those `labels` select).",
+    )
+    labels: dict[str, str] | None = Field(
+        None,
+        description="Instead of `devices`: every device in the fleet that carries all these labels "
+        "(PUT /devices/{id}/labels), as they are when the rollout is created.",
+        examples=[{"site": "plant-3"}],
     )
     base_per_minute: int = Field(ge=1, le=1_000_000, description="Devices in the first wave.")
     increment_factor: float = Field(1.0, ge=1.0, le=10.0, description="Each wave is this many times the last.")
     soak_windows: int = Field(ge=1, le=100_000, description="Windows a drive runs on the new set before judging.")
     timeout_s: float = Field(3600.0, gt=0, le=30 * 86400, description="Service seconds a device has to soak.")
     abort_criteria: list[AbortCriterion] = Field(default_factory=list, max_length=10)
+
+    @field_validator("labels")
+    @classmethod
+    def by_the_rules(cls, labels: dict[str, str] | None) -> dict[str, str] | None:
+        if labels is not None and not labels:
+            raise ValueError("select by at least one label, or leave `labels` out")
+        return labels if labels is None else check_labels(labels)
+
+    @model_validator(mode="after")
+    def devices_or_labels(self) -> RolloutSpec:
+        if self.devices is not None and self.labels is not None:
+            raise ValueError("name the devices or select them by labels, not both")
+        return self
 
 
 # a rollout's parts in one page of GET /rollouts/{id}: 100,000 of them (waves of 100) made 13.9 MB, 0.8 s a read
@@ -153,12 +176,17 @@ class Rollouts:
             known = self.store.device_ids()  # not devices(): it counts every device's windows
             retired = self.store.retired_device_ids()
             in_fleet = [d for d in known if d not in retired]
+            if spec.labels is not None:
+                in_fleet = self.store.device_ids(in_fleet=True, labels=spec.labels)
             devices = in_fleet if spec.devices is None else list(dict.fromkeys(spec.devices))
             for what, names in (("unknown", set(devices) - set(known)), ("retired", set(devices) & retired)):
                 if names:
                     names = sorted(names)
                     more = f" and {len(names) - 10} more" if len(names) > 10 else ""
                     raise RolloutError(422, f"{what} devices: {', '.join(names[:10])}{more}", ("body", "devices"))
+            if not devices and spec.labels is not None:
+                selected = ", ".join(f"{k}={v}" for k, v in spec.labels.items())
+                raise RolloutError(422, f"no device in the fleet carries {selected}", ("body", "labels"))
             if not devices:
                 raise RolloutError(422, "no devices to roll out to: the fleet has none yet", ("body", "devices"))
             now = self.clock()

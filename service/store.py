@@ -1184,19 +1184,59 @@ class Store:
             return f"database error: {exc}"
         return "ok"
 
-    def silent_devices(self, silent_s: float, *, limit: int | None = None, now: float | None = None) -> list[str]:
+    def silent_devices(
+        self, silent_s: float, *, limit: int | None = None, now: float | None = None, labels: dict | None = None
+    ) -> list[str]:
         """Devices online (their agent's liveliness token up) that sent nothing stored for `silent_s` (service clock):
         an agent that runs but whose windows cannot be made or are all refused (a thermistor broken for good, a
-        sensor gone, a clock the service refuses), which no alarm sees, the drift monitor having no window."""
+        sensor gone, a clock the service refuses), which no alarm sees, the drift monitor having no window.
+        labels: only devices that carry all of them."""
         now = time.time() if now is None else now
+        labelled, label_args = self._labelled("d.id", labels)
         # a drive whose windows are longer than a third of silent_s is silent only past three of them (its newest's)
         rows = self._rows(
             "SELECT d.id FROM devices d WHERE d.online = 1 AND d.last_seen < ? AND d.last_seen < ? - 3 * coalesce("
             "(SELECT w.window_end - w.window_start FROM windows w WHERE w.device = d.id ORDER BY w.seq DESC LIMIT 1), "
-            f"0) AND {self._IN_FLEET.format('d.id')} ORDER BY d.id LIMIT ?",
-            (now - silent_s, now, 2**62 if limit is None else limit),
+            f"0) AND {self._IN_FLEET.format('d.id')}{labelled} ORDER BY d.id LIMIT ?",
+            (now - silent_s, now, *label_args, 2**62 if limit is None else limit),
         )
         return [r["id"] for r in rows]
+
+    @staticmethod
+    def _labelled(column: str, labels: dict | None) -> tuple[str, list]:
+        """SQL (" AND ...") and its arguments that keep the devices in `column` carrying every one of `labels`."""
+        clause = " AND EXISTS (SELECT 1 FROM device_labels l WHERE l.device = {} AND l.name = ? AND l.value = ?)"
+        args = [part for item in (labels or {}).items() for part in item]
+        return "".join(clause.format(column) for _ in labels or ()), args
+
+    def set_labels(self, device: str, labels: dict[str, str]) -> dict[str, str]:
+        """Replace the device's labels (checked by service.labels.check_labels first); KeyError: no such device."""
+        with self._tx() as c:
+            known = c.execute("SELECT 1 FROM devices WHERE id = ?", (device,)).fetchone() is not None
+            if known:
+                c.execute("DELETE FROM device_labels WHERE device = ?", (device,))
+                c.executemany(
+                    "INSERT INTO device_labels (device, name, value) VALUES (?, ?, ?)",
+                    [(device, name, value) for name, value in sorted(labels.items())],
+                )
+        if not known:
+            raise KeyError(f"no device {device}")
+        return self.labels_of([device])[device]
+
+    def labels_of(self, ids: list[str] | None = None) -> dict[str, dict[str, str]]:
+        """device -> its labels (every device of `ids`, {} for one without; ids None: every labelled device)."""
+        if ids is not None and len(ids) <= 500:
+            marks = ", ".join("?" * len(ids))
+            rows = (
+                self._rows(f"SELECT * FROM device_labels WHERE device IN ({marks}) ORDER BY name", ids) if ids else []
+            )
+        else:  # a long page or the whole fleet: one read of every label (a few per device), not an IN of thousands
+            rows = self._rows("SELECT * FROM device_labels ORDER BY name")
+        out: dict[str, dict[str, str]] = {} if ids is None else {d: {} for d in ids}
+        for r in rows:
+            if ids is None or r["device"] in out:
+                out.setdefault(r["device"], {})[r["name"]] = r["value"]
+        return out
 
     def device_counts(self) -> dict[str, int]:
         """Devices by liveliness state, the retired apart: {'online': n, 'offline': m, 'retired': k}."""
@@ -1209,22 +1249,28 @@ class Store:
             counts["retired" if r["state"] == -1 else "online" if r["state"] else "offline"] += r["n"]
         return counts
 
-    def devices(self, *, after: str | None = None, limit: int | None = None) -> list[dict]:
-        """Devices by id; after: only those of a higher id (the next page's); limit None: every one."""
-        where, args = ("", ()) if after is None else (" WHERE d.id > ?", (after,))
+    def devices(self, *, after: str | None = None, limit: int | None = None, labels: dict | None = None) -> list[dict]:
+        """Devices by id, each with its labels; after: only those of a higher id (the next page's); limit None: every
+        one; labels: only those that carry all of them."""
+        where, args = ("d.id > ?", [after]) if after is not None else ("1 = 1", [])
+        labelled, label_args = self._labelled("d.id", labels)
         bound = 2**62 if limit is None else limit  # no bound: SQLite reads -1 so, PostgreSQL does not
-        return [
-            self._device_row(r) for r in self._rows(self._DEVICE_SQL + where + " ORDER BY d.id LIMIT ?", (*args, bound))
-        ]
+        rows = self._rows(
+            f"{self._DEVICE_SQL} WHERE {where}{labelled} ORDER BY d.id LIMIT ?", (*args, *label_args, bound)
+        )
+        found = [self._device_row(r) for r in rows]
+        labels_of = self.labels_of([d["id"] for d in found])
+        return [{**d, "labels": labels_of[d["id"]]} for d in found]
 
     def online_device_ids(self) -> list[str]:
         """The devices marked online (their liveliness token last seen coming), without the devices' window counts."""
         return [r["id"] for r in self._rows("SELECT id FROM devices WHERE online = 1 ORDER BY id")]
 
-    def device_ids(self, *, in_fleet: bool = False) -> list[str]:
-        """Every device's id; in_fleet: the retired left out."""
-        where = f" WHERE {self._IN_FLEET.format('devices.id')}" if in_fleet else ""
-        return [r["id"] for r in self._rows(f"SELECT id FROM devices{where} ORDER BY id")]
+    def device_ids(self, *, in_fleet: bool = False, labels: dict | None = None) -> list[str]:
+        """Every device's id; in_fleet: the retired left out; labels: only those that carry all of them."""
+        where = f" AND {self._IN_FLEET.format('devices.id')}" if in_fleet else ""
+        labelled, args = self._labelled("devices.id", labels)
+        return [r["id"] for r in self._rows(f"SELECT id FROM devices WHERE 1 = 1{where}{labelled} ORDER BY id", args)]
 
     def retired_device_ids(self) -> set[str]:
         return {r["device"] for r in self._rows("SELECT device FROM device_retirements WHERE reinstated_at IS NULL")}
@@ -1300,7 +1346,7 @@ class Store:
 
     def device(self, device: str) -> dict | None:
         rows = self._rows(self._DEVICE_SQL + " WHERE d.id = ?", (device,))
-        return self._device_row(rows[0]) if rows else None
+        return {**self._device_row(rows[0]), "labels": self.labels_of([device])[device]} if rows else None
 
     def contiguous_seq(self, device: str, *, start: int = 0) -> int:
         """Highest seq with every window from 1 up to it stored or gone (below the seq floor the agent named:
@@ -1648,8 +1694,9 @@ class Store:
             raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
         return self.alarms(ids=[alarm_id])[0]
 
-    def open_alarm_counts(self, *, unacked: bool = False) -> dict[str, int]:
-        """Open alarms per cause, fleet-wide; unacked: only those nobody acknowledged."""
+    def open_alarm_counts(self, *, unacked: bool = False, labels: dict | None = None) -> dict[str, int]:
+        """Open alarms per cause, fleet-wide; unacked: only those nobody acknowledged; labels: only those of devices
+        that carry all of them."""
         # a retired drive's alarms stay (its history), and leave the fleet's counts, which the alerting rules watch
         where = (
             "cleared_at IS NULL"
@@ -1657,7 +1704,8 @@ class Store:
             + " AND "
             + self._IN_FLEET.format("alarms.device")
         )
-        return {
-            r["cause"]: r["n"]
-            for r in self._rows(f"SELECT cause, count(*) AS n FROM alarms WHERE {where} GROUP BY cause ORDER BY cause")
-        }
+        labelled, args = self._labelled("alarms.device", labels)
+        rows = self._rows(
+            f"SELECT cause, count(*) AS n FROM alarms WHERE {where}{labelled} GROUP BY cause ORDER BY cause", args
+        )
+        return {r["cause"]: r["n"] for r in rows}

@@ -67,6 +67,7 @@ def test_devices(client, history):
         "windows": 5,
         "state": "unknown",  # no window monitored yet
         "retired": None,
+        "labels": {},
     }
     assert client.get(f"/devices/{DEVICE}").json() == {**d, "retirements": []}
 

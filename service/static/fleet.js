@@ -55,6 +55,7 @@ async function showFleet() {
     cell(row, d.windows);
     cell(row, d.current_version === null ? "–" : `v${d.current_version}`);
     cell(row, new Date(d.last_seen * 1000).toLocaleString());
+    cell(row, Object.entries(d.labels || {}).map(([k, v]) => `${k}=${v}`).join(" "));  // PUT /devices/{id}/labels
     row.addEventListener("click", () => showDevice(d.id));
   }
   await showOpenAlarms();

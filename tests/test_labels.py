@@ -1,0 +1,166 @@
+"""Device labels (site, line, axis): set by an operator, the fleet read and rolled out to by them. Real stores
+(SQLite, PostgreSQL), the real REST app, the command in its own process."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from wire_samples import window
+
+from service.api import create_app
+from service.auth import TokenAuth
+from service.rollout import RolloutError, Rollouts, RolloutSpec
+from service.store import Store
+
+RESET = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 10, "soak_windows": 5}
+SITES = {"drive-001": "plant-3", "drive-002": "plant-3", "drive-003": "plant-7", "drive-004": None}
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def store(request, tmp_path):
+    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    with Store.open(target) as s:
+        yield s
+
+
+def four_drives(store) -> None:
+    """Two drives at plant-3 (one on line 1, offline with an offline alarm), one at plant-7, one unlabelled."""
+    for name, site in SITES.items():
+        store.insert_window(window(name, 1))
+        if site is not None:
+            store.set_labels(name, {"site": site, **({"line": "1"} if name == "drive-002" else {})})
+    store.save_monitor(
+        "drive-002",
+        {},
+        0,
+        [{"kind": "raise", "cause": "offline", "at": 60.0, "parameters": {"since": 60.0}, "evidence": "x"}],
+    )
+
+
+def test_labels_select_devices_alarms_and_silent_drives(store):
+    four_drives(store)
+    assert store.device("drive-002")["labels"] == {"line": "1", "site": "plant-3"}
+    assert store.device("drive-004")["labels"] == {}
+    assert store.device_ids(labels={"site": "plant-3"}) == ["drive-001", "drive-002"]
+    assert store.device_ids(labels={"site": "plant-3", "line": "1"}) == ["drive-002"]
+    assert store.device_ids(labels={"site": "plant-9"}) == []
+    assert [d["id"] for d in store.devices(labels={"site": "plant-7"})] == ["drive-003"]
+    assert [d["id"] for d in store.devices(after="drive-001", limit=1, labels={"site": "plant-3"})] == ["drive-002"]
+    assert store.open_alarm_counts(labels={"site": "plant-3"}) == {"offline": 1}
+    assert store.open_alarm_counts(labels={"site": "plant-7"}) == {}
+    store.set_online("drive-003", True)
+    later = time.time() + 86400.0
+    assert store.silent_devices(1800.0, now=later, labels={"site": "plant-7"}) == ["drive-003"]
+    assert store.silent_devices(1800.0, now=later, labels={"site": "plant-3"}) == []
+    # replaced whole: a label left out is gone
+    assert store.set_labels("drive-002", {"site": "plant-7"}) == {"site": "plant-7"}
+    assert store.device_ids(labels={"line": "1"}) == []
+    with pytest.raises(KeyError):
+        store.set_labels("drive-999", {"site": "plant-3"})
+    assert len(store.labels_of(None)) == 3  # every labelled device, read at once for a long page
+
+
+def test_a_long_page_reads_every_label_at_once_and_keeps_each_devices_own(store):
+    names = [f"drive-{i:04d}" for i in range(600)]  # past the IN list's 500
+    for i, name in enumerate(names):
+        store.insert_window(window(name, 1))
+        if i % 2:
+            store.set_labels(name, {"site": f"plant-{i % 5}"})
+    found = store.devices()
+    assert len(found) == 600
+    assert all(d["labels"] == ({"site": f"plant-{i % 5}"} if i % 2 else {}) for i, d in enumerate(found))
+
+
+def test_an_operator_labels_drives_and_reads_a_site_over_rest(store):
+    four_drives(store)
+    auth = TokenAuth(store)
+    _, admin = auth.create("admin", "ops desk")
+    _, reader = auth.create("read", "wallboard")
+    as_admin, as_reader = {"Authorization": f"Bearer {admin}"}, {"Authorization": f"Bearer {reader}"}
+    with TestClient(create_app(store, auth=auth)) as api:
+        body = {"labels": {"site": "plant-7", "axis": "z"}}
+        assert api.put("/devices/drive-004/labels", json=body, headers=as_reader).status_code == 403
+        for bad in (
+            {"labels": {"Site": "plant-7"}},  # a name is lower case
+            {"labels": {"site": "a=b"}},  # a value has no "=" (a selector is NAME=VALUE)
+            {"labels": {"site": " plant"}},
+            {"labels": {"site": "line\nbreak"}},
+            {"labels": {"site": ""}},
+            {"labels": {"site": "x" * 65}},
+            {"labels": {f"l{i}": "x" for i in range(17)}},
+            {"labels": {"site": 3}},
+            {"labels": ["site"]},
+            {"site": "plant-7"},
+        ):
+            refused = api.put("/devices/drive-004/labels", json=bad, headers=as_admin)
+            assert refused.status_code == 422, (bad, refused.text)
+        assert store.device("drive-004")["labels"] == {}  # no refusal changed anything
+        assert api.put("/devices/drive-999/labels", json=body, headers=as_admin).status_code == 404
+        done = api.put("/devices/drive-004/labels", json=body, headers=as_admin)
+        assert done.status_code == 200 and done.json()["labels"] == {"axis": "z", "site": "plant-7"}
+
+        listed = api.get("/devices", params={"label": "site=plant-7"}, headers=as_reader).json()
+        assert [(d["id"], d["labels"]["site"]) for d in listed] == [("drive-003", "plant-7"), ("drive-004", "plant-7")]
+        both = api.get("/devices", params=[("label", "site=plant-3"), ("label", "line=1")], headers=as_reader)
+        assert [d["id"] for d in both.json()] == ["drive-002"]
+        paged = api.get("/devices", params={"label": "site=plant-7", "limit": 1}, headers=as_reader)
+        assert [d["id"] for d in paged.json()] == ["drive-003"] and "label=site%3Dplant-7" in paged.headers["link"]
+        for params in ({"label": "site"}, {"label": "Site=x"}, [("label", "site=a"), ("label", "site=b")]):
+            refused = api.get("/devices", params=params, headers=as_reader)
+            assert refused.status_code == 422 and refused.json()["detail"][0]["loc"] == ["query", "label"], params
+        site = api.get("/fleet/health", params={"label": "site=plant-3"}, headers=as_reader).json()
+        assert sum(site["devices"].values()) == 2 and site["open_alarms"] == {"offline": 1}
+        other = api.get("/fleet/health", params={"label": "site=plant-7"}, headers=as_reader).json()
+        assert sum(other["devices"].values()) == 2 and other["open_alarms"] == {}
+        fleet = api.get("/fleet/health", headers=as_reader).json()
+        assert sum(fleet["devices"].values()) == 4
+
+
+def test_a_rollout_takes_the_drives_that_carry_its_labels(store):
+    four_drives(store)
+    store.retire_device("drive-001", by="token 1", note="replaced")
+    rollouts = Rollouts(store)
+    with pytest.raises(RolloutError, match="carries site=plant-9"):
+        rollouts.create(RolloutSpec(name="nowhere", labels={"site": "plant-9"}, **RESET))
+    for bad in ({"labels": {}}, {"labels": {"site": "plant-3"}, "devices": ["drive-002"]}, {"labels": {"S": "x"}}):
+        with pytest.raises(ValueError):
+            RolloutSpec(name="bad", **bad, **RESET)
+    rollout = rollouts.create(RolloutSpec(name="plant 3 only", labels={"site": "plant-3"}, **RESET))
+    assert [d["device"] for d in rollouts.get(rollout)["devices"]] == ["drive-002"]  # drive-001 is retired
+
+
+def test_the_devices_command_labels_and_lists_a_site(tmp_path):
+    from fleet_wire.session import free_port
+    from service.runtime import HttpServer
+
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        four_drives(store)
+        auth = TokenAuth(store)
+        admin, reader = tmp_path / "admin-token", tmp_path / "read-token"
+        admin.write_text(auth.create("admin", "night shift")[1])
+        reader.write_text(auth.create("read")[1])
+        port = free_port()
+        http = HttpServer(store, port, auth=auth).start()
+
+        def devices(*args, token=admin):
+            cmd = [sys.executable, "-m", "encoder_fleet.cli", "devices", *args, "--url", f"http://127.0.0.1:{port}"]
+            return subprocess.run([*cmd, "--token-file", str(token)], capture_output=True, text=True, timeout=60)
+
+        try:
+            done = devices("label", "drive-004", "site=plant-7", "line=2")
+            assert done.returncode == 0 and "labels line=2 site=plant-7" in done.stdout, done.stderr
+            refused = devices("label", "drive-004", "site=a,b")
+            assert refused.returncode == 2 and "422" in refused.stderr and len(refused.stderr.splitlines()) == 1
+            assert devices("label", "drive-004", "site").returncode == 2  # not NAME=VALUE: argparse's one line
+            listed = devices("list", "--label", "site=plant-7", token=reader)
+            assert listed.returncode == 0, listed.stderr
+            assert [line.split()[0] for line in listed.stdout.splitlines()] == ["drive-003", "drive-004"]
+            assert "line=2 site=plant-7" in listed.stdout.splitlines()[1]
+            none = devices("list", "--label", "site=plant-9", token=reader)
+            assert none.returncode == 0 and none.stdout.strip() == "no devices"
+            cleared = devices("label", "drive-004")
+            assert cleared.returncode == 0 and "labels" not in cleared.stdout
+        finally:
+            http.stop()
