@@ -20,6 +20,8 @@ before it has soaked; an error threshold stops the rollout).
   is final (a later 'applied' is answered by the rollback's set, delivered again while the drive's windows show an
   older one). No soak within `timeout_s` -> timed_out and rolled back (never worse: an unproven change does not
   stay).
+- A drive retired since the rollout was made (Store.retire_device: what it sends is not stored) gets no set of it
+  when its wave starts (unchanged), and one retired mid-soak is rolled back at once, unjudged: neither is counted.
 - Abort criteria count outcomes decided since the rollout started or a criterion last paused it (executed: the parts
   a set of the rollout went out to; not `unchanged`, `offline`, or a part that never started, its trial unjudged):
   the outcomes decided while it is paused (its soaks are still judged) count once it is resumed. A criterion that
@@ -358,9 +360,10 @@ class Rollouts:
         rollout, spec = r["id"], RolloutSpec.model_validate_json(r["spec_json"])
         now = self.clock()
         devices = self._devices(rollout)
+        retired = self.store.retired_device_ids()  # out of the fleet since the rollout was made (Store.retire_device)
         for d in devices:  # a paused rollout still decides its soaks: a regressed drive is rolled back at once
             if d["state"] == "in_progress":
-                self._decide(rollout, spec, d, now)
+                self._decide(rollout, spec, d, now, retired)
         if r["state"] == "paused":
             return
         devices = self._devices(rollout)
@@ -381,7 +384,7 @@ class Rollouts:
             wave_started_at = now if r["wave_started_at"] is None else r["wave_started_at"]
             for d in in_wave:
                 if d["state"] == "pending":
-                    self._start(rollout, spec, d["device"], now, wave_started_at)
+                    self._start(rollout, spec, d["device"], now, wave_started_at, retired)
             return
         if any(d["state"] not in OUTCOMES for d in in_wave):
             return  # the wave is soaking
@@ -394,12 +397,18 @@ class Rollouts:
             self._update(rollout, wave=wave + 1, wave_started_at=None)
             self._step_one(self.store._rows("SELECT * FROM rollouts WHERE id = ?", (rollout,))[0])
 
-    def _start(self, rollout: int, spec: RolloutSpec, device: str, now: float, wave_started_at: float) -> None:
+    def _start(
+        self, rollout: int, spec: RolloutSpec, device: str, now: float, wave_started_at: float, retired: set[str]
+    ) -> None:
         """Publish the change to one device, on trial. An offline device (no liveliness token) waits for its token,
         and a device with a set already on trial waits for that trial's verdict, timeout_s from the wave's start at
         most (a drive gone offline before it ran its trial set keeps that trial for good: the guard keeps no set on
-        no evidence, and the wave would never end)."""
+        no evidence, and the wave would never end). A device retired since the rollout was made gets none."""
         store = self.store
+        if device in retired:
+            reason = "retired from the fleet before its wave: no set issued"
+            self._record(rollout, device, "unchanged", now, before=store.published_version(device), reason=reason)
+            return
         online = store._rows("SELECT online FROM devices WHERE id = ?", (device,))
         if not (online and online[0]["online"]):
             # no liveliness token: a set issued now would time out unsoaked and count as a failure of the change,
@@ -460,8 +469,13 @@ class Rollouts:
         except RolloutStopped as stopped:
             log.info("rollout set not issued: %s", stopped, extra={"rollout": rollout, "device": device})
 
-    def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float) -> None:
+    def _decide(self, rollout: int, spec: RolloutSpec, d: dict, now: float, retired: set[str]) -> None:
         device, version = d["device"], d["version"]
+        if device in retired:
+            # what it sends is not stored, so no soak comes: timed out, it counted as a failure of the change (and
+            # tripped aborts). Rolled back unjudged now, as an abort's wave: an unproven change does not stay
+            self._revert(rollout, d, "rolled_back", "retired from the fleet before its soak was judged", now)
+            return
         soaked = self.store._rows(
             "SELECT count(*) AS n FROM windows WHERE device = ? AND coefficients_version = ?", (device, version)
         )[0]["n"]
@@ -496,11 +510,15 @@ class Rollouts:
 
     def _tripped(self, spec: RolloutSpec, devices: list[dict], counted_from: float):
         # executed: a set of the rollout went out (its version recorded). A no-op is none: counted, 3 unchanged beside
-        # 1 regressed read as 25 % failed, not 100 %; nor a part that never started (offline, or its trial unjudged)
+        # 1 regressed read as 25 % failed, not 100 %; nor a part that never started (offline, or its trial unjudged),
+        # nor one rolled back unjudged (its drive retired mid-soak: it says nothing of the change)
         decided = [
             d
             for d in devices
-            if d["state"] in OUTCOMES and d["version"] is not None and d["decided_at"] >= counted_from
+            if d["state"] in OUTCOMES
+            and d["state"] != "rolled_back"
+            and d["version"] is not None
+            and d["decided_at"] >= counted_from
         ]
         executed = len(decided)
         for criterion in spec.abort_criteria:

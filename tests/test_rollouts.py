@@ -948,3 +948,63 @@ def test_a_cursor_the_service_never_gave_is_a_422_naming_after_not_a_500(backend
         assert first["devices_next"] == "0:drive-1"
         then = api.get("/rollouts/1", params={"limit": 2, "after": first["devices_next"]}).json()
         assert [d["device"] for d in then["devices"]] == ["drive-2", "drive-3"]
+
+
+def test_a_drive_retired_mid_rollout_is_no_failure_of_the_change_and_gets_no_set_of_it(fleet, clock):
+    """A drive retired while its part soaks sends nothing the store keeps: its part timed out unsoaked, counted as a
+    failure of the change (here 1 of 2 executed timed_out aborted the rollout and rolled back the drive it had
+    succeeded on). One retired before its wave got the change all the same. Now the soaking one is rolled back at
+    once, unjudged and not counted, and the later one's part ends unchanged with no set issued."""
+    store, service = fleet
+    for device in DEVICES[:4]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    soaking, later = DEVICES[0], DEVICES[2]
+    criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
+                    soak_windows=60, timeout_s=600.0, abort_criteria=criteria)
+    )  # fmt: skip
+    service.rollouts.step()
+    assert service.rollouts.holds(soaking)
+    for device in (soaking, later):
+        store.retire_device(device, by="token 1", note="replaced")
+    for _ in range(12):
+        for device in DEVICES[:4]:  # what a retired drive sends is not stored: it soaks nothing
+            if service.rollouts.holds(device) and device not in (soaking, later):
+                run_on(store, device, store.published_version(device))
+        clock.now += 61.0
+        service.rollouts.step()
+        if service.rollouts.get(1)["state"] != "running":
+            break
+    result = service.rollouts.get(1)
+    parts = {d["device"]: d for d in result["devices"]}
+    assert result["state"] == "completed", result
+    assert result["by_state"] == {"rolled_back": 1, "succeeded": 2, "unchanged": 1}, result
+    assert "retired" in parts[soaking]["reason"] and "retired" in parts[later]["reason"]
+    assert store.coefficient_set(soaking, store.published_version(soaking))["restores_version"] == 1
+    assert store.published_version(later) == 1 and store.next_version(later) == 2  # nothing issued to it
+    assert store.published_version(DEVICES[1]) == 2 and store.state_of(DEVICES[1], 2) == "confirmed"
+
+
+def test_a_part_rolled_back_for_its_drives_retirement_is_not_counted_as_executed(fleet, clock):
+    """Of a wave of two, one drive is retired mid-soak and the other refuses the reset: the change failed on every
+    drive it was judged on. Counted as executed, the retired one's part read as 1 rejected of 2 (50 %), under a 60 %
+    criterion, and the next wave started."""
+    store, service = fleet
+    for device in DEVICES[:4]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    criteria = [{"failure_type": "rejected", "threshold_percentage": 60, "min_executed": 1}]
+    service.rollouts.create(
+        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
+                    soak_windows=60, timeout_s=600.0, abort_criteria=criteria)
+    )  # fmt: skip
+    service.rollouts.step()
+    store.retire_device(DEVICES[0], by="token 1", note="replaced")
+    clock.now += 61.0
+    service.rollouts.step()
+    clock.now += 601.0  # the refusal comes after the retired drive's soak would have timed out
+    store.insert_ack(wire.ack_message(DEVICES[1], 2, "rejected", 99_999.0, reason="signature does not verify"))
+    service.rollouts.step()
+    result = service.rollouts.get(1)
+    assert result["by_state"] == {"pending": 2, "rejected": 1, "rolled_back": 1}, result
+    assert result["state"] == "aborted" and "1 of 1 executed rejected" in result["reason"], result
