@@ -2020,6 +2020,7 @@ class FleetRates:
     def __init__(self, settings: Settings | None = None):
         self.settings = settings or Settings()
         self.rates: dict[str, dict[str, float]] = {}
+        self.left_out: frozenset[str] = frozenset()  # devices out of the fleet (retired): kept, and no reference
         self._cache: dict = {}
         self._dirty = 0
 
@@ -2032,13 +2033,20 @@ class FleetRates:
             self._cache.clear()
             self._dirty = 0
 
+    def leave_out(self, devices) -> None:
+        """The devices whose rates the fleet's distribution leaves out (all others' count again)."""
+        devices = frozenset(devices)
+        if devices != self.left_out:
+            self.left_out = devices
+            self._cache.clear()
+
     def norm(self, kind: str, exclude: str | None = None) -> tuple[float, float]:
         """(median, robust sigma) of the fleet's rate of this kind, leaving `exclude` out; the prior while
         fewer than min_fleet other devices have a rate."""
         s = self.settings
         i = 0 if kind == "offset" else 1
         prior, prior_spread = s.prior_rate[i], s.prior_spread[i]
-        others = [r[kind] for d, r in self.rates.items() if d != exclude]
+        others = [r[kind] for d, r in self.rates.items() if d != exclude and d not in self.left_out]
         if len(others) < s.min_fleet:
             return prior, prior_spread
         # the distribution of a large fleet moves slowly: cache it. In a small one a device's own rate moves it (one

@@ -128,6 +128,12 @@ class Monitor:
 
     # --- feeding ------------------------------------------------------------------------------------
 
+    def leave_out(self, devices) -> None:
+        """Devices out of the fleet (retired): their rates, frozen when they left (often those of a drive replaced
+        for ageing), are no reference for the fleet's; a reinstated one's count again."""
+        with self._lock:
+            self.fleet.leave_out(devices)
+
     def process(self, device: str) -> list[dict]:
         """Feed the device's stored windows it has not seen yet; returns the alarms raised or cleared."""
         written = []

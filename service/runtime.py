@@ -716,6 +716,7 @@ class FleetService:
         """Feed every device with new windows to the monitor; returns the alarms raised or cleared."""
         with self._lock:
             changed, self._monitor_changed = sorted(self._monitor_changed), set()
+        self.monitor.leave_out(self.store.retired_device_ids())  # another member's retirements too
         n = 0
         for device in filter(self.partitions.serves, changed):
             self._store_first()

@@ -290,3 +290,23 @@ def test_the_mcap_export_logs_each_retirement_and_reinstatement(store, tmp_path)
         (2000 * 10**9, "retired from the fleet by token 1 (ops): replaced by drive-004"),
         (3000 * 10**9, "reinstated in the fleet by token 2 (night): mounted again"),
     ]
+
+
+def test_a_retired_drives_ageing_rates_leave_the_fleets_reference(fleet):
+    """The drift monitor judges a drive's ageing against the fleet's median rate. The drives replaced for ageing kept
+    their (frozen, high) rates in it for good: here four of them moved the median from 4 to 6, and a drive ageing at
+    5 read as slower than the fleet."""
+    store, service = fleet
+    rates = service.monitor.fleet
+    names = [f"drive-{i:03d}" for i in range(1, 11)]
+    for rate, name in enumerate(names, start=1):
+        store.insert_window(window(name, 1))
+        rates.report(name, {"offset": [1, 2, 3, 4, 5, 6, 40, 50, 60, 70][rate - 1], "amplitude": 0.0})
+    assert rates.norm("offset", exclude="drive-001")[0] == 6.0
+    for name in names[6:]:
+        store.retire_device(name, by="token 1", note="replaced: aged fast")
+    service.monitor_pass()
+    assert rates.norm("offset", exclude="drive-001")[0] == 4.0
+    store.reinstate_device(names[6], by="token 1", note="back in service")
+    service.monitor_pass()
+    assert rates.norm("offset", exclude="drive-001")[0] == 4.5
