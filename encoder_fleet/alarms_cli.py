@@ -32,6 +32,8 @@ def cmd_alarms(args) -> int:
             query["open"] = "true"
         if args.unacked:
             query["acked"] = "false"
+        if args.in_fleet:
+            query["in_fleet"] = "true"
         result = request(args, "GET", f"/alarms?{urllib.parse.urlencode(query)}")
         lines = [alarm_line(a) for a in result["alarms"]] or ["no alarms"]
         if result["truncated"]:
@@ -51,6 +53,7 @@ def register(sub) -> None:
     q.add_argument("--cause", choices=tuple(CAUSES), metavar="CAUSE", help=f"only this cause's: {', '.join(CAUSES)}")
     q.add_argument("--open", action="store_true", help="open alarms only")
     q.add_argument("--unacked", action="store_true", help="only those nobody acknowledged")
+    q.add_argument("--in-fleet", action="store_true", help="leave out retired drives' alarms (`devices retire`)")
     q.add_argument("--limit", type=positive_int, default=100, help="most alarms listed (default 100)")
     add_rest_options(q)
     q = asub.add_parser("ack", help="acknowledge an alarm (admin token): seen, and what will be done")

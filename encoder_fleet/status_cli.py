@@ -43,7 +43,11 @@ def cmd_status(args) -> int:
     print(f"open alarms: {open_alarms:,}" + (f" ({by_cause})" if by_cause else ""), file=out)
     unacked = status["unacknowledged"]
     if unacked["alarms"]:
-        more = " (the newest; `encoder-fleet alarms list --open --unacked` lists more)" if unacked["truncated"] else ""
+        more = (
+            " (the newest; `encoder-fleet alarms list --open --unacked --in-fleet` lists more)"
+            if unacked["truncated"]
+            else ""
+        )
         print(f"not acknowledged{more}:", file=out)
         for a in unacked["alarms"]:
             print("  " + alarm_line(a), file=out)

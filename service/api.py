@@ -236,7 +236,7 @@ class Health(BaseModel):
     state: str = Field(
         "unknown",
         description="Drift monitor: ok | watch (a detector half way to an alarm, or absurd windows lately) | "
-        "alarm | offline | unknown (no band judged yet).",
+        "alarm | offline | unknown (no band judged yet); retired for a drive out of the fleet.",
     )
     alarms: list[Alarm] = Field(default_factory=list, description="The device's open alarms, newest first.")
 

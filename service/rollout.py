@@ -190,7 +190,8 @@ class Rollouts:
                 selected = ", ".join(f"{k}={v}" for k, v in spec.labels.items())
                 raise RolloutError(422, f"no device in the fleet carries {selected}", ("body", "labels"))
             if not devices:
-                raise RolloutError(422, "no devices to roll out to: the fleet has none yet", ("body", "devices"))
+                why = "every device is retired" if known else "the fleet has none yet"
+                raise RolloutError(422, f"no devices to roll out to: {why}", ("body", "devices"))
             now = self.clock()
             sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
             waves = [wave for wave, size in enumerate(sizes) for _ in range(size)]

@@ -1298,6 +1298,7 @@ class Store:
 
     def _retirement(self, device: str, *, retire: bool, by: str, note: str, at: float | None) -> dict:
         at = time.time() if at is None else at
+        holder = None
         # refused after the transaction, not inside it: an error inside drops every band sum kept in memory
         with self._tx() as c:
             known = c.execute("SELECT 1 FROM devices WHERE id = ?", (device,)).fetchone() is not None
@@ -1309,20 +1310,26 @@ class Store:
                     "ON CONFLICT DO NOTHING",
                     (device, at, by, note),
                 ).rowcount
+                if not changed:  # who holds it, read here: reinstated after this transaction, it would be no one
+                    holder = c.execute(
+                        "SELECT retired_by, note FROM device_retirements WHERE device = ? AND reinstated_at IS NULL",
+                        (device,),
+                    ).fetchone()
             elif known:
                 changed = c.execute(
                     "UPDATE device_retirements SET reinstated_at = ?, reinstated_by = ?, reinstate_note = ? "
                     "WHERE device = ? AND reinstated_at IS NULL",
                     (at, by, note, device),
                 ).rowcount
+            if known and changed:  # this process's writer reads them again at its next batch, after this commit
+                self._retired_read_at = -math.inf
         if not known:
             raise KeyError(f"no device {device}")
+        if not changed and retire:
+            said = f" by {holder['retired_by']}: {holder['note']}" if holder is not None else ""
+            raise StoreError("already_retired", f"{device} was retired{said}")
         if not changed:
-            now = self.device(device)["retired"]
-            if retire:
-                raise StoreError("already_retired", f"{device} was retired by {now['by']}: {now['note']}")
             raise StoreError("not_retired", f"{device} is not retired")
-        self._retired_read_at = -math.inf  # this process's writer sees it at its next batch
         return self.device(device)
 
     def retirements(self, device: str) -> list[dict]:

@@ -310,3 +310,30 @@ def test_a_retired_drives_ageing_rates_leave_the_fleets_reference(fleet):
     store.reinstate_device(names[6], by="token 1", note="back in service")
     service.monitor_pass()
     assert rates.norm("offset", exclude="drive-001")[0] == 4.5
+
+
+def test_a_rollout_to_a_fleet_all_retired_says_so(store):
+    store.insert_window(window("drive-001", 1))
+    store.retire_device("drive-001", by="token 1", note="replaced")
+    with pytest.raises(RolloutError, match="every device is retired"):
+        Rollouts(store).create(RolloutSpec(name="everyone", **RESET))
+
+
+def test_the_alarms_command_leaves_retired_drives_out_when_asked(tmp_path):
+    from fleet_wire.session import free_port
+    from service.runtime import HttpServer
+
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        three_drives(store)
+        store.retire_device("drive-003", by="token 1", note="replaced")
+        port = free_port()
+        http = HttpServer(store, port).start()
+        try:
+            cmd = [sys.executable, "-m", "encoder_fleet.cli", "alarms", "list", "--url", f"http://127.0.0.1:{port}"]
+            every = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+            in_fleet = subprocess.run([*cmd, "--in-fleet"], capture_output=True, text=True, timeout=60)
+            assert every.returncode == 0 and in_fleet.returncode == 0, every.stderr + in_fleet.stderr
+            assert [line.split()[1] for line in every.stdout.splitlines()] == ["drive-003", "drive-002"]
+            assert [line.split()[1] for line in in_fleet.stdout.splitlines()] == ["drive-002"]
+        finally:
+            http.stop()
