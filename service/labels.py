@@ -7,9 +7,10 @@ from __future__ import annotations
 import re
 
 MAX_LABELS = 16  # per device
-NAME_RE = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+# both used with fullmatch: match() and "$" let a name or value end in a newline (a second line in `devices list`)
+NAME_RE = re.compile(r"[a-z][a-z0-9_-]{0,31}")
 # one line of text an operator reads, with no "=" (a selector is NAME=VALUE) nor "," (a list of them); spaces inside
-VALUE_RE = re.compile(r"^[^\x00-\x1f\x7f-\x9f=, ](?:[^\x00-\x1f\x7f-\x9f=,]{0,62}[^\x00-\x1f\x7f-\x9f=, ])?$")
+VALUE_RE = re.compile(r"[^\x00-\x1f\x7f-\x9f=, ](?:[^\x00-\x1f\x7f-\x9f=,]{0,62}[^\x00-\x1f\x7f-\x9f=, ])?")
 NAME_RULE = "a lower-case letter, then up to 31 lower-case letters, digits, '_' or '-'"
 VALUE_RULE = "1 to 64 characters of one line, no '=' or ',', not beginning or ending with a space"
 
@@ -19,9 +20,9 @@ def check_labels(labels: dict[str, str]) -> dict[str, str]:
     if len(labels) > MAX_LABELS:
         raise ValueError(f"at most {MAX_LABELS} labels a device, not {len(labels)}")
     for name, value in labels.items():
-        if not isinstance(name, str) or not NAME_RE.match(name):
+        if not isinstance(name, str) or not NAME_RE.fullmatch(name):
             raise ValueError(f"label name {name!r}: {NAME_RULE}")
-        if not isinstance(value, str) or not VALUE_RE.match(value):
+        if not isinstance(value, str) or not VALUE_RE.fullmatch(value):
             raise ValueError(f"label {name}={value!r}: a value is {VALUE_RULE}")
     return labels
 

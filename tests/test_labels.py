@@ -11,6 +11,7 @@ from wire_samples import window
 
 from service.api import create_app
 from service.auth import TokenAuth
+from service.labels import check_labels, parse_selectors
 from service.rollout import RolloutError, Rollouts, RolloutSpec
 from service.store import Store
 
@@ -62,6 +63,30 @@ def test_labels_select_devices_alarms_and_silent_drives(store):
     assert len(store.labels_of(None)) == 3  # every labelled device, read at once for a long page
 
 
+@pytest.mark.parametrize(
+    "value, ok",
+    [
+        ("7", True),  # one character
+        ("hall B, bay 4", False),
+        ("hall B bay 4", True),  # spaces inside
+        ("Zürich-Süd", True),
+        ("🏭" * 64, True),  # 64 characters, not bytes
+        ("x" * 64 + "\n", False),  # "$" matched before a trailing newline: a second line in `devices list`
+        ("plant-3\r", False),
+    ],
+)
+def test_the_label_rules_at_their_edges(value, ok):
+    if ok:
+        assert check_labels({"site": value}) == {"site": value}
+        assert parse_selectors([f"site={value}"]) == {"site": value}
+    else:
+        for bad in (lambda: check_labels({"site": value}), lambda: parse_selectors([f"site={value}"])):
+            with pytest.raises(ValueError):
+                bad()
+    with pytest.raises(ValueError):
+        check_labels({"site\n": "x"})
+
+
 def test_a_long_page_reads_every_label_at_once_and_keeps_each_devices_own(store):
     names = [f"drive-{i:04d}" for i in range(600)]  # past the IN list's 500
     for i, name in enumerate(names):
@@ -87,6 +112,8 @@ def test_an_operator_labels_drives_and_reads_a_site_over_rest(store):
             {"labels": {"site": "a=b"}},  # a value has no "=" (a selector is NAME=VALUE)
             {"labels": {"site": " plant"}},
             {"labels": {"site": "line\nbreak"}},
+            {"labels": {"site": "plant-7\n"}},  # a trailing newline too ("$" matched before it)
+            {"labels": {"site\n": "plant-7"}},
             {"labels": {"site": ""}},
             {"labels": {"site": "x" * 65}},
             {"labels": {f"l{i}": "x" for i in range(17)}},
@@ -107,7 +134,12 @@ def test_an_operator_labels_drives_and_reads_a_site_over_rest(store):
         assert [d["id"] for d in both.json()] == ["drive-002"]
         paged = api.get("/devices", params={"label": "site=plant-7", "limit": 1}, headers=as_reader)
         assert [d["id"] for d in paged.json()] == ["drive-003"] and "label=site%3Dplant-7" in paged.headers["link"]
-        for params in ({"label": "site"}, {"label": "Site=x"}, [("label", "site=a"), ("label", "site=b")]):
+        for params in (
+            {"label": "site"},
+            {"label": "Site=x"},
+            {"label": "site=plant-7\n"},
+            [("label", "site=a"), ("label", "site=b")],
+        ):
             refused = api.get("/devices", params=params, headers=as_reader)
             assert refused.status_code == 422 and refused.json()["detail"][0]["loc"] == ["query", "label"], params
         site = api.get("/fleet/health", params={"label": "site=plant-3"}, headers=as_reader).json()
