@@ -1212,7 +1212,9 @@ class Store:
     def set_labels(self, device: str, labels: dict[str, str]) -> dict[str, str]:
         """Replace the device's labels (checked by service.labels.check_labels first); KeyError: no such device."""
         with self._tx() as c:
-            known = c.execute("SELECT 1 FROM devices WHERE id = ?", (device,)).fetchone() is not None
+            # the device's row locked to the transaction's end: a PUT at once on another cluster member waits, then
+            # replaces these whole (the two deletes found nothing to wait for, and the second insert failed on the key)
+            known = c.execute("UPDATE devices SET first_seen = first_seen WHERE id = ?", (device,)).rowcount > 0
             if known:
                 c.execute("DELETE FROM device_labels WHERE device = ?", (device,))
                 c.executemany(

@@ -98,6 +98,45 @@ def test_a_long_page_reads_every_label_at_once_and_keeps_each_devices_own(store)
     assert all(d["labels"] == ({"site": f"plant-{i % 5}"} if i % 2 else {}) for i, d in enumerate(found))
 
 
+def test_two_members_labelling_one_drive_at_once_on_postgresql_leave_the_later_labels_whole(postgres_url):
+    """Two PUT /devices/{id}/labels at once on two cluster members: the second waits for the first and replaces its
+    labels whole. Before, both deletes found nothing to wait for and the second insert failed on the primary key: a
+    500, and the operator's labels were not set."""
+    import threading
+
+    import psycopg
+
+    with Store.open(postgres_url) as first, Store.open(postgres_url) as second:
+        first.insert_window(window("drive-001", 1))
+        outcome = {}
+
+        def label_meanwhile():
+            try:
+                outcome["labels"] = second.set_labels("drive-001", {"site": "plant-7"})
+            except Exception as exc:  # what REST answered with a 500
+                outcome["failed"] = exc
+
+        with psycopg.connect(postgres_url, autocommit=True) as watch:
+            with first._tx():  # the first member's labels, not committed yet
+                first.set_labels("drive-001", {"site": "plant-3", "line": "1"})
+                racer = threading.Thread(target=label_meanwhile)
+                racer.start()
+                deadline = time.monotonic() + 10
+                while time.monotonic() < deadline:  # until the second waits on the first
+                    waiting = (
+                        "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock' "
+                        "AND datname = current_database()"
+                    )
+                    if watch.execute(waiting).fetchone()[0]:
+                        break
+                    time.sleep(0.01)
+                else:
+                    raise AssertionError("the second member's labels never waited on the first's")
+            racer.join(10)
+        assert outcome == {"labels": {"site": "plant-7"}}, outcome
+        assert first.device("drive-001")["labels"] == {"site": "plant-7"}
+
+
 def test_an_operator_labels_drives_and_reads_a_site_over_rest(store):
     four_drives(store)
     auth = TokenAuth(store)
