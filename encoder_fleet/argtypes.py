@@ -81,3 +81,15 @@ def label_pair(text: str) -> str:
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE (a label, e.g. site=plant-3)")
     return text
+
+
+def label_dict(pairs: list[str] | None, option: str) -> dict[str, str]:
+    """label_pair's NAME=VALUE as {NAME: VALUE}; InputError for a name given two values: the last one won unsaid
+    (`rollout create --label site=plant-3 --label site=plant-7` rolled out to plant-7 alone)."""
+    from encoder_core.samples import InputError  # here: the parser loads no numpy
+
+    labels: dict[str, str] = {}
+    for name, value in (pair.split("=", 1) for pair in pairs or []):
+        if labels.setdefault(name, value) != value:
+            raise InputError(f"{option}: {name} given twice ({labels[name]!r} and {value!r}): a drive carries one")
+    return labels

@@ -11,7 +11,7 @@ import urllib.parse
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
-from .argtypes import device_name, label_pair, positive_int
+from .argtypes import device_name, label_dict, label_pair, positive_int
 
 STATES = ("ok", "watch", "alarm", "offline", "unknown", "retired")  # service/monitor.py's
 PAGE = 1000  # devices a GET /devices asks for at a time
@@ -66,7 +66,7 @@ def cmd_devices(args) -> int:
         if action == "show":
             result = request(args, "GET", path)
         elif action == "label":
-            labels = dict(pair.split("=", 1) for pair in args.labels)
+            labels = label_dict(args.labels, "labels")
             result = request(args, "PUT", f"{path}/labels", {"labels": labels})
         else:
             result = request(args, "POST", f"{path}/{action}", {"note": args.note})

@@ -10,7 +10,7 @@ import urllib.parse
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
-from .argtypes import label_pair, positive_float, positive_int
+from .argtypes import label_dict, label_pair, positive_float, positive_int
 
 
 def parse_abort(text: str) -> dict:
@@ -82,7 +82,7 @@ def cmd_rollout(args) -> int:
         if args.devices:
             spec["devices"] = args.devices.split(",")
         if args.label:
-            spec["labels"] = dict(pair.split("=", 1) for pair in args.label)
+            spec["labels"] = label_dict(args.label, "--label")
         result = request(args, "POST", "/rollouts", spec)
     elif action == "list":
         result = request(args, "GET", "/rollouts")

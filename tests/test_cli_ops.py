@@ -129,6 +129,12 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys, tmp_path):
         (("rollout", "list", "--url", "notaurl"), "REST address"),
         (("rollout", "create", "--url", "http://127.0.0.1:1", "--name", "n", "--change", "refit",
           "--base-per-minute", "1", "--abort", "regressed:ten:5"), "PERCENT is a number"),
+        # a label's name twice: the last value won unsaid (the rollout went to plant-7 alone), before any request
+        (("rollout", "create", "--url", "http://127.0.0.1:1", "--name", "n", "--change", "refit",
+          "--base-per-minute", "1", "--soak-windows", "5", "--label", "site=plant-3", "--label", "site=plant-7"),
+         "--label: site given twice"),
+        (("devices", "label", "drive-1", "site=plant-3", "site=plant-7", "--url", "http://127.0.0.1:1"),
+         "site given twice"),
         (("export", "--db", str(empty), "--device", "d", "--out", str(tmp_path / "e.mcap")), "an empty file"),
         (("service", "--insecure", "--db", str(tmp_path / "s" / "f.sqlite"), "--listen", "tcp/bad",
           "--http-port", "0"), "tcp/bad: invalid socket address"),
