@@ -151,6 +151,7 @@ class EdgeAgent:
         except wire.WireError as exc:
             log.warning("%s: %s", self.device, exc)
             return
+        self._heard_retired(reply)  # at start, before the first window (restarted, a retired drive sent it, refused)
         try:
             last = wire.parse_resume_point(reply, self.device)
         except wire.WireError as exc:  # a watermark all the same: go on as with a service that names no resume point
@@ -379,14 +380,7 @@ class EdgeAgent:
             self.pending_ack = self.version
         self.watermark = watermark
         self.outbox.confirm_through(watermark, acked)
-        retired = wire.says_retired(replies[0])
-        if retired != self.retired:
-            if retired:
-                log.warning("%s: the service has retired this drive: its windows are kept here, not sent", self.device)
-            else:
-                log.warning("%s: the service has reinstated this drive: sending its windows again", self.device)
-            self.retired = retired
-        if retired:
+        if self._heard_retired(replies[0]):
             return True
         due = self.outbox.due(self.clock(), self.resend_after_s)
         for kind, _, payload in due:
@@ -395,6 +389,17 @@ class EdgeAgent:
             self.outbox.mark_sent([(kind, ident) for kind, ident, _ in due], self.clock())
             self.counters.resent += len(due)
         return True
+
+    def _heard_retired(self, reply: bytes) -> bool:
+        """Whether the (checked) watermark reply says the service has retired this drive; said once it changes."""
+        retired = wire.says_retired(reply)
+        if retired != self.retired:
+            if retired:
+                log.warning("%s: the service has retired this drive: its windows are kept here, not sent", self.device)
+            else:
+                log.warning("%s: the service has reinstated this drive: sending its windows again", self.device)
+            self.retired = retired
+        return retired
 
     def drain(self, timeout_s: float = 20.0) -> bool:
         """At the end: keep syncing until the service has every window (or time runs out)."""

@@ -922,3 +922,29 @@ def test_a_retired_drives_agent_holds_its_windows_and_sends_them_once_reinstated
         assert agent.drain()
     finally:
         agent.close()
+
+
+def test_a_retired_drives_agent_restarted_sends_nothing_and_keeps_what_it_makes(setup, caplog):
+    """Restarted while its drive is retired, the agent learns it from the question it asks at start, before its first
+    window: it sent that window (refused, a dead letter) and only the sync after it said the drive was retired."""
+    store, _, client, _, make_agent, service = setup
+    agent = make_agent(client)
+    agent.start()
+    assert agent.step()
+    assert wait_for(lambda: store.max_seq(DEVICE) == 1)
+    store.retire_device(DEVICE, by="token 1", note="on the test bench")
+    assert wait_for(lambda: agent.sync() and agent.retired)
+    agent.close()
+    again = make_agent(client)  # a new process: its outbox, and nothing of what the last one heard
+    with caplog.at_level("WARNING", logger="edge_agent"):
+        again.start()
+    try:
+        assert again.retired and "the service has retired this drive" in caplog.text
+        for _ in range(2):
+            assert again.step()
+        assert len(again.outbox) == 2 and store.max_seq(DEVICE) == 1
+        store.reinstate_device(DEVICE, by="token 1", note="back on the line")
+        assert wait_for(lambda: again.sync() and store.contiguous_seq(DEVICE) == 3)
+        assert service.counters.ingested.get("device_retired", 0) == 0 and store.dead_letters() == []
+    finally:
+        again.close()
