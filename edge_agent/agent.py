@@ -535,6 +535,9 @@ class EdgeAgent:
         payload = wire.encode("ack", msg)
         if durable:
             self.outbox.add_ack(version, payload)  # resent until the watermark confirms it, like a window
+        if self.retired:  # the service stores nothing of the drive: kept (durable), and sent once it is reinstated
+            return
+        if durable:
             self.outbox.mark_sent([("ack", version)], self.clock())
         self.put(self.keys["ack"], payload)
 

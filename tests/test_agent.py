@@ -948,3 +948,27 @@ def test_a_retired_drives_agent_restarted_sends_nothing_and_keeps_what_it_makes(
         assert service.counters.ingested.get("device_retired", 0) == 0 and store.dead_letters() == []
     finally:
         again.close()
+
+
+def test_a_retired_drives_agent_keeps_the_ack_of_a_set_it_applies_until_reinstated(setup):
+    """A set that reaches the drive after it was retired (published just before): the agent runs it and keeps its
+    ack with its windows; it sent the ack at once, refused as the drive's, and only the reinstatement's resend
+    stored it."""
+    store, router, client, factory, make_agent, service = setup
+    agent = make_agent(client)
+    agent.start()
+    try:
+        assert agent.step()
+        assert wait_for(lambda: store.max_seq(DEVICE) == 1)
+        store.retire_device(DEVICE, by="token 1", note="on the test bench")
+        assert wait_for(lambda: agent.sync() and agent.retired)
+        router.put(f"encoders/{DEVICE}/coefficients", wire.encode("coefficients", coefficient_set(factory, 5, 1.01)))
+        assert wait_for(lambda: agent.apply_inbox() or agent.version == 5)  # acknowledged at the next block
+        assert agent.step() and agent.outbox.pending_acks() == [5]
+        store.reinstate_device(DEVICE, by="token 1", note="back on the line")
+        assert wait_for(
+            lambda: agent.sync() and [(a["version"], a["status"]) for a in store.acks(DEVICE)] == [(5, "applied")]
+        )
+        assert service.counters.ingested.get("device_retired", 0) == 0 and store.dead_letters() == []
+    finally:
+        agent.close()
