@@ -357,3 +357,20 @@ def test_a_watermark_reply_carries_the_resume_point_and_refuses_a_bad_one():
     body = json.dumps({"device": "d-1", "contiguous_seq": 1, "max_seq": 3, "last_window_end": float("nan")})
     with pytest.raises(wire.WireError, match="bad resume point"):
         wire.parse_resume_point(body.encode(), "d-1")
+
+
+def test_every_field_the_watermark_reply_can_carry_is_in_its_contract(pki):
+    """The watermark reply has no JSON Schema: docs/wire.md's section on `received` and fleet_wire/messages.py are
+    its contract, and every field the service may send is named there (`retired` was sent and not written)."""
+    from pathlib import Path
+
+    from fleet_wire.security import SetSigner
+
+    reply = wire.watermark_reply(
+        "d-1", 5, 2, (7, 420.5), nonce=wire.new_nonce(), signer=SetSigner.load(pki), retired=True
+    )
+    text = (Path(__file__).parent.parent / "docs" / "wire.md").read_text()
+    section = text.split("### encoders/<device>/received")[1].split("\n### ")[0]
+    missing = [k for k in json.loads(reply) if f"`{k}`" not in section and f'"{k}"' not in section]
+    assert not missing, f"docs/wire.md does not name {missing} of the watermark reply"
+    assert wire.says_retired(reply) and not wire.says_retired(wire.watermark_reply("d-1", 5))
