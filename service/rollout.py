@@ -205,10 +205,13 @@ class Rollouts:
                 ).fetchone()
                 if busy:  # one change at a time: outcomes of two changes on one drive could not be told apart
                     raise RolloutRefused(409, f"rollout {busy['id']} ({busy['name']!r}) is still running or paused")
+                # no "labels": null in a spec without them: a service before labels (a member not yet upgraded, one
+                # rolled back to) refuses the field, and stepping every rollout failed on it, not only those by label
+                stored = spec.model_dump_json(exclude={"labels"} if spec.labels is None else None)
                 cur = c.execute(
                     "INSERT INTO rollouts (name, spec_json, state, counted_from, created_at, updated_at) "
                     "VALUES (?, ?, 'running', ?, ?, ?)",
-                    (spec.name, spec.model_dump_json(), now, now, now),
+                    (spec.name, stored, now, now, now),
                 )
                 rollout = cur.lastrowid
                 c.executemany(

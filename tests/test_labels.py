@@ -200,6 +200,21 @@ def test_a_rollout_takes_the_drives_that_carry_its_labels(store):
             RolloutSpec(name="bad", **bad, **RESET)
     rollout = rollouts.create(RolloutSpec(name="plant 3 only", labels={"site": "plant-3"}, **RESET))
     assert [d["device"] for d in rollouts.get(rollout)["devices"]] == ["drive-002"]  # drive-001 is retired
+    (stored,) = store._rows("SELECT spec_json FROM rollouts WHERE id = ?", (rollout,))
+    assert RolloutSpec.model_validate_json(stored["spec_json"]).labels == {"site": "plant-3"}  # as it steps it
+
+
+def test_a_rollout_without_labels_is_stored_as_a_service_before_labels_reads_it(store):
+    """A spec without labels stored "labels": null, which a service before labels (its RolloutSpec forbids other
+    fields) refused: stepping every rollout made since failed there, not only those by label."""
+    from pydantic import ConfigDict, create_model
+
+    four_drives(store)
+    fields = {name: (f.annotation, f) for name, f in RolloutSpec.model_fields.items() if name != "labels"}
+    before_labels = create_model("RolloutSpec", __config__=ConfigDict(extra="forbid"), **fields)
+    rollout = Rollouts(store).create(RolloutSpec(name="whole fleet", **RESET))
+    (stored,) = store._rows("SELECT spec_json FROM rollouts WHERE id = ?", (rollout,))
+    assert before_labels.model_validate_json(stored["spec_json"]).name == "whole fleet"
 
 
 def test_the_devices_command_labels_and_lists_a_site(tmp_path):
