@@ -60,7 +60,7 @@ def test_labels_select_devices_alarms_and_silent_drives(store):
     assert store.device_ids(labels={"line": "1"}) == []
     with pytest.raises(KeyError):
         store.set_labels("drive-999", {"site": "plant-3"})
-    assert len(store.labels_of(None)) == 3  # every labelled device, read at once for a long page
+    assert len(store.labels_of(None)) == 3  # every labelled device
 
 
 @pytest.mark.parametrize(
@@ -87,15 +87,29 @@ def test_the_label_rules_at_their_edges(value, ok):
         check_labels({"site\n": "x"})
 
 
-def test_a_long_page_reads_every_label_at_once_and_keeps_each_devices_own(store):
-    names = [f"drive-{i:04d}" for i in range(600)]  # past the IN list's 500
-    for i, name in enumerate(names):
-        store.insert_window(window(name, 1))
-        if i % 2:
-            store.set_labels(name, {"site": f"plant-{i % 5}"})
+def test_a_long_page_reads_its_own_devices_labels_and_keeps_each_devices_own(store, monkeypatch):
+    """A page of more than 500 devices (the devices command asks for 1000) read every label of the fleet, for every
+    page: 50,000 drives of four labels took 14 s to list, 0.3 s in pages of 500. Counted as the label rows read."""
+    names = [f"drive-{i:04d}" for i in range(1600)]
+    with store.transaction():
+        for i, name in enumerate(names):
+            store.insert_window(window(name, 1))
+            if i % 2:
+                store.set_labels(name, {"site": f"plant-{i % 5}"})
     found = store.devices()
-    assert len(found) == 600
+    assert len(found) == 1600
     assert all(d["labels"] == ({"site": f"plant-{i % 5}"} if i % 2 else {}) for i, d in enumerate(found))
+    read, rows = [], store._rows
+
+    def counted(sql, args=()):
+        out = rows(sql, args)
+        read.extend(out if sql.startswith("SELECT * FROM device_labels") else [])
+        return out
+
+    monkeypatch.setattr(store, "_rows", counted)
+    page = store.devices(after=names[299], limit=1000)
+    assert [d["id"] for d in page] == names[300:1300] and page == found[300:1300]
+    assert len(read) == 500  # the page's labelled half, not the fleet's 800
 
 
 def test_two_members_labelling_one_drive_at_once_on_postgresql_leave_the_later_labels_whole(postgres_url):
