@@ -37,11 +37,15 @@ def parse_selector(text: str) -> tuple[str, str]:
 
 
 def parse_selectors(texts: list[str] | None) -> dict[str, str]:
-    """Several NAME=VALUE, all of which a device must carry; ValueError for a bad one or a name given twice."""
+    """Several NAME=VALUE, all of which a device must carry; ValueError for a bad one, a name given twice, or more
+    names than a device carries."""
     selected: dict[str, str] = {}
     for text in texts or []:
         name, value = parse_selector(text)
         if name in selected and selected[name] != value:
             raise ValueError(f"label {name} selected twice ({selected[name]!r} and {value!r}): no device has both")
         selected[name] = value
+    # no device carries more; past 1000 (a term of the query each) SQLite refused the query, a 500
+    if len(selected) > MAX_LABELS:
+        raise ValueError(f"at most {MAX_LABELS} labels selected (a device carries no more), not {len(selected)}")
     return selected

@@ -192,6 +192,8 @@ def test_an_operator_labels_drives_and_reads_a_site_over_rest(store):
             {"label": "Site=x"},
             {"label": "site=plant-7\n"},
             [("label", "site=a"), ("label", "site=b")],
+            [("label", f"l{i}=x") for i in range(17)],  # more than a device carries
+            [("label", f"l{i}=x") for i in range(1001)],  # a 500 on SQLite: an expression of more than 1000 terms
         ):
             refused = api.get("/devices", params=params, headers=as_reader)
             assert refused.status_code == 422 and refused.json()["detail"][0]["loc"] == ["query", "label"], params
