@@ -399,6 +399,47 @@ def test_agent_keeps_its_windows_on_a_forged_unsigned_or_replayed_watermark_repl
         r.close()
 
 
+def test_a_forged_or_replayed_retired_reply_silences_no_secured_agent(pki, foreign_pki, tmp_path):
+    """`retired` in a watermark reply stops an agent sending (docs/wire.md): only the service's reply, signed for
+    the question just asked, may say it. Unsigned, signed by another key, added to a genuine reply, or a genuine
+    `retired` recorded for an earlier question: refused, and the agent goes on as before; the service's own says it."""
+    service_key, foreign_key = SetSigner.load(pki), SetSigner.load(foreign_pki)
+
+    def body(nonce, retired=True):
+        return {
+            "device": A,
+            "contiguous_seq": 0,
+            "acked_version": 0,
+            "nonce": nonce,
+            **({"retired": True} if retired else {}),
+        }
+
+    r = RouterOnly(pki)
+    try:
+        r.answer = lambda nonce: service_key.sign(body(nonce, retired=False))
+        agent = make_agent(r, r.client(A), tmp_path)
+        agent.start()
+        assert agent.resumed and not agent.retired
+        recorded = service_key.sign(body(r.asked[-1]))  # the service's, for a question asked before
+        forged = {
+            "unsigned": lambda nonce: body(nonce),
+            "signed by another key": lambda nonce: foreign_key.sign(body(nonce)),
+            "added to a genuine reply": lambda nonce: {**service_key.sign(body(nonce, retired=False)), "retired": True},
+            "recorded for another question": lambda nonce: recorded,
+        }
+        for what, answer in forged.items():
+            r.answer = answer
+            assert not agent.sync() and not agent.retired, what
+            assert agent.step() and not agent.retired, what
+        # each refused twice: at the sync, and at the step's after its window went out
+        assert agent.counters.refused_watermarks == {"unsigned": 2, "bad_signature": 4, "wrong_nonce": 2}
+        r.answer = lambda nonce: service_key.sign(body(nonce))
+        assert agent.sync() and agent.retired
+        agent.close()
+    finally:
+        r.close()
+
+
 @pytest.mark.parametrize("forged_first", [True, False])
 def test_a_forged_watermark_reply_beside_the_genuine_one_hides_it_not(pki, tmp_path, forged_first):
     """Two answers to one question, the service's and a forged one on the same key: the agent hears both, refuses
