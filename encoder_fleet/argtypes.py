@@ -61,7 +61,7 @@ def port(text: str) -> int:
 
 
 def device_name(text: str) -> str:
-    if not DEVICE_RE.match(text):
+    if not DEVICE_RE.fullmatch(text):
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a device id: a letter or digit, then up to 63 letters, digits, '_', '.' or '-'"
         )
@@ -69,7 +69,7 @@ def device_name(text: str) -> str:
 
 
 def member_name(text: str) -> str:
-    if not DEVICE_RE.match(text):  # the same shape: it is one chunk of a Zenoh key
+    if not DEVICE_RE.fullmatch(text):  # the same shape: it is one chunk of a Zenoh key
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a member name: a letter or digit, then up to 63 letters, digits, '_', '.' or '-'"
         )

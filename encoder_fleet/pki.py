@@ -191,11 +191,11 @@ def issue(pki_dir, name: str, role: str = ROLE_DEVICE, *, hosts: tuple[str, ...]
     from cryptography.x509.oid import ExtendedKeyUsageOID
 
     pki_dir = Path(pki_dir)
-    if role == ROLE_DEVICE and (not keys.DEVICE_RE.match(name) or name in RESERVED_NAMES):
+    if role == ROLE_DEVICE and (not keys.DEVICE_RE.fullmatch(name) or name in RESERVED_NAMES):
         raise SecurityError(
             f"device {name!r}: a device id is 1-64 of A-Z a-z 0-9 _ . - and not one of {sorted(RESERVED_NAMES)}"
         )
-    if role == ROLE_ROUTER and (not keys.DEVICE_RE.match(name) or name in RESERVED_NAMES):
+    if role == ROLE_ROUTER and (not keys.DEVICE_RE.fullmatch(name) or name in RESERVED_NAMES):
         raise SecurityError(f"router {name!r}: not a usable name")
     crt = pki_dir / f"{name}.crt"
     if crt.exists() and not force:

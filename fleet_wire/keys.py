@@ -71,7 +71,7 @@ def split(key_expr) -> tuple[str, str] | None:
     """A fleet key -> (device, suffix) for a well-formed device id whose agent-to-service keys carry its own
     partition (and only those); None otherwise."""
     parts = str(key_expr).split("/")
-    if len(parts) not in (3, 4) or parts[0] != PREFIX or not DEVICE_RE.match(parts[1]):
+    if len(parts) not in (3, 4) or parts[0] != PREFIX or not DEVICE_RE.fullmatch(parts[1]):
         return None
     device, suffix = parts[1], parts[2]
     if (len(parts) == 4) != (suffix in TO_SERVICE):

@@ -77,7 +77,7 @@ def registry_names(pki_dir: Path) -> dict[str, str]:
         if path.stem in RESERVED_NAMES:
             continue
         cn, role = certificate_identity(path)
-        if role == ROLE_DEVICE and device_of(cn) == path.stem and keys.DEVICE_RE.match(path.stem):
+        if role == ROLE_DEVICE and device_of(cn) == path.stem and keys.DEVICE_RE.fullmatch(path.stem):
             found[path.stem] = cn
     return found
 
@@ -195,7 +195,7 @@ def access_control(devices, service: str = SERVICE_NAME, routers: list[str] = ()
     policies = [{"id": f"{service}/policy", "rules": [f"{service}/all"], "subjects": [service]}]
     names = dict(devices) if isinstance(devices, dict) else {d: d for d in devices}
     for device in sorted(names):
-        if not keys.DEVICE_RE.match(device) or device in RESERVED_NAMES or device_of(names[device]) != device:
+        if not keys.DEVICE_RE.fullmatch(device) or device in RESERVED_NAMES or device_of(names[device]) != device:
             raise SecurityError(f"device {device!r} cannot have access rules: not a valid device id")
         own = device_rules(device)
         rules += own

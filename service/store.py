@@ -844,7 +844,7 @@ class Store:
 
     def set_online(self, device: str, online: bool, at: float | None = None) -> None:
         """From the liveliness token: the one source of `online`."""
-        if not keys.DEVICE_RE.match(device):
+        if not keys.DEVICE_RE.fullmatch(device):
             raise ValueError(f"device id {device!r} does not match {keys.DEVICE_RE.pattern}")
         now = time.time() if at is None else at
         with self._tx() as c:

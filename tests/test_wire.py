@@ -300,7 +300,7 @@ def test_device_id_rule_is_one_rule_in_code_and_schema_files():
 
     for kind in wire.KINDS:
         assert wire.load_schema(kind)["properties"]["device"]["pattern"] == keys.DEVICE_RE.pattern
-    for bad in (".", "..", "-", "-x", "*", "a/b", "a" * 65, ""):
+    for bad in (".", "..", "-", "-x", "*", "a/b", "a" * 65, "", "drive-001\n"):
         assert keys.split(f"encoders/{bad}/stats/p00") is None, bad
     for good in ("d", "drive-001", "d.7_x", "A" * 64):
         assert keys.split(keys.key(good, keys.STATS)) == (good, "stats")
@@ -374,3 +374,17 @@ def test_every_field_the_watermark_reply_can_carry_is_in_its_contract(pki):
     missing = [k for k in json.loads(reply) if f"`{k}`" not in section and f'"{k}"' not in section]
     assert not missing, f"docs/wire.md does not name {missing} of the watermark reply"
     assert wire.says_retired(reply) and not wire.says_retired(wire.watermark_reply("d-1", 5))
+
+
+def test_a_device_id_ending_in_a_newline_is_no_device_id():
+    """The rule's "$" matched before a trailing newline (re.match), so "drive-001\n" passed the key parser, the
+    command line's device ids, the store's and the certificate names; every check is a full match now."""
+    import argparse
+
+    from encoder_fleet.argtypes import device_name
+    from fleet_wire import keys
+
+    with pytest.raises(wire.WireError):
+        wire.parse_key(f"encoders/drive-001\n/stats/{keys.partition_chunk(keys.partition('drive-001'))}")
+    with pytest.raises(argparse.ArgumentTypeError):
+        device_name("drive-001\n")
