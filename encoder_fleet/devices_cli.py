@@ -8,6 +8,7 @@ import json
 import time
 import urllib.parse
 
+from encoder_core.samples import InputError
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
@@ -66,6 +67,8 @@ def cmd_devices(args) -> int:
         if action == "show":
             result = request(args, "GET", path)
         elif action == "label":
+            if bool(args.labels) == args.clear:  # an empty list replaces them all: said, not typed by mistake
+                raise InputError("give the drive's labels as NAME=VALUE, or --clear to remove every label it has")
             labels = label_dict(args.labels, "labels")
             result = request(args, "PUT", f"{path}/labels", {"labels": labels})
         else:
@@ -89,7 +92,8 @@ def register(sub) -> None:
     add_rest_options(q)
     q = dsub.add_parser("label", help="set a drive's labels (admin token), replacing those it had: site=plant-3 …")
     q.add_argument("device", type=device_name, help="the drive's id")
-    q.add_argument("labels", type=label_pair, nargs="*", metavar="NAME=VALUE", help="its labels (none: removes all)")
+    q.add_argument("labels", type=label_pair, nargs="*", metavar="NAME=VALUE", help="its labels, every one")
+    q.add_argument("--clear", action="store_true", help="remove every label the drive has (instead of NAME=VALUE)")
     add_rest_options(q)
     q = dsub.add_parser("show", help="a drive's state, the set it runs, and its retirements")
     q.add_argument("device", type=device_name, help="the drive's id")

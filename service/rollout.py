@@ -48,7 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_vali
 
 from fleet_wire import keys
 
-from .labels import check_labels
+from .labels import MAX_LABELS, NAME_RULE, VALUE_RULE, check_labels
 from .store import NothingWritten
 
 if TYPE_CHECKING:
@@ -99,7 +99,8 @@ class RolloutSpec(BaseModel):
     labels: dict[str, str] | None = Field(
         None,
         description="Instead of `devices`: every device in the fleet that carries all these labels "
-        "(PUT /devices/{id}/labels), as they are when the rollout is created.",
+        f"(PUT /devices/{{id}}/labels), as they are when the rollout is created; at most {MAX_LABELS}, names "
+        f"{NAME_RULE}, values {VALUE_RULE}.",
         examples=[{"site": "plant-3"}],
     )
     base_per_minute: int = Field(ge=1, le=1_000_000, description="Devices in the first wave.")

@@ -262,7 +262,10 @@ def test_the_devices_command_labels_and_lists_a_site(tmp_path):
             assert "line=2 site=plant-7" in listed.stdout.splitlines()[1]
             none = devices("list", "--label", "site=plant-9", token=reader)
             assert none.returncode == 0 and none.stdout.strip() == "no devices"
-            cleared = devices("label", "drive-004")
+            for unsaid in (("label", "drive-004"), ("label", "drive-004", "site=x", "--clear")):
+                refused = devices(*unsaid)  # removing every label is said, not typed by mistake
+                assert refused.returncode == 2 and "--clear" in refused.stderr, refused.stderr
+            cleared = devices("label", "drive-004", "--clear")
             assert cleared.returncode == 0 and "labels" not in cleared.stdout
         finally:
             http.stop()
