@@ -93,3 +93,12 @@ def label_dict(pairs: list[str] | None, option: str) -> dict[str, str]:
         if labels.setdefault(name, value) != value:
             raise InputError(f"{option}: {name} given twice ({labels[name]!r} and {value!r}): a drive carries one")
     return labels
+
+
+def label_name(text: str) -> str:
+    """A device label's name (`status --by site`), by the service's rule."""
+    from service.labels import NAME_RE, NAME_RULE  # at parse time, only for the commands that take one
+
+    if not NAME_RE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a label name: {NAME_RULE}")
+    return text

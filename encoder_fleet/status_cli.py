@@ -9,6 +9,8 @@ from encoder_core.samples import InputError
 from encoder_fleet.outputs import write_file
 from encoder_fleet.rest_client import add_rest_options, request, text_out
 
+from .argtypes import label_name
+
 UNACKED_LISTED = 10  # open alarms nobody acknowledged, the newest, listed
 
 
@@ -21,7 +23,21 @@ def fleet_status(args) -> dict:
         "health": request(args, "GET", "/fleet/health"),
         "unacknowledged": request(args, "GET", f"/alarms?open=true&acked=false&in_fleet=true&limit={UNACKED_LISTED}"),
         "rollouts": [r for r in request(args, "GET", "/rollouts") if r["state"] in ("running", "paused")],
+        **({"by": request(args, "GET", f"/fleet/health/by/{args.by}")} if args.by else {}),
     }
+
+
+def group_table(by: dict) -> list[str]:
+    """The fleet's health a label value a row (GET /fleet/health/by/{label}): drives per state, open alarms, silent."""
+    states = list(by["groups"][0]["devices"]) if by["groups"] else []
+    head = f"{by['label']:<20} {'drives':>7}" + "".join(f" {s:>8}" for s in states) + f" {'alarms':>7} {'silent':>7}"
+    lines = [head]
+    for g in by["groups"]:
+        value = "(no label)" if g["value"] is None else g["value"]
+        counts = "".join(f" {g['devices'][s]:>8,}" for s in states)
+        alarms = sum(g["open_alarms"].values())
+        lines.append(f"{value:<20} {sum(g['devices'].values()):>7,}{counts} {alarms:>7,} {g['silent']:>7,}")
+    return lines
 
 
 def cmd_status(args) -> int:
@@ -53,6 +69,8 @@ def cmd_status(args) -> int:
             print("  " + alarm_line(a), file=out)
     for r in status["rollouts"]:
         print("rollout " + summary_line(r).strip(), file=out)
+    if "by" in status:
+        print("\n".join(group_table(status["by"])), file=out)
     if args.json:
         write_file(args.json, json.dumps(status, indent=2) + "\n")
     return 0 if ready["status"] == "ok" else 1  # a script's check: 1 while a part of the service fails
@@ -60,5 +78,11 @@ def cmd_status(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("status", help="the fleet at a glance: the service's checks, drives, alarms, rollouts")
+    p.add_argument(
+        "--by",
+        type=label_name,
+        metavar="LABEL",
+        help="also a table of the fleet a value of this label a row, e.g. site",
+    )
     add_rest_options(p)
     p.set_defaults(func=cmd_status)

@@ -22,9 +22,9 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from .auth import CONTROL_CHARACTERS, TokenAuth, authorize, require_admin, tokens
-from .labels import MAX_LABELS, NAME_RULE, VALUE_RULE, check_labels, parse_selectors
+from .labels import MAX_LABELS, NAME_RE, NAME_RULE, VALUE_RULE, check_labels, parse_selectors
 from .mcap_export import iter_mcap
-from .monitor import device_state, device_states, fleet_health
+from .monitor import device_state, device_states, fleet_health, fleet_health_by
 from .observability import health_checks, metrics_registry
 from .rollout import DEVICES_PAGE, OUTCOMES, RolloutError, Rollouts, RolloutSpec
 from .store import Store, StoreError
@@ -220,6 +220,18 @@ class FleetHealth(BaseModel):
         0, description="Drives online (liveliness token up) with nothing stored for 30 min: no alarm can see them."
     )
     silent_devices: list[str] = Field(default_factory=list, description="The first 100 of them, by id.")
+
+
+class FleetGroup(BaseModel):
+    value: str | None = Field(description="The label's value; null: the devices that do not carry the label.")
+    devices: dict[str, int] = Field(description="Devices per state: ok, watch, alarm, offline, unknown, retired.")
+    open_alarms: dict[str, int] = Field(description="Open alarms per cause, retired devices' left out.")
+    silent: int = Field(description="Drives online with nothing stored for 30 min.")
+
+
+class FleetHealthBy(BaseModel):
+    label: str
+    groups: list[FleetGroup] = Field(description="One per value, in order; the devices without the label last.")
 
 
 class Health(BaseModel):
@@ -518,6 +530,19 @@ def ack_alarm(
 @alarms.get("/fleet/health", response_model=FleetHealth, summary="Devices per state and open alarms per cause")
 def get_fleet_health(store: StoreDep, request: Request, labels: LabelsDep = None):
     return fleet_health(store, *_monitor_view(request), labels=labels)
+
+
+@alarms.get(
+    "/fleet/health/by/{label}",
+    response_model=FleetHealthBy,
+    summary="The fleet's health for each value of a label: a site, a line a row",
+)
+def get_fleet_health_by(
+    label: Annotated[str, FastAPIPath(pattern=f"^{NAME_RE.pattern}$", description=f"A label's name: {NAME_RULE}.")],
+    store: StoreDep,
+    request: Request,
+):
+    return {"label": label, "groups": fleet_health_by(store, label, *_monitor_view(request))}
 
 
 @devices.get(

@@ -385,6 +385,28 @@ def fleet_health(
     }
 
 
+def fleet_health_by(
+    store: Store, name: str, monitor: Monitor | None = None, serves: Callable[[str], bool] | None = None
+) -> list[dict]:
+    """fleet_health for each value of label `name` (a site, a line), one group per value in order, and last the
+    devices that do not carry it (value None): the fleet at a glance, a site a row."""
+    values = store.label_values(name)
+    groups: dict[str | None, dict] = {}
+
+    def group(value: str | None) -> dict:
+        if value not in groups:
+            groups[value] = {"value": value, "devices": dict.fromkeys(STATES, 0), "open_alarms": {}, "silent": 0}
+        return groups[value]
+
+    for device, state in device_states(store, monitor, serves).items():
+        group(values.get(device))["devices"][state] += 1
+    for value, causes in store.open_alarm_counts_by(name).items():
+        group(value)["open_alarms"] = dict(sorted(causes.items()))
+    for device in store.silent_devices(SILENT_S):
+        group(values.get(device))["silent"] += 1
+    return sorted(groups.values(), key=lambda g: (g["value"] is None, g["value"] or ""))
+
+
 def _span(seconds: float) -> str:
     """A duration as an operator reads it: 42 s, 12 min, 3.2 h, 2.1 days."""
     if seconds < 90:

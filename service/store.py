@@ -1706,6 +1706,26 @@ class Store:
             raise StoreError("already_acked", f"alarm {alarm_id} was acknowledged by {row['acked_by']}")
         return self.alarms(ids=[alarm_id])[0]
 
+    def label_values(self, name: str) -> dict[str, str]:
+        """device -> its value of label `name`, for the devices that carry it."""
+        return {
+            r["device"]: r["value"]
+            for r in self._rows("SELECT device, value FROM device_labels WHERE name = ?", (name,))
+        }
+
+    def open_alarm_counts_by(self, name: str) -> dict[str | None, dict[str, int]]:
+        """Open alarms per cause of the fleet's devices, by their value of label `name` (None: devices without it)."""
+        rows = self._rows(
+            "SELECT l.value, a.cause, count(*) AS n FROM alarms a "
+            "LEFT JOIN device_labels l ON l.device = a.device AND l.name = ? "
+            f"WHERE a.cleared_at IS NULL AND {self._IN_FLEET.format('a.device')} GROUP BY l.value, a.cause",
+            (name,),
+        )
+        out: dict[str | None, dict[str, int]] = {}
+        for r in rows:
+            out.setdefault(r["value"], {})[r["cause"]] = r["n"]
+        return out
+
     def open_alarm_counts(self, *, unacked: bool = False, labels: dict | None = None) -> dict[str, int]:
         """Open alarms per cause, fleet-wide; unacked: only those nobody acknowledged; labels: only those of devices
         that carry all of them."""

@@ -269,3 +269,40 @@ def test_the_devices_command_labels_and_lists_a_site(tmp_path):
             assert cleared.returncode == 0 and "labels" not in cleared.stdout
         finally:
             http.stop()
+
+
+def test_the_fleets_health_a_site_a_row(store):
+    """GET /fleet/health/by/site: each site's drives by state, open alarms and silent drives, the unlabelled last;
+    and `status --by site` prints it as a table."""
+    from fleet_wire.session import free_port
+    from service.runtime import HttpServer
+
+    four_drives(store)
+    store.set_online("drive-003", True)
+    store.retire_device("drive-001", by="token 1", note="replaced")
+    with TestClient(create_app(store)) as api:
+        got = api.get("/fleet/health/by/site")
+        assert got.status_code == 200, got.text
+        groups = {g["value"]: g for g in got.json()["groups"]}
+        assert [g["value"] for g in got.json()["groups"]] == ["plant-3", "plant-7", None]
+        assert groups["plant-3"]["devices"]["retired"] == 1 and sum(groups["plant-3"]["devices"].values()) == 2
+        assert groups["plant-3"]["open_alarms"] == {"offline": 1} and groups["plant-7"]["open_alarms"] == {}
+        assert sum(groups[None]["devices"].values()) == 1  # drive-004 carries no site
+        by_line = {g["value"]: sum(g["devices"].values()) for g in api.get("/fleet/health/by/line").json()["groups"]}
+        assert by_line == {"1": 1, None: 3}
+        for bad in ("Site", "a b", "x" * 33):
+            assert api.get(f"/fleet/health/by/{bad}").status_code == 422, bad
+    if not str(store.path).endswith(".db"):
+        return  # the command's table once is enough: SQLite's run
+    port = free_port()
+    http = HttpServer(store, port).start()
+    try:
+        cmd = [sys.executable, "-m", "encoder_fleet.cli", "status", "--by", "site", "--url", f"http://127.0.0.1:{port}"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        rows = {line.split()[0]: line.split() for line in done.stdout.splitlines() if line.startswith(("plant", "("))}
+        assert set(rows) == {"plant-3", "plant-7", "(no"}, done.stdout + done.stderr
+        assert rows["plant-3"][1] == "2" and rows["plant-3"][-2] == "1"  # two drives, one open alarm
+        refused = subprocess.run([*cmd[:-4], "--by", "../x", *cmd[-2:]], capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 2 and "not a label name" in refused.stderr and not refused.stdout
+    finally:
+        http.stop()
