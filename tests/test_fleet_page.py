@@ -36,6 +36,8 @@ def served(tmp_path):
     planted = [{**step, "evidence": "the offsets jumped (planted by the test)"}]
     (alarm,) = store.save_monitor("drive-002", {}, 8, planted, device_state="alarm")
     store.ack_alarm(alarm["id"], by="token 2 (ops desk)", note="magnet re-glued at the next stop")
+    store.set_labels("drive-001", {"site": "plant-3"})
+    store.set_labels("drive-002", {"site": "plant-7", "line": "1"})
     spec = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 1, "soak_windows": 30}
     Rollouts(store).create(RolloutSpec(name="back to the bench", **spec))  # a rollout in progress
     port = free_port()
@@ -76,6 +78,15 @@ def test_fleet_page_shows_the_drives_and_their_plots_without_errors(served):
         assert page.locator("#more-alarms").is_hidden()  # all of them listed
         timeline = page.evaluate("document.getElementById('alarm-timeline').data.map(t => [t.name, t.x])")
         assert timeline == [["offset_step (open)", [2.0, 3.0]]]
+        assert [r.split("\t")[5] for r in rows] == ["site=plant-3", "line=1 site=plant-7"]
+        # the fleet a site a row (GET /fleet/health/by/site), and a line a row once the label is chosen
+        groups = page.locator("#groups tbody tr").all_inner_texts()
+        assert [g.split("\t")[:2] for g in groups] == [["plant-3", "1"], ["plant-7", "1"]]
+        assert groups[1].split("\t")[4] == "1" and groups[1].split("\t")[8] == "1"  # in alarm, one open alarm
+        page.select_option("#by-label-name", "line")
+        page.wait_for_function("document.querySelector('#groups tbody tr').cells[0].textContent === '1'")
+        groups = page.locator("#groups tbody tr").all_inner_texts()
+        assert [g.split("\t")[:2] for g in groups] == [["1", "1"], ["(no label)", "1"]]
         rollouts = page.locator("#rollouts tbody tr").all_inner_texts()
         assert [r.split("\t")[:6] for r in rollouts] == [
             ["1", "back to the bench", "reset_to_factory", "running", "1 of 2", "0 %"]

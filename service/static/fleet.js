@@ -58,9 +58,34 @@ async function showFleet() {
     cell(row, Object.entries(d.labels || {}).map(([k, v]) => `${k}=${v}`).join(" "));  // PUT /devices/{id}/labels
     row.addEventListener("click", () => showDevice(d.id));
   }
+  await showGroups(devices);
   await showOpenAlarms();
   await showRollouts();
   if (devices.length) await showDevice(devices[0].id);
+}
+
+// the fleet a value of a label a row (GET /fleet/health/by/{label}), for the label names the devices carry
+async function showGroups(devices) {
+  const names = [...new Set(devices.flatMap((d) => Object.keys(d.labels || {})))].sort();
+  const select = document.getElementById("by-label-name");
+  document.getElementById("by-label").hidden = names.length === 0;
+  if (!names.length) return;
+  const chosen = names.includes(select.value) ? select.value : names.includes("site") ? "site" : names[0];
+  select.replaceChildren(...names.map((n) => new Option(n, n, false, n === chosen)));
+  select.onchange = () => showGroups(devices);
+  const { groups } = await getJson(`/fleet/health/by/${encodeURIComponent(chosen)}`);
+  const body = document.querySelector("#groups tbody");
+  body.replaceChildren();
+  for (const g of groups) {
+    const row = body.insertRow();
+    cell(row, g.value === null ? "(no label)" : g.value);
+    cell(row, Object.values(g.devices).reduce((a, b) => a + b, 0));
+    for (const state of ["ok", "watch", "alarm", "offline", "unknown", "retired"]) {
+      cell(row, g.devices[state] || 0, g.devices[state] && state !== "ok" ? `state-${state}` : undefined);
+    }
+    cell(row, Object.values(g.open_alarms).reduce((a, b) => a + b, 0));
+    cell(row, g.silent);
+  }
 }
 
 // the newest open alarms, a glance's worth: the device table's states say which drives hold the rest
