@@ -50,6 +50,18 @@ def show(r: dict, out=None) -> None:
         )
 
 
+def plan_lines(plan: dict) -> str:
+    """POST /rollouts/plan, as `rollout create --dry-run` prints it."""
+    waves = plan["waves"]
+    sizes = ", ".join(str(n) for n in waves[:8]) + (f", … ({len(waves)} waves)" if len(waves) > 8 else "")
+    named = ", ".join(plan["devices"]) + (" …" if plan["devices_total"] > len(plan["devices"]) else "")
+    return (
+        f"would roll out to {plan['devices_total']:,} drives ({plan['offline']:,} offline now) in {len(waves):,} "
+        f"waves of {sizes}; the last starts {plan['last_wave_after_min']:,} min after the first at the earliest\n"
+        f"     {named}\nnothing created (--dry-run)"
+    )
+
+
 def every_part(args) -> dict:
     """GET /rollouts/{id}, page after page (the service lists at most 10,000 parts at once): every part asked for."""
     query = {"limit": 10_000}
@@ -83,7 +95,7 @@ def cmd_rollout(args) -> int:
             spec["devices"] = args.devices.split(",")
         if args.label:
             spec["labels"] = label_dict(args.label, "--label")
-        result = request(args, "POST", "/rollouts", spec)
+        result = request(args, "POST", "/rollouts/plan" if args.dry_run else "/rollouts", spec)
     elif action == "list":
         result = request(args, "GET", "/rollouts")
     elif action == "show":
@@ -93,7 +105,9 @@ def cmd_rollout(args) -> int:
     if args.json:
         write_file(args.json, json.dumps(result, indent=2) + "\n")
     out = text_out(args)
-    if action != "list":
+    if action == "create" and args.dry_run:
+        print(plan_lines(result), file=out)
+    elif action != "list":
         show(result, out)
     for r in result if action == "list" else []:
         print(summary_line(r), file=out)
@@ -128,6 +142,7 @@ def register(sub) -> None:
         metavar="FAILURE:PERCENT:MIN[:ACTION]",
         help="abort criterion, repeatable: failure rejected|timed_out|regressed, e.g. regressed:10:5",
     )
+    q.add_argument("--dry-run", action="store_true", help="say which drives and waves it would take; create nothing")
     add_rest_options(q)
     q = rsub.add_parser("list", help="every rollout, newest first")
     add_rest_options(q)

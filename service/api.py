@@ -834,6 +834,23 @@ def create_rollout(spec: RolloutSpec, registry: MutableRolloutsDep):
     return registry.get(rollout_id, limit=DEVICES_PAGE)
 
 
+class RolloutPlan(BaseModel):
+    devices_total: int = Field(description="The drives the rollout would take now.")
+    devices: list[str] = Field(description="The first 20 of them, in the order the waves take them.")
+    waves: list[int] = Field(description="Each wave's size.")
+    last_wave_after_min: int = Field(description="The least minutes before the last wave starts (one between waves).")
+    offline: int = Field(description="Of the drives, those offline now (each waits timeout_s at most, then is passed).")
+
+
+@rollouts.post(
+    "/plan",
+    response_model=RolloutPlan,
+    summary="What a rollout would do now, creating nothing: the drives, the waves (a dry run)",
+)
+def plan_rollout(spec: RolloutSpec, registry: RolloutsDep):
+    return _rollout_call(registry.plan, spec)
+
+
 @rollouts.post(
     "/{rollout_id}/pause", response_model=RolloutDetail, responses=_ROLLOUT_CHANGE_ERRORS, summary="Pause (admin)"
 )

@@ -174,25 +174,47 @@ class Rollouts:
 
     # --- the operator's side (REST) ----------------------------------------------------------------
 
+    def _devices_of(self, spec: RolloutSpec) -> list[str]:
+        """The drives the spec takes, in the order their waves take them; RolloutError (422) for a spec that takes
+        none or names one the fleet does not have."""
+        known = self.store.device_ids()  # not devices(): it counts every device's windows
+        retired = self.store.retired_device_ids()
+        in_fleet = [d for d in known if d not in retired]
+        if spec.labels is not None:
+            in_fleet = self.store.device_ids(in_fleet=True, labels=spec.labels)
+        devices = in_fleet if spec.devices is None else list(dict.fromkeys(spec.devices))
+        for what, names in (("unknown", set(devices) - set(known)), ("retired", set(devices) & retired)):
+            if names:
+                names = sorted(names)
+                more = f" and {len(names) - 10} more" if len(names) > 10 else ""
+                raise RolloutError(422, f"{what} devices: {', '.join(names[:10])}{more}", ("body", "devices"))
+        if not devices and spec.labels is not None:
+            selected = ", ".join(f"{k}={v}" for k, v in spec.labels.items())
+            raise RolloutError(422, f"no device in the fleet carries {selected}", ("body", "labels"))
+        if not devices:
+            why = "every device is retired" if known else "the fleet has none yet"
+            raise RolloutError(422, f"no devices to roll out to: {why}", ("body", "devices"))
+        return devices
+
+    def plan(self, spec: RolloutSpec, *, listed: int = 20) -> dict:
+        """What create(spec) would do now, creating nothing: the drives it takes (the first `listed` named), its
+        waves' sizes, and the least time before its last wave starts (a minute between waves, if each soaks at
+        once), and how many are offline now; the same 422 as create for a spec that takes none."""
+        with self._lock:
+            devices = self._devices_of(spec)
+        sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
+        return {
+            "devices_total": len(devices),
+            "devices": devices[:listed],
+            "waves": sizes,
+            "last_wave_after_min": len(sizes) - 1,
+            # offline now: such a drive's part waits for its token, timeout_s at most, then ends offline
+            "offline": len(set(devices) - set(self.store.online_device_ids())),
+        }
+
     def create(self, spec: RolloutSpec) -> int:
         with self._lock:
-            known = self.store.device_ids()  # not devices(): it counts every device's windows
-            retired = self.store.retired_device_ids()
-            in_fleet = [d for d in known if d not in retired]
-            if spec.labels is not None:
-                in_fleet = self.store.device_ids(in_fleet=True, labels=spec.labels)
-            devices = in_fleet if spec.devices is None else list(dict.fromkeys(spec.devices))
-            for what, names in (("unknown", set(devices) - set(known)), ("retired", set(devices) & retired)):
-                if names:
-                    names = sorted(names)
-                    more = f" and {len(names) - 10} more" if len(names) > 10 else ""
-                    raise RolloutError(422, f"{what} devices: {', '.join(names[:10])}{more}", ("body", "devices"))
-            if not devices and spec.labels is not None:
-                selected = ", ".join(f"{k}={v}" for k, v in spec.labels.items())
-                raise RolloutError(422, f"no device in the fleet carries {selected}", ("body", "labels"))
-            if not devices:
-                why = "every device is retired" if known else "the fleet has none yet"
-                raise RolloutError(422, f"no devices to roll out to: {why}", ("body", "devices"))
+            devices = self._devices_of(spec)
             now = self.clock()
             sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
             waves = [wave for wave, size in enumerate(sizes) for _ in range(size)]

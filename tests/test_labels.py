@@ -306,3 +306,52 @@ def test_the_fleets_health_a_site_a_row(store):
         assert refused.returncode == 2 and "not a label name" in refused.stderr and not refused.stdout
     finally:
         http.stop()
+
+
+def test_a_dry_run_says_which_drives_and_waves_a_rollout_would_take_and_creates_nothing(store, tmp_path):
+    from fleet_wire.session import free_port
+    from service.runtime import HttpServer
+
+    four_drives(store)
+    store.set_online("drive-001", True)
+    spec = {"name": "plant 3 reset", "labels": {"site": "plant-3"}, **RESET, "base_per_minute": 1}
+    with TestClient(create_app(store)) as api:
+        plan = api.post("/rollouts/plan", json={**spec, "increment_factor": 2.0})
+        assert plan.status_code == 200, plan.text
+        assert plan.json() == {
+            "devices_total": 2,
+            "devices": ["drive-001", "drive-002"],
+            "waves": [1, 1],
+            "last_wave_after_min": 1,
+            "offline": 1,
+        }
+        everyone = api.post(
+            "/rollouts/plan", json={**RESET, "name": "all", "base_per_minute": 1, "increment_factor": 2}
+        )
+        assert everyone.json()["waves"] == [1, 2, 1] and everyone.json()["devices_total"] == 4
+        nowhere = api.post("/rollouts/plan", json={**spec, "labels": {"site": "plant-9"}})
+        assert nowhere.status_code == 422 and "plant-9" in nowhere.json()["detail"][0]["msg"]
+        assert api.get("/rollouts").json() == []  # nothing created
+    if not str(store.path).endswith(".db"):
+        return  # the command once is enough: SQLite's run
+    port = free_port()
+    http = HttpServer(store, port).start()
+    try:
+        cmd = [sys.executable, "-m", "encoder_fleet.cli", "rollout", "create", "--name", "plant 3", "--dry-run"]
+        cmd += [
+            "--change",
+            "reset_to_factory",
+            "--base-per-minute",
+            "1",
+            "--soak-windows",
+            "5",
+            "--label",
+            "site=plant-3",
+        ]
+        done = subprocess.run([*cmd, "--url", f"http://127.0.0.1:{port}"], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert "would roll out to 2 drives (1 offline now) in 2 waves of 1, 1" in done.stdout
+        assert "drive-001, drive-002" in done.stdout and "nothing created" in done.stdout
+        assert Rollouts(store).list() == []
+    finally:
+        http.stop()
