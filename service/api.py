@@ -383,6 +383,11 @@ def list_devices(
 
 @devices.get("/{device_id}", response_model=DeviceDetail, responses=_UNKNOWN_DEVICE, summary="One device")
 def get_device(device: DeviceDep, store: StoreDep, request: Request):
+    return _device_detail(store, device, request)
+
+
+def _device_detail(store: Store, device: dict, request: Request) -> dict:
+    """A device as GET /devices/{id} answers it: its row, its state, its retirements."""
     state = device_state(store, device["id"], *_monitor_view(request))
     return {**device, "state": state, "retirements": store.retirements(device["id"])}
 
@@ -395,8 +400,7 @@ def _retirement_change(change: Callable, device_id: str, body: OperatorNote, sto
         raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}") from None
     except StoreError as e:
         raise HTTPException(status_code=409, detail=str(e)) from None
-    state = device_state(store, device_id, *_monitor_view(request))
-    return {**device, "state": state, "retirements": store.retirements(device_id)}
+    return _device_detail(store, device, request)
 
 
 @devices.put(
@@ -411,9 +415,7 @@ def set_device_labels(device_id: str, body: DeviceLabels, store: StoreDep, reque
         store.set_labels(device_id, body.labels)
     except KeyError:
         raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}") from None
-    device = store.device(device_id)
-    state = device_state(store, device_id, *_monitor_view(request))
-    return {**device, "state": state, "retirements": store.retirements(device_id)}
+    return _device_detail(store, store.device(device_id), request)
 
 
 @devices.post(
