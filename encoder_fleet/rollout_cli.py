@@ -58,7 +58,9 @@ def plan_lines(plan: dict) -> str:
     return (
         f"would roll out to {plan['devices_total']:,} drives ({plan['offline']:,} offline now) in {len(waves):,} "
         f"waves of {sizes}; the last starts {plan['last_wave_after_min']:,} min after the first at the earliest\n"
-        f"     {named}\nnothing created (--dry-run)"
+        f"     {named}\n"
+        + (f"refused now: {plan['refused']}\n" if plan.get("refused") else "")
+        + "nothing created (--dry-run)"
     )
 
 
@@ -113,7 +115,7 @@ def cmd_rollout(args) -> int:
         print(summary_line(r), file=out)
     if action == "list" and not result:
         print("no rollouts", file=out)
-    return 0
+    return 1 if action == "create" and args.dry_run and result.get("refused") else 0  # a script's check
 
 
 def register(sub) -> None:
@@ -142,7 +144,11 @@ def register(sub) -> None:
         metavar="FAILURE:PERCENT:MIN[:ACTION]",
         help="abort criterion, repeatable: failure rejected|timed_out|regressed, e.g. regressed:10:5",
     )
-    q.add_argument("--dry-run", action="store_true", help="say which drives and waves it would take; create nothing")
+    q.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="say which drives and waves it would take; create nothing (exit 1: create would be refused now)",
+    )
     add_rest_options(q)
     q = rsub.add_parser("list", help="every rollout, newest first")
     add_rest_options(q)

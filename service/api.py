@@ -842,6 +842,9 @@ class RolloutPlan(BaseModel):
     waves: list[int] = Field(description="Each wave's size.")
     last_wave_after_min: int = Field(description="The least minutes before the last wave starts (one between waves).")
     offline: int = Field(description="Of the drives, those offline now (each waits timeout_s at most, then is passed).")
+    refused: str | None = Field(
+        description="Why POST /rollouts would refuse it now (409: another rollout is running or paused), or null."
+    )
 
 
 @rollouts.post(

@@ -196,12 +196,22 @@ class Rollouts:
             raise RolloutError(422, f"no devices to roll out to: {why}", ("body", "devices"))
         return devices
 
+    _BUSY = "SELECT id, name FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id LIMIT 1"
+
+    @staticmethod
+    def _busy(row) -> str | None:
+        """Why create refuses a rollout while the one in `row` (_BUSY's) runs, or None."""
+        return None if row is None else f"rollout {row['id']} ({row['name']!r}) is still running or paused"
+
     def plan(self, spec: RolloutSpec, *, listed: int = 20) -> dict:
         """What create(spec) would do now, creating nothing: the drives it takes (the first `listed` named), its
         waves' sizes, and the least time before its last wave starts (a minute between waves, if each soaks at
-        once), and how many are offline now; the same 422 as create for a spec that takes none."""
+        once), how many are offline now, and why create would refuse it now (409: another rollout runs) or None;
+        the same 422 as create for a spec that takes none."""
         with self._lock:
             devices = self._devices_of(spec)
+            running = self.store._rows(self._BUSY)
+            busy = self._busy(running[0] if running else None)
         sizes = wave_sizes(len(devices), spec.base_per_minute, spec.increment_factor)
         return {
             "devices_total": len(devices),
@@ -210,6 +220,8 @@ class Rollouts:
             "last_wave_after_min": len(sizes) - 1,
             # offline now: such a drive's part waits for its token, timeout_s at most, then ends offline
             "offline": len(set(devices) - set(self.store.online_device_ids())),
+            # a dry run while another rollout runs said "would roll out", and create then answered 409
+            "refused": busy,
         }
 
     def create(self, spec: RolloutSpec) -> int:
@@ -223,11 +235,9 @@ class Rollouts:
                 # one (every member answers POST /rollouts) both found none running and both ran
                 if not self.store.serialise_transaction(CREATE_LOCK):
                     raise RolloutRefused(409, "another service process is creating a rollout: try again")
-                busy = c.execute(
-                    "SELECT id, name FROM rollouts WHERE state IN ('running', 'paused') ORDER BY id LIMIT 1"
-                ).fetchone()
+                busy = self._busy(c.execute(self._BUSY).fetchone())
                 if busy:  # one change at a time: outcomes of two changes on one drive could not be told apart
-                    raise RolloutRefused(409, f"rollout {busy['id']} ({busy['name']!r}) is still running or paused")
+                    raise RolloutRefused(409, busy)
                 # no "labels": null in a spec without them: a service before labels (a member not yet upgraded, one
                 # rolled back to) refuses the field, and stepping every rollout failed on it, not only those by label
                 stored = spec.model_dump_json(exclude={"labels"} if spec.labels is None else None)

@@ -324,6 +324,7 @@ def test_a_dry_run_says_which_drives_and_waves_a_rollout_would_take_and_creates_
             "waves": [1, 1],
             "last_wave_after_min": 1,
             "offline": 1,
+            "refused": None,
         }
         everyone = api.post(
             "/rollouts/plan", json={**RESET, "name": "all", "base_per_minute": 1, "increment_factor": 2}
@@ -352,6 +353,16 @@ def test_a_dry_run_says_which_drives_and_waves_a_rollout_would_take_and_creates_
         assert done.returncode == 0, done.stderr
         assert "would roll out to 2 drives (1 offline now) in 2 waves of 1, 1" in done.stdout
         assert "drive-001, drive-002" in done.stdout and "nothing created" in done.stdout
-        assert Rollouts(store).list() == []
+        assert Rollouts(store).list() == [] and "refused" not in done.stdout
+        # while another rollout runs, create answers 409: the dry run says so, and exits 1 (it said "would roll out")
+        first = Rollouts(store).create(RolloutSpec(**{**spec, "name": "first"}))
+        with TestClient(create_app(store)) as api:
+            plan = api.post("/rollouts/plan", json=spec).json()
+        assert plan["refused"] == f"rollout {first} ('first') is still running or paused"
+        assert plan["devices_total"] == 2  # the plan all the same
+        done = subprocess.run([*cmd, "--url", f"http://127.0.0.1:{port}"], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 1, done.stderr
+        assert f"refused now: rollout {first} ('first') is still running or paused" in done.stdout
+        assert [r["id"] for r in Rollouts(store).list()] == [first]
     finally:
         http.stop()
