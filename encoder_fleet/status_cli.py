@@ -30,13 +30,16 @@ def fleet_status(args) -> dict:
 def group_table(by: dict) -> list[str]:
     """The fleet's health a label value a row (GET /fleet/health/by/{label}): drives per state, open alarms, silent."""
     states = list(by["groups"][0]["devices"]) if by["groups"] else []
-    head = f"{by['label']:<20} {'drives':>7}" + "".join(f" {s:>8}" for s in states) + f" {'alarms':>7} {'silent':>7}"
+    values = ["(no label)" if g["value"] is None else g["value"] for g in by["groups"]]
+    width = max([20, len(by["label"])] + [len(v) for v in values])  # a value is up to 64: a longer one moved its row
+    head = (
+        f"{by['label']:<{width}} {'drives':>7}" + "".join(f" {s:>8}" for s in states) + f" {'alarms':>7} {'silent':>7}"
+    )
     lines = [head]
-    for g in by["groups"]:
-        value = "(no label)" if g["value"] is None else g["value"]
+    for value, g in zip(values, by["groups"], strict=True):
         counts = "".join(f" {g['devices'][s]:>8,}" for s in states)
         alarms = sum(g["open_alarms"].values())
-        lines.append(f"{value:<20} {sum(g['devices'].values()):>7,}{counts} {alarms:>7,} {g['silent']:>7,}")
+        lines.append(f"{value:<{width}} {sum(g['devices'].values()):>7,}{counts} {alarms:>7,} {g['silent']:>7,}")
     return lines
 
 

@@ -366,3 +366,22 @@ def test_a_dry_run_says_which_drives_and_waves_a_rollout_would_take_and_creates_
         assert [r["id"] for r in Rollouts(store).list()] == [first]
     finally:
         http.stop()
+
+
+def test_the_status_table_keeps_its_columns_for_a_value_of_any_length(tmp_path):
+    """A value may be 64 characters: the table's first column was 20 wide, and a longer value moved its row's
+    counts out from under their heads."""
+    from encoder_fleet.status_cli import group_table
+
+    with Store.open(tmp_path / "fleet.db") as store:
+        four_drives(store)
+        long = "Plant 3, hall B - the north line by the loading bay"
+        store.set_labels("drive-003", {"site": long})
+        with TestClient(create_app(store)) as api:
+            lines = group_table(api.get("/fleet/health/by/site").json())
+    assert [line.split("  ")[0] for line in lines[1:]] == [
+        "Plant 3, hall B - the north line by the loading bay",
+        "plant-3",
+        "(no label)",
+    ]
+    assert len({len(line) for line in lines}) == 1, "\n".join(lines)  # every count under its head
