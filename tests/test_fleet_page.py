@@ -162,3 +162,40 @@ def test_fleet_page_asks_once_for_a_token_when_rest_needs_one(tmp_path):
         store.close()
     assert len(asked) == 1 and "token" in asked[0]
     assert [u.rsplit("/", 1)[-1] for u in unauthorized] == ["devices"] and problems == []
+
+
+def test_the_by_label_table_shows_the_label_chosen_last_whichever_answer_comes_last(served):
+    """Two labels chosen one after the other: the table showed the answer that came last, not the label chosen
+    last (the select said site, the rows were the lines'). The first answer is held until the second is shown."""
+    held, problems = [], []
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page()
+        page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+        page.goto(served + "/")
+        page.wait_for_selector("#groups tbody tr")
+        page.route(
+            "**/fleet/health/by/line", lambda route: held.append(route)
+        )  # answered only once the page asks for /release
+
+        def release(route):
+            route.fulfill(status=204)
+            held.pop().continue_()
+
+        page.route("**/release", release)
+        shown = page.evaluate(
+            """async () => {
+              const devices = await getJson("/devices");
+              const select = document.getElementById("by-label-name");
+              select.value = "line";
+              const first = showGroups(devices);
+              select.value = "site";
+              await showGroups(devices);
+              await fetch("/release");
+              await first;
+              const rows = [...document.querySelectorAll("#groups tbody tr")];
+              return [select.value, rows.map((r) => r.cells[0].textContent)];
+            }"""
+        )
+        browser.close()
+    assert shown == ["site", ["plant-3", "plant-7"]] and held == [] and problems == []

@@ -72,8 +72,9 @@ async function showGroups(devices) {
   if (!names.length) return;
   const chosen = names.includes(select.value) ? select.value : names.includes("site") ? "site" : names[0];
   select.replaceChildren(...names.map((n) => new Option(n, n, false, n === chosen)));
-  select.onchange = () => showGroups(devices);
+  select.onchange = () => showGroups(devices).catch((error) => console.error(error));
   const { groups } = await getJson(`/fleet/health/by/${encodeURIComponent(chosen)}`);
+  if (select.value !== chosen) return; // another label was chosen meanwhile: its answer is (or will be) shown
   const body = document.querySelector("#groups tbody");
   body.replaceChildren();
   for (const g of groups) {
