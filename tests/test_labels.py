@@ -203,6 +203,12 @@ def test_an_operator_labels_drives_and_reads_a_site_over_rest(store):
         assert sum(other["devices"].values()) == 2 and other["open_alarms"] == {}
         fleet = api.get("/fleet/health", headers=as_reader).json()
         assert sum(fleet["devices"].values()) == 4
+        by_site = api.get("/fleet/health/by/site", headers=as_reader).json()["groups"]
+        assert [g["value"] for g in by_site] == ["plant-3", "plant-7"]  # drive-004 labelled above
+        # a dry run changes nothing: a read token's (creating it is an admin's)
+        spec = {"name": "plant 7", "labels": {"site": "plant-7"}, **RESET}
+        assert api.post("/rollouts/plan", json=spec, headers=as_reader).json()["devices_total"] == 2
+        assert api.post("/rollouts", json=spec, headers=as_reader).status_code == 403
 
 
 def test_a_rollout_takes_the_drives_that_carry_its_labels(store):
