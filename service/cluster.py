@@ -56,7 +56,7 @@ class Partitions:
     on one device (a refit, the monitor) holds its partition's guard (`serving`), which a hand-over waits for."""
 
     def __init__(self, service, member: str | None):
-        if member is not None and not MEMBER_RE.match(member):
+        if member is not None and not MEMBER_RE.fullmatch(member):  # match() let a name end in a newline
             raise ValueError(f"service member name {member!r} does not match {MEMBER_RE.pattern}")
         self.service = service
         self.member = member

@@ -10,6 +10,7 @@ import time
 import urllib.request
 
 import numpy as np
+import pytest
 
 from fleet_wire import keys
 from fleet_wire.session import free_port, loopback_endpoint
@@ -509,3 +510,15 @@ def test_a_monitor_pass_in_the_middle_of_a_device_ends_before_its_partition_is_h
     with Store.open(postgres_url) as store:
         _, last_seq = store.monitor_states(device)[device]
     assert last_seq == first + then  # the newest state stands
+
+
+def test_a_member_name_ending_in_a_newline_is_no_member_name(tmp_path):
+    """The rule's "$" matched before a trailing newline (re.match): "svc-1\\n" was a member name, a second line in
+    the members' keys and logs; the command line's check was a full match already, the service's was not."""
+    session = open_session(listen=[loopback_endpoint()])
+    try:
+        with Store.open(tmp_path / "fleet.sqlite") as store:
+            with pytest.raises(ValueError, match="member name"):
+                FleetService(store, session, member="svc-1\n")
+    finally:
+        session.close()
