@@ -50,14 +50,19 @@ def show(r: dict, out=None) -> None:
         )
 
 
+def _count(n: int, what: str) -> str:
+    return f"{n:,} {what}" + ("" if n == 1 else "s")
+
+
 def plan_lines(plan: dict) -> str:
     """POST /rollouts/plan, as `rollout create --dry-run` prints it."""
     waves = plan["waves"]
     sizes = ", ".join(str(n) for n in waves[:8]) + (f", … ({len(waves)} waves)" if len(waves) > 8 else "")
     named = ", ".join(plan["devices"]) + (" …" if plan["devices_total"] > len(plan["devices"]) else "")
+    drives, n_waves = _count(plan["devices_total"], "drive"), _count(len(waves), "wave")
     return (
-        f"would roll out to {plan['devices_total']:,} drives ({plan['offline']:,} offline now) in {len(waves):,} "
-        f"waves of {sizes}; the last starts {plan['last_wave_after_min']:,} min after the first at the earliest\n"
+        f"would roll out to {drives} ({plan['offline']:,} offline now) in {n_waves} of {sizes}; "
+        f"the last starts {plan['last_wave_after_min']:,} min after the first at the earliest\n"
         f"     {named}\n"
         + (f"refused now: {plan['refused']}\n" if plan.get("refused") else "")
         + "nothing created (--dry-run)"
