@@ -510,40 +510,22 @@ def test_a_body_json_cannot_carry_back_or_too_large_is_a_clear_4xx_not_a_500(tmp
 
 
 def test_the_alarms_command_lists_and_acknowledges_as_an_operator_on_shift_would(tmp_path):
-    import subprocess
-    import sys
-
-    from fleet_wire.session import free_port
-    from service.auth import TokenAuth
-    from service.runtime import HttpServer
+    from operator_cli import operator_cli
 
     with Store.open(tmp_path / "fleet.sqlite") as store:
         ids = [_offline(store, f"drive-{i:03d}", 3600.0 * i) for i in range(3)]
-        auth = TokenAuth(store)
-        admin, reader = tmp_path / "admin-token", tmp_path / "read-token"
-        admin.write_text(auth.create("admin", "night shift")[1])
-        reader.write_text(auth.create("read")[1])
-        port = free_port()
-        http = HttpServer(store, port, auth=auth).start()
-
-        def alarms(*args, token=admin):
-            cmd = [sys.executable, "-m", "encoder_fleet.cli", "alarms", *args, "--url", f"http://127.0.0.1:{port}"]
-            return subprocess.run([*cmd, "--token-file", str(token)], capture_output=True, text=True, timeout=60)
-
-        try:
-            refused = alarms("ack", str(ids[1]), "--note", "on it", token=reader)
+        with operator_cli(store, tmp_path, "alarms") as alarms:
+            refused = alarms("ack", str(ids[1]), "--note", "on it", token="read")
             assert refused.returncode == 2 and "403" in refused.stderr and not refused.stdout
             done = alarms("ack", str(ids[1]), "--note", "switch replaced")
             assert done.returncode == 0 and "acknowledged by token 1 (night shift): switch replaced" in done.stdout
-            listed = alarms("list", "--open", "--unacked", token=reader)
+            listed = alarms("list", "--open", "--unacked", token="read")
             assert listed.returncode == 0, listed.stderr
             assert [line.split()[1] for line in listed.stdout.splitlines()] == ["drive-002", "drive-000"]
-            cut = alarms("list", "--limit", "1", token=reader)
+            cut = alarms("list", "--limit", "1", token="read")
             assert cut.returncode == 0 and "more match" in cut.stdout
             twice = alarms("ack", str(ids[1]), "--note", "again")
             assert twice.returncode == 2 and "409" in twice.stderr and "night shift" in twice.stderr
-        finally:
-            http.stop()
 
 
 def test_the_status_command_shows_the_fleet_at_a_glance_and_fails_while_a_part_of_the_service_does(tmp_path):

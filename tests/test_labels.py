@@ -7,6 +7,7 @@ import time
 
 import pytest
 from fastapi.testclient import TestClient
+from operator_cli import operator_cli
 from wire_samples import window
 
 from service.api import create_app
@@ -240,41 +241,25 @@ def test_a_rollout_without_labels_is_stored_as_a_service_before_labels_reads_it(
 
 
 def test_the_devices_command_labels_and_lists_a_site(tmp_path):
-    from fleet_wire.session import free_port
-    from service.runtime import HttpServer
-
     with Store.open(tmp_path / "fleet.sqlite") as store:
         four_drives(store)
-        auth = TokenAuth(store)
-        admin, reader = tmp_path / "admin-token", tmp_path / "read-token"
-        admin.write_text(auth.create("admin", "night shift")[1])
-        reader.write_text(auth.create("read")[1])
-        port = free_port()
-        http = HttpServer(store, port, auth=auth).start()
-
-        def devices(*args, token=admin):
-            cmd = [sys.executable, "-m", "encoder_fleet.cli", "devices", *args, "--url", f"http://127.0.0.1:{port}"]
-            return subprocess.run([*cmd, "--token-file", str(token)], capture_output=True, text=True, timeout=60)
-
-        try:
+        with operator_cli(store, tmp_path, "devices") as devices:
             done = devices("label", "drive-004", "site=plant-7", "line=2")
             assert done.returncode == 0 and "labels line=2 site=plant-7" in done.stdout, done.stderr
             refused = devices("label", "drive-004", "site=a,b")
             assert refused.returncode == 2 and "422" in refused.stderr and len(refused.stderr.splitlines()) == 1
             assert devices("label", "drive-004", "site").returncode == 2  # not NAME=VALUE: argparse's one line
-            listed = devices("list", "--label", "site=plant-7", token=reader)
+            listed = devices("list", "--label", "site=plant-7", token="read")
             assert listed.returncode == 0, listed.stderr
             assert [line.split()[0] for line in listed.stdout.splitlines()] == ["drive-003", "drive-004"]
             assert "line=2 site=plant-7" in listed.stdout.splitlines()[1]
-            none = devices("list", "--label", "site=plant-9", token=reader)
+            none = devices("list", "--label", "site=plant-9", token="read")
             assert none.returncode == 0 and none.stdout.strip() == "no devices"
             for unsaid in (("label", "drive-004"), ("label", "drive-004", "site=x", "--clear")):
                 refused = devices(*unsaid)  # removing every label is said, not typed by mistake
                 assert refused.returncode == 2 and "--clear" in refused.stderr, refused.stderr
             cleared = devices("label", "drive-004", "--clear")
             assert cleared.returncode == 0 and "labels" not in cleared.stdout
-        finally:
-            http.stop()
 
 
 def test_the_fleets_health_a_site_a_row(store):

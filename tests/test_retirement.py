@@ -9,6 +9,7 @@ import threading
 
 import pytest
 from fastapi.testclient import TestClient
+from operator_cli import operator_cli
 from prometheus_client.parser import text_string_to_metric_families
 from test_guard import DEVICE, factory_set, run_on
 from wire_samples import window
@@ -232,24 +233,10 @@ def test_a_retired_drive_gets_no_set_and_no_rollout(fleet):
 
 
 def test_the_devices_command_retires_shows_and_reinstates_a_drive(tmp_path):
-    from fleet_wire.session import free_port
-    from service.runtime import HttpServer
-
     with Store.open(tmp_path / "fleet.sqlite") as store:
         three_drives(store)
-        auth = TokenAuth(store)
-        admin, reader = tmp_path / "admin-token", tmp_path / "read-token"
-        admin.write_text(auth.create("admin", "night shift")[1])
-        reader.write_text(auth.create("read")[1])
-        port = free_port()
-        http = HttpServer(store, port, auth=auth).start()
-
-        def devices(*args, token=admin):
-            cmd = [sys.executable, "-m", "encoder_fleet.cli", "devices", *args, "--url", f"http://127.0.0.1:{port}"]
-            return subprocess.run([*cmd, "--token-file", str(token)], capture_output=True, text=True, timeout=60)
-
-        try:
-            refused = devices("retire", "drive-002", "--note", "replaced", token=reader)
+        with operator_cli(store, tmp_path, "devices") as devices:
+            refused = devices("retire", "drive-002", "--note", "replaced", token="read")
             assert refused.returncode == 2 and "403" in refused.stderr and not refused.stdout
             done = devices("retire", "drive-002", "--note", "replaced by drive-009")
             assert done.returncode == 0, done.stderr
@@ -257,15 +244,13 @@ def test_the_devices_command_retires_shows_and_reinstates_a_drive(tmp_path):
             assert "by token 1 (night shift): replaced by drive-009" in done.stdout
             twice = devices("retire", "drive-002", "--note", "again")
             assert twice.returncode == 2 and "409" in twice.stderr and "night shift" in twice.stderr
-            unknown = devices("show", "drive-999", token=reader)
+            unknown = devices("show", "drive-999", token="read")
             assert unknown.returncode == 2 and "404" in unknown.stderr
             back = devices("reinstate", "drive-002", "--note", "found in stock")
             assert back.returncode == 0 and "reinstated" in back.stdout and "found in stock" in back.stdout
-            shown = devices("show", "drive-002", token=reader)
+            shown = devices("show", "drive-002", token="read")
             assert shown.returncode == 0 and shown.stdout.startswith("drive-002: "), shown.stderr
             assert len(shown.stdout.splitlines()) == 3  # the device, its retirement, its reinstatement
-        finally:
-            http.stop()
 
 
 def test_the_mcap_export_logs_each_retirement_and_reinstatement(store, tmp_path):
