@@ -22,6 +22,7 @@ import re
 import sqlite3
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -729,12 +730,14 @@ class Store:
         if batch.rows:
             # the newest window tells which coefficients the agent corrects with; late catch-up windows do not
             # (their seq is under the highest stored, which _max_seq holds: no max(seq) query per device)
+            stored = Counter(row[0] for row in batch.rows)  # WINDOW_FIELDS begin with the device
             c.executemany(
-                "INSERT INTO devices (id, first_seen, last_seen, current_version) VALUES (?, ?, ?, ?) ON CONFLICT(id) "
-                "DO UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen), "
-                "current_version = coalesce(excluded.current_version, devices.current_version)",
+                "INSERT INTO devices (id, first_seen, last_seen, current_version, windows) VALUES (?, ?, ?, ?, ?) "
+                "ON CONFLICT(id) DO UPDATE SET last_seen = max(devices.last_seen, excluded.last_seen), "
+                "current_version = coalesce(excluded.current_version, devices.current_version), "
+                "windows = devices.windows + excluded.windows",
                 [
-                    (device, batch.now, batch.now, version if seq >= self._max_seq[device] else None)
+                    (device, batch.now, batch.now, version if seq >= self._max_seq[device] else None, stored[device])
                     for device, (seq, version) in batch.newest.items()
                 ],
             )
@@ -1169,7 +1172,7 @@ class Store:
         }
 
     _DEVICE_SQL = (
-        "SELECT d.*, (SELECT count(*) FROM windows w WHERE w.device = d.id) AS windows, r.retired_at, r.retired_by, "
+        "SELECT d.*, r.retired_at, r.retired_by, "
         "r.note AS retired_note FROM devices d "
         "LEFT JOIN device_retirements r ON r.device = d.id AND r.reinstated_at IS NULL"
     )
@@ -1416,7 +1419,10 @@ class Store:
                 return 0
             c.executemany("DELETE FROM windows WHERE device = ? AND seq = ?", [(device, s) for s in seqs])
             floor = max(seqs) + 1  # every seq below below_seq was stored or gone: none waits under the floor
-            c.execute("UPDATE devices SET seq_floor = ? WHERE id = ? AND seq_floor < ?", (floor, device, floor))
+            c.execute(
+                "UPDATE devices SET seq_floor = max(seq_floor, ?), windows = windows - ? WHERE id = ?",
+                (floor, len(seqs), device),
+            )
         return len(seqs)
 
     def acked_version(self, device: str) -> int:

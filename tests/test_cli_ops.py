@@ -258,7 +258,6 @@ def test_export_changes_no_file_it_reads(tmp_path):
     import sqlite3
 
     from service.store import Store, migration_files
-    from tests.wire_samples import window
 
     older = tmp_path / "migrations"  # the migrations of the version before the newest
     older.mkdir()
@@ -266,7 +265,7 @@ def test_export_changes_no_file_it_reads(tmp_path):
         (older / f.name).write_text(f.read_text())
     db = tmp_path / "old.sqlite"
     with Store.open(db, migrations_dir=older) as store:
-        store.insert_window(window(seq=1))  # as the older version stored it (its writer knew no retirements)
+        store.set_online("drive-001", True)  # its device row, in columns every version has
     other = tmp_path / "notes.sqlite"
     conn = sqlite3.connect(other)
     conn.execute("CREATE TABLE notes (x)")

@@ -61,6 +61,7 @@ def test_pruning_keeps_every_band_sum_the_watermark_and_what_a_trial_or_the_boun
         }
         assert store.contiguous_seq(DEVICE) == 40  # the floor stepped over what was deleted
         assert store.prune_windows(DEVICE, ended_before=np.inf, below_seq=36, keep_version=3) == 0
+        assert store.device(DEVICE)["windows"] == len(kept)  # the count kept with the device's row follows
     with Store.open(target, band_horizon_s=HORIZON_S) as store:  # read again: no sum is rebuilt short of a window
         after = sums(store)
         assert after.keys() == before.keys()
