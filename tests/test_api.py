@@ -6,6 +6,7 @@ import json
 import pytest
 from fastapi.testclient import TestClient
 from mcap.reader import make_reader
+from pg_locks import wait_for_a_lock_wait
 from wire_samples import ack, coefficients, window
 
 from fleet_wire import keys
@@ -629,8 +630,6 @@ def test_two_acknowledgements_at_once_on_postgresql_leave_the_first_and_refuse_t
     import threading
     import time
 
-    import psycopg
-
     from service.store import StoreError
 
     with Store.open(postgres_url) as first, Store.open(postgres_url) as second:
@@ -643,26 +642,15 @@ def test_two_acknowledgements_at_once_on_postgresql_leave_the_first_and_refuse_t
             except StoreError as exc:
                 outcome["refused"] = exc
 
-        with psycopg.connect(postgres_url, autocommit=True) as watch:
-            with first._tx() as c:  # the first member's acknowledgement, not committed yet
-                c.execute(
-                    "UPDATE alarms SET acked_at = ?, acked_by = ?, ack_note = ? WHERE id = ?",
-                    (time.time(), "token 1 (night shift)", "switch replaced", alarm),
-                )
-                racer = threading.Thread(target=ack_meanwhile)
-                racer.start()
-                deadline = time.monotonic() + 10
-                while time.monotonic() < deadline:  # until the second waits on the row's lock
-                    waiting = (
-                        "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock' "
-                        "AND datname = current_database()"
-                    )
-                    if watch.execute(waiting).fetchone()[0]:
-                        break
-                    time.sleep(0.01)
-                else:
-                    raise AssertionError("the second acknowledgement never waited on the first")
-            racer.join(10)
+        with first._tx() as c:  # the first member's acknowledgement, not committed yet
+            c.execute(
+                "UPDATE alarms SET acked_at = ?, acked_by = ?, ack_note = ? WHERE id = ?",
+                (time.time(), "token 1 (night shift)", "switch replaced", alarm),
+            )
+            racer = threading.Thread(target=ack_meanwhile)
+            racer.start()
+            wait_for_a_lock_wait(postgres_url, "the second acknowledgement")
+        racer.join(10)
         (stored,) = first.alarms(ids=[alarm])
     assert stored["acked_by"] == "token 1 (night shift)" and stored["ack_note"] == "switch replaced"
     assert "ack" not in outcome and outcome["refused"].reason == "already_acked", outcome

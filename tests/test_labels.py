@@ -8,6 +8,7 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 from operator_cli import operator_cli
+from pg_locks import wait_for_a_lock_wait
 from wire_samples import window
 
 from service.api import create_app
@@ -119,8 +120,6 @@ def test_two_members_labelling_one_drive_at_once_on_postgresql_leave_the_later_l
     500, and the operator's labels were not set."""
     import threading
 
-    import psycopg
-
     with Store.open(postgres_url) as first, Store.open(postgres_url) as second:
         first.insert_window(window("drive-001", 1))
         outcome = {}
@@ -131,23 +130,12 @@ def test_two_members_labelling_one_drive_at_once_on_postgresql_leave_the_later_l
             except Exception as exc:  # what REST answered with a 500
                 outcome["failed"] = exc
 
-        with psycopg.connect(postgres_url, autocommit=True) as watch:
-            with first._tx():  # the first member's labels, not committed yet
-                first.set_labels("drive-001", {"site": "plant-3", "line": "1"})
-                racer = threading.Thread(target=label_meanwhile)
-                racer.start()
-                deadline = time.monotonic() + 10
-                while time.monotonic() < deadline:  # until the second waits on the first
-                    waiting = (
-                        "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock' "
-                        "AND datname = current_database()"
-                    )
-                    if watch.execute(waiting).fetchone()[0]:
-                        break
-                    time.sleep(0.01)
-                else:
-                    raise AssertionError("the second member's labels never waited on the first's")
-            racer.join(10)
+        with first._tx():  # the first member's labels, not committed yet
+            first.set_labels("drive-001", {"site": "plant-3", "line": "1"})
+            racer = threading.Thread(target=label_meanwhile)
+            racer.start()
+            wait_for_a_lock_wait(postgres_url, "the second member's labels")
+        racer.join(10)
         assert outcome == {"labels": {"site": "plant-7"}}, outcome
         assert first.device("drive-001")["labels"] == {"site": "plant-7"}
 
