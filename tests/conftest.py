@@ -78,6 +78,16 @@ def postgres_url(postgres_server):
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
+def store(request, tmp_path):
+    """A real store: a SQLite file, then a PostgreSQL database. Modules with a store of their own define `store`."""
+    from service.store import Store
+
+    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    with Store.open(target) as s:
+        yield s
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
 def fleet(request, tmp_path):
     """(store, service): a real store (SQLite, then PostgreSQL) and the service on a real Zenoh session, with no
     refit timer (the tests call refit_all). Modules with a fleet of their own define `fleet` themselves."""

@@ -18,13 +18,6 @@ from service.store import Store
 DEVICE = "drive-001"
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path):
-    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
-    with Store.open(target) as s:
-        yield s
-
-
 @pytest.fixture
 def client(store):
     with TestClient(create_app(store)) as c:

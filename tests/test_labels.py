@@ -21,13 +21,6 @@ RESET = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 10, "soak_wi
 SITES = {"drive-001": "plant-3", "drive-002": "plant-3", "drive-003": "plant-7", "drive-004": None}
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path):
-    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
-    with Store.open(target) as s:
-        yield s
-
-
 def four_drives(store) -> None:
     """Two drives at plant-3 (one on line 1, offline with an offline alarm), one at plant-7, one unlabelled."""
     for name, site in SITES.items():

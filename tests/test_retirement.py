@@ -24,13 +24,6 @@ from service.store import RETIRED_LETTER_EVERY_S, Store, StoreError
 RESET = {"change": {"kind": "reset_to_factory"}, "base_per_minute": 10, "soak_windows": 5}
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path):
-    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
-    with Store.open(target) as s:
-        yield s
-
-
 def offline_alarm(store, device: str, at: float) -> int:
     (alarm,) = store.save_monitor(
         device, {}, 0, [{"kind": "raise", "cause": "offline", "at": at, "parameters": {"since": at}, "evidence": "x"}]

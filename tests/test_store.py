@@ -18,13 +18,6 @@ from service import db
 from service.store import Store, StoreError
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path):
-    target = tmp_path / "fleet.db" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
-    with Store.open(target) as s:
-        yield s
-
-
 def test_migrations_apply_once_and_are_recorded(tmp_path):
     from service.store import migration_files
 
