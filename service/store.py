@@ -1405,6 +1405,9 @@ class Store:
         the gap and a window that is not stored below it counts as gone. Coefficient sets, acks, fits and alarms
         all stay: retention takes the bulk telemetry only. Returns how many were deleted."""
         with self._tx() as c:
+            # the device's row locked first: another process pruning it at once (PostgreSQL) waits, then reads what
+            # this left (it read the same windows, deleted none, and took them off the count again)
+            c.execute("UPDATE devices SET seq_floor = seq_floor WHERE id = ?", (device,))
             # the sums' first_seqs as kept in memory (written behind): a sum counts its windows from first_seq on to
             # tell whether it is behind them, so no window from the stored first_seq on may go
             self._write_bands(c, {(d, b) for d, b in self._dirty if d == device})

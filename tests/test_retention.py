@@ -14,6 +14,7 @@ import msgspec
 import numpy as np
 import pytest
 import zenoh
+from pg_locks import wait_for_a_lock_wait
 
 import tests.wire_samples as ws
 from fleet_wire import keys
@@ -71,6 +72,31 @@ def test_pruning_keeps_every_band_sum_the_watermark_and_what_a_trial_or_the_boun
         assert set(seqs(store)) == kept and store.contiguous_seq(DEVICE) == 40
         # a window that ended after `ended_before` stays, whatever else holds
         assert store.prune_windows(DEVICE, ended_before=0.0, below_seq=41, keep_version=None) == 0
+
+
+def test_two_members_pruning_one_drive_at_once_on_postgresql_keep_its_window_count(postgres_url):
+    """Two service processes pruning one drive at the same moment (a member whose session dropped, its partitions
+    taken meanwhile by another): both read the same oldest windows, the second's deletes, waiting on the first's,
+    deleted none once it committed, and it took them off the drive's window count again (and counted them pruned):
+    the count stayed short for good. The drive's row is locked first, so the second reads what the first left."""
+    msgs = [ws.window(seq=s) for s in range(1, 41)]
+    with Store.open(postgres_url, band_horizon_s=HORIZON_S) as first, Store.open(postgres_url) as second:
+        first.ingest_many([(keys.key(DEVICE, keys.STATS), wire.encode("window", m)) for m in msgs])
+        bound = {"ended_before": np.inf, "below_seq": 36, "keep_version": None, "limit": 10}
+        assert first.prune_windows(DEVICE, **bound) == 10  # and its band sums written, as the second reads them
+        outcome = {}
+
+        def prune_meanwhile():
+            outcome["pruned"] = first.prune_windows(DEVICE, **bound)
+
+        with second.transaction():  # the other member's pruning, not committed yet
+            assert second.prune_windows(DEVICE, **bound) == 10
+            racer = threading.Thread(target=prune_meanwhile)
+            racer.start()
+            wait_for_a_lock_wait(postgres_url, "the second pruning")
+        racer.join(10)
+        assert outcome == {"pruned": 10}
+        assert (len(seqs(first)), first.device(DEVICE)["windows"]) == (10, 10)  # 31 to 40
 
 
 def test_a_band_without_a_stored_sum_keeps_its_windows(tmp_path):
