@@ -367,14 +367,22 @@ class Store:
                 )
             except db.database_errors() as exc:  # not a database, corrupt, read-only when new, ...
                 raise StoreError("unavailable", f"database {self.path} cannot be used: {exc}") from None
+            # an older database's migrations are said: one may count or rewrite a large table (105 counts every
+            # window, minutes for a fleet's billion), and nothing else is printed before the store is open
+            older = self._conn.execute("SELECT 1 FROM schema_migrations LIMIT 1").fetchone() is not None
             for version, path in migrations:
                 # check inside the write transaction: another process may be migrating the same file
                 with self._tx() as c:
                     if c.execute("SELECT 1 FROM schema_migrations WHERE version = ?", (version,)).fetchone():
                         continue
+                    if older:
+                        log.warning("applying migration %s to database %s (a large one: minutes)", path.name, self.path)
+                    began = time.monotonic()
                     for statement in _statements(path.read_text(encoding="utf-8")):
                         c.execute(statement)
                     c.execute("INSERT INTO schema_migrations VALUES (?, ?, ?)", (version, path.name, time.time()))
+                if older:
+                    log.warning("migration %s applied in %.1f s", path.name, time.monotonic() - began)
 
     def migrations(self) -> list[tuple[int, str]]:
         return [
