@@ -176,8 +176,8 @@ class Rollouts:
 
     def _devices_of(self, spec: RolloutSpec) -> list[str]:
         """The drives the spec takes, in the order their waves take them; RolloutError (422) for a spec that takes
-        none or names one the fleet does not have."""
-        known = self.store.device_ids()  # not devices(): it counts every device's windows
+        none or names one the fleet does not have (unknown, or retired)."""
+        known = self.store.device_ids()
         retired = self.store.retired_device_ids()
         in_fleet = [d for d in known if d not in retired]
         if spec.labels is not None:

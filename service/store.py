@@ -1279,7 +1279,7 @@ class Store:
         return [{**d, "labels": labels_of[d["id"]]} for d in found]
 
     def online_device_ids(self) -> list[str]:
-        """The devices marked online (their liveliness token last seen coming), without the devices' window counts."""
+        """The devices marked online (their liveliness token last seen coming), by id."""
         return [r["id"] for r in self._rows("SELECT id FROM devices WHERE online = 1 ORDER BY id")]
 
     def device_ids(self, *, in_fleet: bool = False, labels: dict | None = None) -> list[str]:
