@@ -1236,22 +1236,14 @@ class Store:
             raise KeyError(f"no device {device}")
         return self.labels_of([device])[device]
 
-    def labels_of(self, ids: list[str] | None = None) -> dict[str, dict[str, str]]:
-        """device -> its labels (every device of `ids`, {} for one without; ids None: every labelled device)."""
-        if ids is None:
-            rows = self._rows("SELECT * FROM device_labels ORDER BY name")
-        else:  # 500 ids a read, never the whole fleet's labels: read for every page of 1000, 50,000 drives took 14 s
-            chunks = [ids[i : i + 500] for i in range(0, len(ids), 500)]
-            rows = [
-                r
-                for chunk in chunks
-                for r in self._rows(
-                    f"SELECT * FROM device_labels WHERE device IN ({', '.join('?' * len(chunk))}) ORDER BY name", chunk
-                )
-            ]
-        out: dict[str, dict[str, str]] = {} if ids is None else {d: {} for d in ids}
-        for r in rows:
-            out.setdefault(r["device"], {})[r["name"]] = r["value"]
+    def labels_of(self, ids: list[str]) -> dict[str, dict[str, str]]:
+        """device -> its labels, for every device of `ids` ({} for one without)."""
+        out: dict[str, dict[str, str]] = {d: {} for d in ids}
+        # 500 ids a read, never the whole fleet's labels: read for every page of 1000, 50,000 drives took 14 s
+        for chunk in (ids[i : i + 500] for i in range(0, len(ids), 500)):
+            sql = f"SELECT * FROM device_labels WHERE device IN ({', '.join('?' * len(chunk))}) ORDER BY name"
+            for r in self._rows(sql, chunk):
+                out[r["device"]][r["name"]] = r["value"]
         return out
 
     def device_counts(self) -> dict[str, int]:

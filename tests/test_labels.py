@@ -55,7 +55,7 @@ def test_labels_select_devices_alarms_and_silent_drives(store):
     assert store.device_ids(labels={"line": "1"}) == []
     with pytest.raises(KeyError):
         store.set_labels("drive-999", {"site": "plant-3"})
-    assert len(store.labels_of(None)) == 3  # every labelled device
+    assert store.labels_of(["drive-003", "drive-004"]) == {"drive-003": {"site": "plant-7"}, "drive-004": {}}
 
 
 @pytest.mark.parametrize(
