@@ -392,10 +392,15 @@ def _device_detail(store: Store, device: dict, request: Request) -> dict:
     return {**device, "state": state, "retirements": store.retirements(device["id"])}
 
 
+def _operator(request: Request) -> str:
+    """Who makes a change, as its record keeps it: the request's token ("token 3 (ops desk)"), or none."""
+    return getattr(request.state, "token", None) or "no token (REST open)"
+
+
 def _retirement_change(change: Callable, device_id: str, body: OperatorNote, store: Store, request: Request):
     require_admin(request)
     try:
-        device = change(device_id, by=getattr(request.state, "token", None) or "no token (REST open)", note=body.note)
+        device = change(device_id, by=_operator(request), note=body.note)
     except KeyError:
         raise HTTPException(status_code=404, detail=f"unknown device {device_id!r}") from None
     except StoreError as e:
@@ -520,9 +525,7 @@ def ack_alarm(
 ):
     require_admin(request)
     try:
-        return store.ack_alarm(
-            alarm_id, by=getattr(request.state, "token", None) or "no token (REST open)", note=body.note
-        )
+        return store.ack_alarm(alarm_id, by=_operator(request), note=body.note)
     except KeyError:
         raise HTTPException(status_code=404, detail=f"no alarm {alarm_id}") from None
     except StoreError as e:
