@@ -202,7 +202,8 @@ class Store:
         # either, so a new band's sum starts at seq 1 without asking (a fleet's first windows, after a start)
         self._unwritten: dict[str, bool] = {}
         self._retired: frozenset[str] = frozenset()  # devices retired (device_retirements), as read at _retired_read_at
-        self._retired_read_at = -math.inf
+        self._retired_read_at = -math.inf  # monotonic, when that read began
+        self._retired_changed_at = -math.inf  # monotonic, this process's last retirement or reinstatement committed
         self._retired_letter_at: dict[str, float] = {}  # device -> when its last message was kept as a dead letter
 
     @classmethod
@@ -1290,8 +1291,11 @@ class Store:
     def _retired_devices(self) -> frozenset[str]:
         """The retired devices as the writer checks them: read again every RETIRED_READ_EVERY_S."""
         if time.monotonic() - self._retired_read_at > RETIRED_READ_EVERY_S:
+            began = time.monotonic()
             self._retired = frozenset(self.retired_device_ids())
-            self._retired_read_at = time.monotonic()
+            # begun before this process's last change was committed (a watermark question, outside the writer's
+            # lock): it may not hold it, so it is read again at the next call
+            self._retired_read_at = began if began > self._retired_changed_at else -math.inf
         return self._retired
 
     def retire_device(self, device: str, *, by: str, note: str, at: float | None = None) -> dict:
@@ -1307,30 +1311,35 @@ class Store:
     def _retirement(self, device: str, *, retire: bool, by: str, note: str, at: float | None) -> dict:
         at = time.time() if at is None else at
         holder = None
-        # refused after the transaction, not inside it: an error inside drops every band sum kept in memory
-        with self._tx() as c:
-            known = c.execute("SELECT 1 FROM devices WHERE id = ?", (device,)).fetchone() is not None
-            if known and retire:
-                # the unique index allows one retirement in force: a second one, even at once from another cluster
-                # member, inserts nothing and is refused below
-                changed = c.execute(
-                    "INSERT INTO device_retirements (device, retired_at, retired_by, note) VALUES (?, ?, ?, ?) "
-                    "ON CONFLICT DO NOTHING",
-                    (device, at, by, note),
-                ).rowcount
-                if not changed:  # who holds it, read here: reinstated after this transaction, it would be no one
-                    holder = c.execute(
-                        "SELECT retired_by, note FROM device_retirements WHERE device = ? AND reinstated_at IS NULL",
-                        (device,),
-                    ).fetchone()
-            elif known:
-                changed = c.execute(
-                    "UPDATE device_retirements SET reinstated_at = ?, reinstated_by = ?, reinstate_note = ? "
-                    "WHERE device = ? AND reinstated_at IS NULL",
-                    (at, by, note, device),
-                ).rowcount
-            if known and changed:  # this process's writer reads them again at its next batch, after this commit
-                self._retired_read_at = -math.inf
+        # refused after the transaction, not inside it: an error inside drops every band sum kept in memory; the
+        # writer's lock held on to the mark below, after the commit, so that no batch of the writer's comes between
+        with self._lock:
+            with self._tx() as c:
+                known = c.execute("SELECT 1 FROM devices WHERE id = ?", (device,)).fetchone() is not None
+                if known and retire:
+                    # the unique index allows one retirement in force: a second one, even at once from another cluster
+                    # member, inserts nothing and is refused below
+                    changed = c.execute(
+                        "INSERT INTO device_retirements (device, retired_at, retired_by, note) VALUES (?, ?, ?, ?) "
+                        "ON CONFLICT DO NOTHING",
+                        (device, at, by, note),
+                    ).rowcount
+                    if not changed:  # who holds it, read here: reinstated after this transaction, it would be no one
+                        holder = c.execute(
+                            "SELECT retired_by, note FROM device_retirements "
+                            "WHERE device = ? AND reinstated_at IS NULL",
+                            (device,),
+                        ).fetchone()
+                elif known:
+                    changed = c.execute(
+                        "UPDATE device_retirements SET reinstated_at = ?, reinstated_by = ?, reinstate_note = ? "
+                        "WHERE device = ? AND reinstated_at IS NULL",
+                        (at, by, note, device),
+                    ).rowcount
+            # this process's writer reads them again at its next batch, a watermark question at its next: one that
+            # read them while this committed (the read pool, outside the lock) saw the drive as it was, for 5 s
+            if known and changed:
+                self._retired_changed_at, self._retired_read_at = time.monotonic(), -math.inf
         if not known:
             raise KeyError(f"no device {device}")
         if not changed and retire:

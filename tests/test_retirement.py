@@ -102,6 +102,36 @@ def test_what_a_retired_drive_sends_is_kept_as_dead_letters_and_stored_once_it_i
     assert store.max_seq("drive-001") == 2
 
 
+def test_a_watermark_question_while_a_retirement_commits_leaves_this_writer_no_stale_list(tmp_path):
+    """The watermark question reads the retired drives outside the writer's lock (the read pool). Asked while the
+    retirement committed, it read the drive in the fleet still and kept that for RETIRED_READ_EVERY_S: this process
+    stored the retired drive's windows and told its agent to send them for 5 s (and refused a reinstated one's). The
+    list is marked stale once the change is committed, before the writer's next batch. Asked here at the COMMIT."""
+    with Store.open(tmp_path / "fleet.db") as store:
+        store.insert_window(window("drive-001", 1))
+        assert not store.is_retired("drive-001")  # a question before: the list read
+        heard = []
+
+        def ask_at_commit(sql: str) -> None:
+            if sql == "COMMIT":  # the question in another thread, as Zenoh's query handler asks it
+                asker = threading.Thread(target=lambda: heard.append(store.is_retired("drive-001")))
+                asker.start()
+                asker.join()
+
+        store._conn.set_trace_callback(ask_at_commit)
+        store.retire_device("drive-001", by="token 1", note="replaced")
+        store._conn.set_trace_callback(None)
+        assert heard == [False]  # read before the commit
+        assert store.is_retired("drive-001")
+        later = (keys.key("drive-001", keys.STATS), wire.encode("window", window("drive-001", 2)))
+        assert store.ingest(*later) == "device_retired"
+        store._conn.set_trace_callback(ask_at_commit)
+        store.reinstate_device("drive-001", by="token 1", note="not replaced after all")
+        store._conn.set_trace_callback(None)
+        assert heard == [False, True] and not store.is_retired("drive-001")
+        assert store.ingest(*later) == "stored"
+
+
 def test_another_cluster_members_retirement_reaches_this_writer(postgres_url, monkeypatch):
     """Two service processes on one PostgreSQL: the one that did not retire the drive stops storing it within
     RETIRED_READ_EVERY_S (zero here)."""
