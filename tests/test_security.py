@@ -797,3 +797,17 @@ def test_the_first_admin_token_is_never_readable_by_others_nor_written_through_a
             auth.first_admin_token(blocked)
         assert auth.count() == 0 and not list(tmp_path.glob(".a-folder*"))  # revoked, no temporary file left
         assert auth.first_admin_token(tmp_path / "ok-token") is not None
+
+
+def test_token_list_escapes_a_name_made_before_names_were_one_line(tmp_path):
+    """A token named before the one-line rule keeps its name; `token list` prints it escaped, not as the escape
+    sequence it holds (which reached the operator's terminal)."""
+    db = tmp_path / "fleet.sqlite"
+    with Store.open(db) as store:
+        TokenAuth(store).create("read", "wallboard")
+        with store._tx() as c:
+            c.execute("UPDATE api_tokens SET name = ?", ("\x1b[2Jwiped",))
+    listed = subprocess.run(
+        [sys.executable, "-m", "encoder_fleet.cli", "token", "list", "--db", str(db)], capture_output=True, text=True
+    )
+    assert listed.returncode == 0 and "\x1b" not in listed.stdout and "'\\x1b[2Jwiped'" in listed.stdout
