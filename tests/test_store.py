@@ -784,3 +784,21 @@ def test_each_migration_an_older_database_takes_is_said_while_it_runs(tmp_path, 
         said = [r.getMessage() for r in caplog.records]
     assert len(said) == 2 and all("105_device_window_count.sql" in line for line in said), said
     assert said[0].startswith("applying migration 105") and " applied in " in said[1]
+
+
+def test_a_large_databases_start_up_check_is_said_while_it_runs(tmp_path, caplog, monkeypatch):
+    """The service checks its SQLite file at start-up (quick_check reads every page: ~3 min for 8.5 GB) and printed
+    nothing meanwhile, a start that seemed to hang; past QUICK_CHECK_SAID_MB it says so, before and once done."""
+    import service.store as store_module
+
+    db_path = tmp_path / "fleet.sqlite"
+    with Store.open(db_path) as store:
+        store.insert_window(window("drive-001", 1))
+    with caplog.at_level("WARNING", logger="service.store"), Store.open(db_path, check_integrity=True):
+        pass
+    assert "checking the database" not in caplog.text  # a small file: nothing to say
+    monkeypatch.setattr(store_module, "QUICK_CHECK_SAID_MB", 0.0)
+    with caplog.at_level("WARNING", logger="service.store"), Store.open(db_path, check_integrity=True):
+        said = [r.getMessage() for r in caplog.records]
+    assert said[0].startswith("checking the database before start") and str(db_path) in said[0], said
+    assert said[1].startswith("database checked in "), said
