@@ -7,6 +7,7 @@ endpoints it joins external routers as a client instead.
 from __future__ import annotations
 
 import ipaddress
+import itertools
 import json
 import logging
 import math
@@ -24,7 +25,7 @@ from prometheus_client import Histogram
 from encoder_core.correction import BandedCorrection
 from encoder_core.monitor_causes import cause as cause_of
 from encoder_core.samples import InputError
-from encoder_core.stats import normalisation_scale
+from encoder_core.stats import WindowStats, normalisation_scale
 from encoder_core.thermal import lag_to_send
 from fleet_wire import keys
 from fleet_wire import messages as wire
@@ -32,7 +33,16 @@ from fleet_wire.session import set_on_signals
 from service.cluster import Partitions
 from service.db import is_postgres, redacted, sqlite_path
 from service.monitor import Monitor
-from service.refit import MIN_BAND_SAMPLES, STEP_CAUSES, STEP_OPEN_S, RefitResult, refit_device, step_moved_bands
+from service.refit import (
+    MIN_BAND_SAMPLES,
+    STEP_CAUSES,
+    STEP_OPEN_S,
+    RefitResult,
+    bench_anchors,
+    prefetch_band_fits,
+    refit_device,
+    step_moved_bands,
+)
 from service.rollout import DeviceHeld, Rollouts
 from service.store import Store
 from service.trial import WATCH_S, TrialEvidence, Verdict, changed_bands, watch_against_factory
@@ -77,6 +87,7 @@ REFIT_EVERY_S = 3600.0
 # the monitor does not name (gain, axis) is caught within this, not at the next refit (bench-fleet-accuracy, 48
 # drives: worse hours 21 -> 16 at 0.5 Hz and 52 -> 40 at 20 Hz)
 WATCH_EVERY_S = 900.0
+PREFETCH_DEVICES = 32  # a pass fits the band sums of this many due devices in one batch (prefetch_band_fits)
 # wall seconds after which a set the drive's windows do not show yet is put again: a set is otherwise put once, and
 # an agent cut off from the router at that moment would run its old set for good (the agent ignores a version it has)
 RESEND_AFTER_S = 60.0
@@ -877,9 +888,13 @@ class FleetService:
             pending, self._changed = deque(sorted(self._changed)), set()
         # a retired drive gets no set (what it sends is not stored, so it comes here only from before it was retired)
         done = self.store.retired_device_ids()
-        published, later = [], set()
+        published, later, prefetched = [], set(), set()
         while (device := self._next_in_pass(pending, done)) is not None:
             self._store_first()
+            if device not in prefetched:
+                ahead = [device] + [d for d in itertools.islice(pending, PREFETCH_DEVICES - 1) if d not in done]
+                prefetched.update(ahead)
+                self._prefetch_fits(ahead)
             # the device's partition is not handed over while this works on it (a hand-over now: left to its new owner)
             with self.partitions.serving(device) as mine:
                 if not mine:
@@ -1006,6 +1021,39 @@ class FleetService:
                 done.add(device)
                 if self.partitions.serves(device):
                     return device
+
+    def _prefetch_fits(self, devices: list[str]) -> None:
+        """The band fits of the devices a pass is about to refit, in one batch into the fit memo
+        (service.refit.prefetch_band_fits: half the cost of a device's fits, the same fits). Only devices whose
+        refit is due by its cadence and that nothing else holds (a set on trial is judged, a rollout's device and a
+        pending step's are not fitted): a fit prefetched for nothing costs as much as one. Best effort: a device
+        whose reads fail here is fitted by its own refit, as without the batch."""
+        drives = []
+        for device in devices:
+            try:
+                if self._fit_likely(device) and (anchors := bench_anchors(self._correction(device, 0))):
+                    drives.append((self._band_stats(device), anchors))
+            except Exception:
+                log.exception("%s: reading it for the batch of band fits failed", device)
+        try:
+            prefetch_band_fits(drives, self.min_band_samples)
+        except Exception:
+            log.exception("fitting %d devices' bands in one batch failed", len(drives))
+
+    def _fit_likely(self, device: str) -> bool:
+        """Whether this pass will fit the device's bands, as far as a cheap look tells (refit decides)."""
+        with self._lock:
+            if device in self._step_moves:
+                return False
+            forced = device in self._refit_now
+        if not self.partitions.serves(device) or self.rollouts.holds(device) or self.store.set_on_trial(device):
+            return False
+        last = self._fitted_at.get(device)
+        return forced or last is None or self._drive_now(device) - last >= self.refit_every_s
+
+    def _band_stats(self, device: str) -> dict[int, WindowStats]:
+        """band -> the device's merged window statistics there (the store keeps them in memory)."""
+        return {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
 
     def _refit_due(self, device: str, drive_now: float) -> bool:
         with self._lock:
@@ -1283,7 +1331,7 @@ class FleetService:
         axis_steps = self.store.alarms(device, cause="axis_step")
         factory = self._correction(device, 0)
         running = self._correction(device, running_version)
-        band_stats = {band: stats for band, (stats, _, _) in self.store.band_stats(device).items()}
+        band_stats = self._band_stats(device)
         bin_temps = {band: stats.bin_temps() for band, stats in band_stats.items()}
         return refit_device(
             band_stats,

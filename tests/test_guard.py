@@ -721,6 +721,61 @@ def test_a_device_is_refit_once_per_drive_hour_not_once_per_window(fleet):
     assert refit_pass() == 3
 
 
+def test_a_pass_fits_its_due_drives_bands_in_one_batch_and_each_refit_then_fits_none(fleet, monkeypatch):
+    """refit_all fits the band sums of the drives it is about to refit in one batch (service.refit
+    prefetch_band_fits: half the cost of each drive's own), and each drive's refit finds its fits made; a drive
+    whose set is on trial is judged, not fitted, and is left out of the batch."""
+    import numpy as np
+
+    from encoder_fleet import fieldsim
+    from encoder_fleet.calibrate import calibrate
+    from encoder_fleet.calibrate import factory_set as factory_message_of
+    from service import refit as refit_module
+
+    store, service = fleet
+    rng = np.random.default_rng(41)
+    names = ["drive-p0", "drive-p1", "drive-p2", "drive-pt"]
+    bands_of = {}
+    for name in names:
+        phys = fieldsim.draw_drive(rng, event=None, days=1)
+        factory = calibrate(fieldsim.bench_sweep(phys, rng))
+        msg = factory_message_of(name, factory)
+        store.insert_coefficient_set(msg)
+        store.mark_published(name, 0)
+        samples = fieldsim.field_run(phys, days=0.25, rate_hz=5.0, regime="even", rng=rng).samples
+        for seq, start in enumerate(np.arange(samples.t[0], samples.t[-1] - 60.0, 60.0), start=1):
+            block = samples.subset((samples.t >= start) & (samples.t < start + 60.0))
+            stats = window_stats(block, normalisation_scale(factory))
+            store.insert_window(
+                wire.window_message(
+                    name,
+                    seq,
+                    stats,
+                    window_start=float(block.t[0] - samples.t[0]),
+                    window_end=float(block.t[-1] - samples.t[0]),
+                    temp_rate_c_per_s=0.0,
+                    coefficients_version=0,
+                    angle_quality_deg=0.1,
+                )
+            )  # fmt: skip (the run's clock starts before 0)
+        bands_of[name] = sum(stats.n >= service.min_band_samples for stats, _, _ in store.band_stats(name).values())
+    store.insert_coefficient_set(wire.coefficients_message("drive-pt", 1, 5000.0, "fit", msg["bands"]), state="trial")
+    store.mark_published("drive-pt", 1)
+    fitted = []
+    real_fit_drifts = refit_module.fit_drifts_each
+    monkeypatch.setattr(
+        refit_module,
+        "fit_drifts_each",
+        lambda fields, *a, **k: fitted.append(len(fields)) or real_fit_drifts(fields, *a, **k),
+    )
+    refit_module.FIT_MEMO.clear()
+    service._changed |= set(names)
+    service.refit_all()
+    assert service.counters.refits == 3  # the drive on trial was judged
+    assert fitted[0] == sum(bands_of[n] for n in names[:3]) and min(bands_of.values()) >= 2
+    assert len(fitted) == 4 and fitted[1:] == [0, 0, 0]  # the batch, then three refits that fit nothing
+
+
 @pytest.mark.parametrize("seed", [31, 32])
 def test_the_watch_restores_the_factory_set_where_the_running_one_is_worse(fleet, seed):
     """The first rule after a set was confirmed: the drive changed under it (a hidden error, its size and sign

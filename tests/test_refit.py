@@ -394,3 +394,52 @@ def test_a_band_whose_sums_did_not_change_is_not_fitted_again(monkeypatch):
     without = refit(bands)
     assert [d[:2] for d in with_memo] == [d[:2] for d in without]
     assert np.allclose([d[2:] for d in with_memo], [d[2:] for d in without], rtol=1e-7, atol=1e-12)
+
+
+def test_band_fits_prefetched_for_several_drives_make_the_same_refits_with_no_fit_left(monkeypatch):
+    """A refit pass fits the band sums of the drives it is about to refit in one batch (prefetch_band_fits):
+    each drive's refit then finds all its fits in the memo, and is the refit it makes without the batch."""
+    from service import refit as refit_module
+
+    rng = np.random.default_rng(12)
+    drives = []
+    for _ in range(3):
+        phys = fieldsim.draw_drive(rng, event=None, days=1)
+        factory = calibrate(fieldsim.bench_sweep(phys, rng))
+        s = fieldsim.field_run(phys, days=0.5, rate_hz=5.0, regime="even", rng=rng).samples
+        bands = {}
+        for k in range(0, s.t.size - 300, 300):
+            part = Samples(t=s.t[k : k + 300], d=s.d[k : k + 300], q=s.q[k : k + 300], temp_c=s.temp_c[k : k + 300])
+            stats = window_stats(part, normalisation_scale(factory))
+            band = band_of(stats.temp_mean)
+            bands[band] = bands[band].merge(stats) if band in bands else stats
+        drives.append((bands, factory))
+    fitted = []
+    real_fit_drifts = refit_module.fit_drifts_each
+    monkeypatch.setattr(
+        refit_module,
+        "fit_drifts_each",
+        lambda fields, *a, **k: fitted.extend(fields) or real_fit_drifts(fields, *a, **k),
+    )
+
+    def refits():
+        return [
+            [
+                (d.band, d.adopted, d.candidate_error_deg, d.running_error_deg, d.candidate)
+                for d in refit_device(
+                    bands, factory, factory, bin_temps={b: st.bin_temps() for b, st in bands.items()}
+                ).decisions
+            ]
+            for bands, factory in drives
+        ]
+
+    refit_module.FIT_MEMO.clear()
+    alone = refits()
+    refit_module.FIT_MEMO.clear()
+    fitted.clear()
+    wanted = sum(sum(st.n >= MIN_BAND_SAMPLES for st in bands.values()) for bands, _ in drives)
+    batch = [(bands, refit_module.bench_anchors(factory)) for bands, factory in drives]
+    assert refit_module.prefetch_band_fits(batch) == len(fitted) == wanted >= 6  # one batch, every band
+    assert refit_module.prefetch_band_fits(batch) == 0  # fitted already: nothing again
+    fitted.clear()
+    assert refits() == alone and fitted == []
