@@ -15,7 +15,7 @@ TAKEN = (
 
 
 def cmd_token(args) -> int:
-    from service.auth import CONTROL_CHARACTERS, TokenAuth, check_token_name, write_token_file
+    from service.auth import TokenAuth, check_token_name, shown_name, write_token_file
     from service.store import Store
 
     if args.token_command == "create":
@@ -67,9 +67,7 @@ def cmd_token(args) -> int:
         elif args.token_command == "list":
             for t in auth.tokens():
                 state = "revoked" if t["revoked_at"] else "live"
-                # escaped: a name made before names were one line of text may hold an escape sequence
-                name = t["name"] if not CONTROL_CHARACTERS.search(t["name"]) else ascii(t["name"])
-                print(f"{t['id']:>4} {t['scope']:<6} {state:<8} {name}")
+                print(f"{t['id']:>4} {t['scope']:<6} {state:<8} {shown_name(t['name'])}")
         elif args.token_command == "revoke":
             if not auth.revoke(args.id):
                 raise InputError(f"no live token {args.id}")

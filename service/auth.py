@@ -51,6 +51,13 @@ def check_token_name(name: str) -> str:
     return name
 
 
+def shown_name(name: str) -> str:
+    """A token's name as it is shown and recorded (`token list`, who acknowledged an alarm or retired a drive):
+    escaped when it is not one line of text (a name made before check_token_name), so no escape sequence in it
+    reaches an operator's terminal."""
+    return ascii(name) if CONTROL_CHARACTERS.search(name) else name
+
+
 def _digest(token: str) -> str:
     return hashlib.sha256(token.encode("utf-8", errors="replace")).hexdigest()
 
@@ -177,7 +184,7 @@ def authorize(request: Request, credentials: Credentials) -> str | None:
     if row is None:
         raise _unauthorized("the token is not valid")
     request.state.scope = row["scope"]
-    request.state.token = f"token {row['id']} ({row['name']})"  # who did it, for what a change records
+    request.state.token = f"token {row['id']} ({shown_name(row['name'])})"  # who did it, for what a change records
     return row["scope"]
 
 

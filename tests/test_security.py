@@ -811,3 +811,22 @@ def test_token_list_escapes_a_name_made_before_names_were_one_line(tmp_path):
         [sys.executable, "-m", "encoder_fleet.cli", "token", "list", "--db", str(db)], capture_output=True, text=True
     )
     assert listed.returncode == 0 and "\x1b" not in listed.stdout and "'\\x1b[2Jwiped'" in listed.stdout
+
+
+def test_a_change_made_with_a_token_named_before_names_were_one_line_records_it_escaped(tmp_path):
+    """Who retired a drive is the token's name as the change records it, printed by `devices show` and `alarms list`:
+    a name made before the one-line rule reached the operator's terminal through them as the escape sequence it held
+    (only `token list` escaped it). The record holds it escaped, as `token list` prints it."""
+    with Store.open(tmp_path / "fleet.sqlite") as store:
+        store.insert_window(ws.window("drive-001", 1))
+        auth = TokenAuth(store)
+        token_id, token = auth.create("admin", "ops desk")
+        with store._tx() as c:
+            c.execute("UPDATE api_tokens SET name = ?", ("\x1b[2Jwiped",))
+        api = TestClient(create_app(store, auth=auth))
+        r = api.post(
+            "/devices/drive-001/retire", json={"note": "replaced"}, headers={"Authorization": f"Bearer {token}"}
+        )
+        assert r.status_code == 200, r.text
+        assert r.json()["retired"]["by"] == f"token {token_id} ('\\x1b[2Jwiped')"
+        assert "\x1b" not in store.retirements("drive-001")[0]["retired_by"]
