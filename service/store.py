@@ -1240,7 +1240,9 @@ class Store:
         return "".join(clause.format(column) for _ in labels or ()), args
 
     def set_labels(self, device: str, labels: dict[str, str]) -> dict[str, str]:
-        """Replace the device's labels (checked by service.labels.check_labels first); KeyError: no such device."""
+        """Replace the device's labels (checked by service.labels.check_labels first), and return them, by name;
+        KeyError: no such device."""
+        labels = dict(sorted(labels.items()))
         with self._tx() as c:
             # the device's row locked to the transaction's end: a PUT at once on another cluster member waits, then
             # replaces these whole (the two deletes found nothing to wait for, and the second insert failed on the key)
@@ -1249,11 +1251,11 @@ class Store:
                 c.execute("DELETE FROM device_labels WHERE device = ?", (device,))
                 c.executemany(
                     "INSERT INTO device_labels (device, name, value) VALUES (?, ?, ?)",
-                    [(device, name, value) for name, value in sorted(labels.items())],
+                    [(device, name, value) for name, value in labels.items()],
                 )
         if not known:
             raise KeyError(f"no device {device}")
-        return self.labels_of([device])[device]
+        return labels  # what the transaction wrote, whole: not read back (PUT /devices/{id}/labels reads the device)
 
     def labels_of(self, ids: list[str]) -> dict[str, dict[str, str]]:
         """device -> its labels, for every device of `ids` ({} for one without)."""
