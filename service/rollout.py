@@ -177,20 +177,20 @@ class Rollouts:
     def _devices_of(self, spec: RolloutSpec) -> list[str]:
         """The drives the spec takes, in the order their waves take them; RolloutError (422) for a spec that takes
         none or names one the fleet does not have (unknown, or retired)."""
+        if spec.labels is not None:  # the store's own selection: known and in the fleet, so nothing more to check
+            devices = self.store.device_ids(in_fleet=True, labels=spec.labels)
+            if not devices:
+                selected = ", ".join(f"{k}={v}" for k, v in spec.labels.items())
+                raise RolloutError(422, f"no device in the fleet carries {selected}", ("body", "labels"))
+            return devices
         known = self.store.device_ids()
         retired = self.store.retired_device_ids()
-        in_fleet = [d for d in known if d not in retired]
-        if spec.labels is not None:
-            in_fleet = self.store.device_ids(in_fleet=True, labels=spec.labels)
-        devices = in_fleet if spec.devices is None else list(dict.fromkeys(spec.devices))
+        devices = [d for d in known if d not in retired] if spec.devices is None else list(dict.fromkeys(spec.devices))
         for what, names in (("unknown", set(devices) - set(known)), ("retired", set(devices) & retired)):
             if names:
                 names = sorted(names)
                 more = f" and {len(names) - 10} more" if len(names) > 10 else ""
                 raise RolloutError(422, f"{what} devices: {', '.join(names[:10])}{more}", ("body", "devices"))
-        if not devices and spec.labels is not None:
-            selected = ", ".join(f"{k}={v}" for k, v in spec.labels.items())
-            raise RolloutError(422, f"no device in the fleet carries {selected}", ("body", "labels"))
         if not devices:
             why = "every device is retired" if known else "the fleet has none yet"
             raise RolloutError(422, f"no devices to roll out to: {why}", ("body", "devices"))
