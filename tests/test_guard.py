@@ -145,12 +145,10 @@ def test_a_trial_the_drive_gives_no_evidence_for_is_kept_after_an_hour_not_held_
     assert state["state"] == "confirmed" and "not measured within 1 drive hours" in state["state_reason"]
 
 
-def test_a_refused_set_is_answered_with_the_set_the_drive_runs_and_a_refused_answer_is_not_answered(fleet):
-    """The drive runs v1 (its windows say so); v2 is refused: v3 restores v1, not the factory set. If the agent
-    refuses v3 too (say its key does not match), nothing more is sent: the record says both were refused, and
-    that the drive runs v1."""
-    store, service = fleet
-    service.min_band_samples = 10**9  # no refit of the windows here: the test is about the answers
+def v2_on_trial_after_v1_ran(store, service) -> None:
+    """The drive ran v1 (confirmed; half an hour of its windows) and v2, its zero offsets 1 mrad off, is on trial; no
+    refit of the windows: a test of the answers to v2's refusal."""
+    service.min_band_samples = 10**9
     factory = factory_set(store)
     v1 = wire.coefficients_message(DEVICE, 1, 5000.0, "fit", [dict(b) for b in factory["bands"]])
     store.insert_coefficient_set(v1, state="confirmed")
@@ -159,6 +157,14 @@ def test_a_refused_set_is_answered_with_the_set_the_drive_runs_and_a_refused_ans
     bands = [{**b, "zero_offset_rad": b["zero_offset_rad"] + 1e-3} for b in factory["bands"]]
     store.insert_coefficient_set(wire.coefficients_message(DEVICE, 2, 16_000.0, "fit", bands), state="trial")
     service._publish(store.coefficient_set(DEVICE, 2))
+
+
+def test_a_refused_set_is_answered_with_the_set_the_drive_runs_and_a_refused_answer_is_not_answered(fleet):
+    """The drive runs v1 (its windows say so); v2 is refused: v3 restores v1, not the factory set. If the agent
+    refuses v3 too (say its key does not match), nothing more is sent: the record says both were refused, and
+    that the drive runs v1."""
+    store, service = fleet
+    v2_on_trial_after_v1_ran(store, service)
 
     def refuse(version: int, reason: str) -> None:
         store.insert_ack(wire.ack_message(DEVICE, version, "rejected", 17_000.0 + version, reason=reason))

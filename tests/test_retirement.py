@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from operator_cli import operator_cli
 from prometheus_client.parser import text_string_to_metric_families
-from test_guard import DEVICE, factory_set, run_on
+from test_guard import DEVICE, v2_on_trial_after_v1_ran
 from wire_samples import window
 
 from fleet_wire import keys
@@ -228,16 +228,8 @@ def test_a_retired_drive_gets_no_set_and_no_rollout(fleet):
     """A refusal the refit pass would answer (test_guard's) waits while the drive is retired and is answered once it
     is back; a rollout to the whole fleet leaves it out, and one naming it is refused."""
     store, service = fleet
-    service.min_band_samples = 10**9
-    factory = factory_set(store)
-    v1 = wire.coefficients_message(DEVICE, 1, 5000.0, "fit", [dict(b) for b in factory["bands"]])
-    store.insert_coefficient_set(v1, state="confirmed")
-    service._publish(v1)
-    run_on(store, 1, hours=0.5)
+    v2_on_trial_after_v1_ran(store, service)
     store.insert_window(window("drive-002", 1))
-    bands = [{**b, "zero_offset_rad": b["zero_offset_rad"] + 1e-3} for b in factory["bands"]]
-    store.insert_coefficient_set(wire.coefficients_message(DEVICE, 2, 16_000.0, "fit", bands), state="trial")
-    service._publish(store.coefficient_set(DEVICE, 2))
     store.insert_ack(wire.ack_message(DEVICE, 2, "rejected", 17_002.0, reason="band at 20.0 °C: out of range"))
     store.retire_device(DEVICE, by="token 1", note="replaced")
     service._changed.add(DEVICE)
