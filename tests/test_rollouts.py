@@ -113,6 +113,17 @@ def install(store, service, device: str, running: list[dict], knock: float = 0.0
     run_on(store, device, 1, hours=0.25, knock=knock)
 
 
+def four_drives_to_reset(store, service, criteria: list[dict]) -> RolloutSpec:
+    """DEVICES[:4] installed on a fleet set 0.03 off, and the spec of a reset of them: waves of two, a soak of 60
+    windows in 600 s, `criteria`."""
+    for device in DEVICES[:4]:
+        install(store, service, device, shifted(true_bands(device), 0.03))
+    return RolloutSpec(
+        name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
+        soak_windows=60, timeout_s=600.0, abort_criteria=criteria,
+    )  # fmt: skip
+
+
 def soak_and_step(store, service, clock, rounds: int = 12, knocks: dict[str, float] | None = None) -> dict:
     """Rounds of: every drive holding a rollout set runs it for an hour, then the controller steps."""
     for _ in range(rounds):
@@ -327,14 +338,8 @@ def test_rest_creates_pauses_resumes_and_aborts_with_an_admin_token_only(fleet, 
 
 def test_a_rejected_set_and_a_silent_drive_count_as_failures_and_are_rolled_back(fleet, clock):
     store, service = fleet
-    for device in DEVICES[:4]:
-        install(store, service, device, shifted(true_bands(device), 0.03))
     criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 2, "action": "pause"}]
-    spec = RolloutSpec(
-        name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
-        soak_windows=60, timeout_s=600.0, abort_criteria=criteria,
-    )  # fmt: skip
-    service.rollouts.create(spec)
+    service.rollouts.create(four_drives_to_reset(store, service, criteria))
     service.rollouts.step()
     first, second = DEVICES[:2]
     store.insert_ack(wire.ack_message(first, 2, "rejected", 99_999.0, reason="signature does not verify"))
@@ -804,16 +809,12 @@ def test_a_drive_offline_when_its_wave_starts_waits_and_ends_offline_not_as_a_fa
     drive that was not there. Now an offline drive waits for its token, timeout_s from its wave's start at most: one
     back in time gets its part (drive-03), one that is not ends offline (drive-01), no set issued, no failure."""
     store, service = fleet
-    for device in DEVICES[:4]:
-        install(store, service, device, shifted(true_bands(device), 0.03))
+    criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
+    spec = four_drives_to_reset(store, service, criteria)
     gone, back = DEVICES[0], DEVICES[2]
     for device in (gone, back):
         store.set_online(device, False)
-    criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
-    service.rollouts.create(
-        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
-                    soak_windows=60, timeout_s=600.0, abort_criteria=criteria)
-    )  # fmt: skip
+    service.rollouts.create(spec)
     for _ in range(40):
         parts = {d["device"]: d for d in service.rollouts.get(1)["devices"]}
         if parts[back]["state"] == "pending" and service.rollouts.get(1)["wave"] == 1:
@@ -956,14 +957,9 @@ def test_a_drive_retired_mid_rollout_is_no_failure_of_the_change_and_gets_no_set
     succeeded on). One retired before its wave got the change all the same. Now the soaking one is rolled back at
     once, unjudged and not counted, and the later one's part ends unchanged with no set issued."""
     store, service = fleet
-    for device in DEVICES[:4]:
-        install(store, service, device, shifted(true_bands(device), 0.03))
     soaking, later = DEVICES[0], DEVICES[2]
     criteria = [{"failure_type": "timed_out", "threshold_percentage": 50, "min_executed": 1}]
-    service.rollouts.create(
-        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
-                    soak_windows=60, timeout_s=600.0, abort_criteria=criteria)
-    )  # fmt: skip
+    service.rollouts.create(four_drives_to_reset(store, service, criteria))
     service.rollouts.step()
     assert service.rollouts.holds(soaking)
     for device in (soaking, later):
@@ -991,13 +987,8 @@ def test_a_part_rolled_back_for_its_drives_retirement_is_not_counted_as_executed
     drive it was judged on. Counted as executed, the retired one's part read as 1 rejected of 2 (50 %), under a 60 %
     criterion, and the next wave started."""
     store, service = fleet
-    for device in DEVICES[:4]:
-        install(store, service, device, shifted(true_bands(device), 0.03))
     criteria = [{"failure_type": "rejected", "threshold_percentage": 60, "min_executed": 1}]
-    service.rollouts.create(
-        RolloutSpec(name="reset", change={"kind": "reset_to_factory"}, devices=DEVICES[:4], base_per_minute=2,
-                    soak_windows=60, timeout_s=600.0, abort_criteria=criteria)
-    )  # fmt: skip
+    service.rollouts.create(four_drives_to_reset(store, service, criteria))
     service.rollouts.step()
     store.retire_device(DEVICES[0], by="token 1", note="replaced")
     clock.now += 61.0
