@@ -600,9 +600,8 @@ def list_windows(
         start = store.window_start_of(device["id"], after)
         if start is None:
             message = f"device {device['id']!r} has no window of seq {after}"
-            if after < store.seq_floor(
-                device["id"]
-            ):  # deleted by retention (or lost by the agent) since the page before was read
+            # deleted by retention (or lost by the agent) since the page before was read
+            if after < store.seq_floor(device["id"]):
                 message += " any more (retention deleted the oldest windows): page again from the range's start"
             raise RequestValidationError([{"type": "value_error", "loc": ("query", "after"), "msg": message}])
         cursor = (start, after)
