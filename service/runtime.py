@@ -1028,13 +1028,15 @@ class FleetService:
         refit is due by its cadence and that nothing else holds (a set on trial is judged, a rollout's device and a
         pending step's are not fitted): a fit prefetched for nothing costs as much as one. Best effort: a device
         whose reads fail here is fitted by its own refit, as without the batch."""
-        drives = []
+        drives, unread = [], []
         for device in devices:
             try:
                 if self._fit_likely(device) and (anchors := bench_anchors(self._correction(device, 0))):
                     drives.append((self._band_stats(device), anchors))
-            except Exception:
-                log.exception("%s: reading it for the batch of band fits failed", device)
+            except Exception as exc:  # the refit reads it again, and says so if it fails there too
+                unread.append(f"{device}: {exc}")
+        if unread:  # one line for the batch: a database that refuses every read would otherwise log each drive twice
+            log.warning("%d device(s) left out of the batch of band fits: %s", len(unread), "; ".join(unread[:3]))
         try:
             prefetch_band_fits(drives, self.min_band_samples)
         except Exception:
