@@ -248,6 +248,9 @@ def refit_from_bench(
             corr, quality, err_new, drift = drift_candidate(terms, errors, temp_c, factory, locus)
             # its zero the ruler's: the factory, moved by the axis turns named since the bench
             to_anchor.append((len(corrs), factory.axes_moved(axis_turn) if axis_turn else factory, drift))
+        # a fit that ran away (bins a loose magnet's collapsed windows mix with held positions) has a misfit of inf or
+        # NaN, which no JSON carries: the set, and the fits recorded with it, were refused at every pass
+        chi2 = chi2 if chi2 is not None and np.isfinite(chi2) else None
         quality = {**quality, "samples": stats.n if stats is not None else 0, "chi2_dof": chi2}
         candidates.append((band, stats, quality, err_new, locus, errors))
         corrs.append(corr)
@@ -595,6 +598,10 @@ def drift_candidate(
     once: anchor_zeros)."""
     radius = locus.radius
     kept = gate(terms, errors)
+    if not np.isfinite(kept.get("common", 0.0)):
+        # the common scale, which moves no angle, of a fit that ran away: the factory's (a NaN one made the candidate's
+        # every weight NaN, which the fits recorded with the set refuse)
+        kept["common"] = 0.0
     drift = Drift.from_terms(kept, np.array([locus.d[0], locus.q[0]]), radius)
     corr = compose(factory, drift)
     corr.temp_c = float(temp_c)

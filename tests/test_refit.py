@@ -443,3 +443,50 @@ def test_band_fits_prefetched_for_several_drives_make_the_same_refits_with_no_fi
     assert refit_module.prefetch_band_fits(batch) == 0  # fitted already: nothing again
     fitted.clear()
     assert refits() == alone and fitted == []
+
+
+@pytest.mark.parametrize("loose_samples, loose_amplitude", [(1200, 0.03), (600, 0.05)])
+@pytest.mark.parametrize("stepped_since_bench", [False, True])
+def test_a_band_whose_drift_fit_runs_away_leaves_nothing_non_finite_in_the_set(
+    loose_samples, loose_amplitude, stepped_since_bench
+):
+    """A servo holding four positions whose magnet worked loose for a few windows (the field collapsed to a few
+    percent, turning): the band's bins mix the held points with the collapsed circle, and its drift fit runs away
+    (inf or NaN misfit and common scale). Beside a band the refit adopts, that band's inf chi2_dof, or its candidate's
+    NaN weights, were in the set and the fits recorded with it: the wire and the store refused them at every pass
+    (independent simulator)."""
+    import json
+
+    from fleet_wire import messages as wire
+
+    rng = np.random.default_rng(6)
+    phys = fieldsim.draw_drive(rng, event=None, days=1)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    scale = normalisation_scale(factory)
+
+    def stats_at(theta, temp_c, amplitude=1.0):
+        t = np.arange(theta.size) * 0.05
+        temp = np.full(theta.size, temp_c)
+        d, q = phys.channels(theta, temp, t)
+        state = phys.state(temp, t)
+        d, q = phys.digitise(
+            state["o_d"] + (d - state["o_d"]) * amplitude, state["o_q"] + (q - state["o_q"]) * amplitude, rng
+        )
+        return window_stats(Samples(t=t, d=d, q=q, temp_c=temp), scale)
+
+    positions = rng.uniform(0, 2 * np.pi, 4)
+    held = stats_at(np.repeat(positions, 5000) + rng.normal(0, np.radians(0.02), 20000), 45.0)
+    loose = stats_at(rng.uniform(0, 2 * np.pi, loose_samples), 45.0, loose_amplitude)
+    bands = {4: held.merge(loose), 6: stats_at(rng.uniform(0, 2 * np.pi, 40000), 62.0)}
+    result = refit_device(
+        bands,
+        factory,
+        factory,
+        bin_temps={band: stats.bin_temps() for band, stats in bands.items()},
+        stepped_since_bench=stepped_since_bench,
+    )
+    assert result.changed
+    wire.coefficients_message("drive", 1, 0.0, "fit", result.bands)  # what publish_fit sends
+    for decision in result.decisions:  # and what it records with the set (store.record_fits: no NaN, no inf)
+        json.dumps([decision.candidate, decision.quality], allow_nan=False)
+        assert np.isfinite([decision.running_error_deg, decision.candidate_error_deg]).all()
