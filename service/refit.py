@@ -6,7 +6,7 @@ With a factory set that carries its bench locus (`encoder-fleet calibrate`), a b
 factory's correction after the drift since the bench (encoder_core/differential.py): offsets, gain
 ratio and axis come from the field where the band's statistics support them, one by one; the zero and
 the harmonics stay the factory's, measured against its reference. Without a bench locus (older factory
-sets) the band is fitted as before: a direct ellipse plus harmonics from the sample density.
+sets) nothing is fitted: the drive keeps the set it runs (NO_BENCH_LOCUS says why).
 
 A candidate band replaces what the device runs at that temperature only when the two differ by
 clearly more than the candidate's own uncertainty: then the running set is measurably wrong and the
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from encoder_core.correction import BandedCorrection, Correction, angles_of, zero_shift
+from encoder_core.correction import BandedCorrection, Correction, angles_of
 from encoder_core.differential import (
     MODEL_REACH_C,
     TERMS,
@@ -35,7 +35,6 @@ from encoder_core.differential import (
     fit_drifts_each,
     gate,
 )
-from encoder_core.ellipse import HarmonicEstimate, density_harmonics, ellipse_correction, ellipse_quality, fit_ellipse
 from encoder_core.held import HeldDrift, dwelt, held_drift_model, held_runs
 from encoder_core.physics import BAND_WIDTH_C, REFERENCE_TEMP_C, band_of, circular_mean, wrap_rad
 from encoder_core.samples import InputError
@@ -46,11 +45,18 @@ MIN_BAND_SAMPLES = 500  # below this a band's statistics are not fitted; above i
 # (2000 when a candidate's error counted only its adopted terms: a 0.5 Hz drive spends under 4,000 s in a 10 °C
 # band and was never fitted on the way through; bench-fleet-accuracy 0.5 Hz: median 2.85x -> 3.3x, worse hours
 # 17 -> 13, and 2.2x -> 2.3x, 20 -> 18 on two other seeds)
-LEGACY_MIN_SAMPLES = 20000  # without a bench locus the density harmonics need many more
 CONFIDENCE = 3.0  # adopt when the running set is off by 3x the candidate's own uncertainty …
 MIN_GAIN_DEG = 0.01  # … and by at least this much
-ZERO_ANCHOR_REACH_C = 10.0  # the factory's zero is trusted this close to its bench temperature
 UNBOUNDED_ERROR_DEG = 180.0  # a candidate whose drift the data cannot bound (the wire's largest error)
+# why a drive whose factory set carries no bench locus gets no fitted set: without the curve its bench measured, the
+# window statistics cannot tell the drift from the field's own harmonics (seed 001's trap), and the older ellipse-
+# plus-density refit made such drives worse on the independent simulator (fieldsim seeds 1-8, four motions, a day at
+# 5 Hz: worse than the factory set on 20 of 32, better on 2, reversing drives 0.04-0.13 deg -> 4.7-10.1 deg; moving
+# only each band's centre as that refit measured it: worse on 22)
+NO_BENCH_LOCUS = (
+    "its factory set carries no bench locus, against which the refit measures drift: it keeps the set it runs "
+    "(calibrate it again with `encoder-fleet calibrate` from its bench recording)"
+)
 STEP_CAUSES = ("offset_step", "gain_step", "axis_step")  # the alarms whose measured step moves the running set at once
 STEP_OPEN_S = 86400.0  # drive time after an offset step in which bands with no data since may be moved
 
@@ -94,13 +100,6 @@ def differences_deg(runnings: list[Correction], candidates: list[Correction]) ->
     diff = wrap_rad(angles_of(runnings, d, q) - angles_of(candidates, d, q))
     diff = wrap_rad(diff - circular_mean(diff, axis=1)[:, None])
     return np.degrees(np.sqrt(np.mean(diff**2, axis=1)))
-
-
-def uncertainty_deg(estimate: HarmonicEstimate, kept: dict, stats: WindowStats, residual_rms: float) -> float:
-    """How far the candidate itself may be off: the noise of the harmonic orders it applies, and the
-    ellipse's (residual radius scatter over the square root of the sample count)."""
-    var = sum((estimate.noise / m) ** 2 for m in kept) + residual_rms**2 / max(stats.n, 1)
-    return float(np.degrees(np.sqrt(var)))
 
 
 def refit_device(
@@ -153,27 +152,20 @@ def refit_device(
     temperature × window count per angle bin. With them each band's fit sets aside the locus's common scale
     changing with temperature across its bins (see encoder_core.differential.fit_drifts)."""
     anchors = bench_anchors(factory)
-    if anchors:
-        return refit_from_bench(
-            band_stats,
-            running,
-            anchors,
-            min_samples=min_samples,
-            bin_temps=bin_temps,
-            after_step=after_step,
-            stepped_since_bench=stepped_since_bench,
-            no_axis_step=no_axis_step,
-            axis_turn=axis_turn,
-            held_watched=held_watched,
-            before_step=before_step,
-        )
-    return refit_legacy(
+    if not anchors:
+        return RefitResult(bands=[])  # NO_BENCH_LOCUS
+    return refit_from_bench(
         band_stats,
         running,
-        factory,
-        min_samples=max(min_samples, LEGACY_MIN_SAMPLES),
+        anchors,
+        min_samples=min_samples,
+        bin_temps=bin_temps,
         after_step=after_step,
+        stepped_since_bench=stepped_since_bench,
+        no_axis_step=no_axis_step,
         axis_turn=axis_turn,
+        held_watched=held_watched,
+        before_step=before_step,
     )
 
 
@@ -638,83 +630,6 @@ def held_candidate(
         "drift_errors": {t: errors[t] if np.isfinite(errors[t]) else None for t in TERMS},
     }
     return corr, quality, err
-
-
-def refit_legacy(
-    band_stats: dict[int, WindowStats],
-    running: BandedCorrection,
-    factory: BandedCorrection | None = None,
-    *,
-    min_samples: int = LEGACY_MIN_SAMPLES,
-    after_step: bool = False,
-    axis_turn: float = 0.0,
-) -> RefitResult:
-    candidates: dict[int, tuple[Correction, dict, WindowStats]] = {}
-    estimates = []
-    for band, stats in sorted(band_stats.items()):
-        if stats.n < min_samples:
-            continue
-        try:
-            fit = fit_ellipse(stats)
-        except InputError:
-            continue  # not enough of the circle seen in this band yet
-        corr = ellipse_correction(stats, fit)
-        corr.temp_c = stats.temp_mean
-        estimates.append(density_harmonics(stats, fit))
-        candidates[band] = (corr, ellipse_quality(stats, fit), stats)
-    if not candidates:
-        return RefitResult(bands=[])
-    # harmonics come from the magnet and the sensor geometry, not from temperature: one estimate from
-    # all bands together is as many times less noisy as there are bands
-    pooled = HarmonicEstimate.pooled(estimates)
-    harmonics = pooled.significant()
-    for corr, _, _ in candidates.values():
-        corr.harmonics = dict(harmonics)
-    if factory is not None:
-        # one rotation for the whole device, taken where the factory is right: near +20 °C. When memory holds
-        # no band near it (a short horizon, a restart after a step in the cold), the running set is the ruler
-        # there: its zero was taken near +20 °C before, where the factory may be off by degrees at -30 °C
-        anchor_band = min(candidates, key=lambda b: abs(candidates[b][0].temp_c - REFERENCE_TEMP_C))
-        anchor_corr = candidates[anchor_band][0]
-        near = abs(anchor_corr.temp_c - REFERENCE_TEMP_C) <= ZERO_ANCHOR_REACH_C
-        ruler = factory.at(anchor_corr.temp_c) if near else running.at(anchor_corr.temp_c)
-        if near and axis_turn:  # the factory moved by the named axis turns, as refit_from_bench's ruler
-            ruler = ruler.axes_moved(axis_turn)
-        shift = zero_shift(ruler, anchor_corr)
-        for corr, _, _ in candidates.values():
-            corr.zero_offset_rad = float(wrap_rad(corr.zero_offset_rad + shift))
-    result = RefitResult(bands=[])
-    kept: dict[int, dict] = {}
-    moves, move_temps = [], []
-    for band, (corr, quality, stats) in candidates.items():
-        now = running.at(corr.temp_c)
-        err_now = difference_deg(now, corr)
-        err_new = uncertainty_deg(pooled, harmonics, stats, quality["residual_rms_rad"])
-        radius = 1.0 / abs(corr.w1)
-        moves.append((centre(corr) - centre(now), np.full(2, radius * max(np.radians(err_new), 1e-6))))
-        move_temps.append(corr.temp_c)
-        adopt = err_now > max(MIN_GAIN_DEG, CONFIDENCE * err_new)
-        chosen = corr if adopt else now
-        candidate = band_entry(band, corr, {**quality, "estimated_error_deg": err_new})
-        quality = {**quality, "estimated_error_deg": err_new if adopt else err_now}
-        kept[band] = band_entry(band, chosen, quality)
-        result.decisions.append(
-            BandDecision(
-                band=band,
-                temp_c=corr.temp_c,
-                samples=stats.n,
-                running_error_deg=err_now,
-                candidate_error_deg=err_new,
-                adopted=adopt,
-                quality=quality,
-                candidate=candidate,
-            )
-        )
-    moved = offset_move(moves, 1.0 / abs(running.bands[0].w1)) if after_step and moves else None
-    if moved is not None:
-        running, result.moved_bands = moved_near(running, moved, move_temps, set(kept))
-    result.bands = with_running_bands(kept, running)
-    return result
 
 
 def with_running_bands(

@@ -35,6 +35,7 @@ from service.db import is_postgres, redacted, sqlite_path
 from service.monitor import Monitor
 from service.refit import (
     MIN_BAND_SAMPLES,
+    NO_BENCH_LOCUS,
     STEP_CAUSES,
     STEP_OPEN_S,
     RefitResult,
@@ -268,6 +269,7 @@ class FleetService:
         self._changed: set[str] = set()  # devices with windows stored since their last refit
         self.refit_every_s = refit_every_s
         self._fitted_at: dict[str, float] = {}  # device -> drive time of its last refit
+        self._no_bench_locus_said: set[str] = set()  # devices whose missing bench locus was logged (fit)
         self._watched_at: dict[str, float] = {}  # device -> drive time of its last watch against the factory
         self.resend_after_s = resend_after_s
         self._clock = clock
@@ -1330,8 +1332,13 @@ class FleetService:
             # sums still mix the drive before and after it, and a set made now would also stand for the step's move
             # (refit: a set fitted after the step has nothing to move). The publication asks for the refit at once.
             return None
-        axis_steps = self.store.alarms(device, cause="axis_step")
         factory = self._correction(device, 0)
+        if not bench_anchors(factory):
+            if device not in self._no_bench_locus_said:  # once a process: the refit passes come back every hour
+                self._no_bench_locus_said.add(device)
+                log.warning("%s: not refit: %s", device, NO_BENCH_LOCUS, extra={"device": device})
+            return None
+        axis_steps = self.store.alarms(device, cause="axis_step")
         running = self._correction(device, running_version)
         band_stats = self._band_stats(device)
         bin_temps = {band: stats.bin_temps() for band, stats in band_stats.items()}

@@ -782,6 +782,27 @@ def test_a_pass_fits_its_due_drives_bands_in_one_batch_and_each_refit_then_fits_
     assert len(fitted) == 4 and fitted[1:] == [0, 0, 0]  # the batch, then three refits that fit nothing
 
 
+def test_a_drive_whose_factory_set_has_no_bench_locus_is_not_refit_and_the_log_says_why_once(fleet, caplog):
+    """service.refit.NO_BENCH_LOCUS: such a drive keeps its factory set (the older refit made drives worse), and the
+    service says why once, not at every pass."""
+    from service.refit import NO_BENCH_LOCUS
+
+    store, service = fleet
+    msg = factory_message(DEVICE, factory_calibration(drive_model(SEED), SEED))
+    msg["bands"] = [{k: v for k, v in band.items() if k != "bench_locus"} for band in msg["bands"]]
+    store.insert_coefficient_set(msg)
+    store.mark_published(DEVICE, 0)
+    run_on(store, 0, hours=2.0)
+    with caplog.at_level("WARNING", logger="service"):
+        for _ in range(2):
+            service._changed.add(DEVICE)
+            service._refit_now.add(DEVICE)  # due at once, both times
+            assert service.refit_all() == []
+    assert store.published_version(DEVICE) == 0 and len(store.coefficient_history(DEVICE)) == 1
+    said = [r.getMessage() for r in caplog.records if NO_BENCH_LOCUS in r.getMessage()]
+    assert said == [f"{DEVICE}: not refit: {NO_BENCH_LOCUS}"]
+
+
 @pytest.mark.parametrize("seed", [31, 32])
 def test_the_watch_restores_the_factory_set_where_the_running_one_is_worse(fleet, seed):
     """The first rule after a set was confirmed: the drive changed under it (a hidden error, its size and sign

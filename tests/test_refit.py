@@ -10,7 +10,7 @@ from encoder_core.samples import Samples
 from encoder_core.stats import normalisation_scale, window_stats
 from encoder_fleet import fieldsim
 from encoder_fleet.calibrate import calibrate
-from service.refit import CONFIDENCE, LEGACY_MIN_SAMPLES, MIN_BAND_SAMPLES, MIN_GAIN_DEG, refit_device
+from service.refit import CONFIDENCE, MIN_BAND_SAMPLES, MIN_GAIN_DEG, refit_device
 
 
 def band_stats_of(seed, hours, scale):
@@ -51,27 +51,41 @@ def test_refit_leaves_a_right_set_alone():
     assert all(d.running_error_deg < 1e-6 for d in again.decisions if d.band in adopted_first)
 
 
-@pytest.mark.parametrize("bench_locus, hours", [(True, 0.005), (False, 0.1)])
-def test_too_few_samples_gives_no_fit(bench_locus, hours):
-    # with the bench locus a band needs MIN_BAND_SAMPLES (18 s at 20 Hz are fewer); without it, the density
-    # harmonics need LEGACY_MIN_SAMPLES (six minutes are fewer)
+def test_too_few_samples_gives_no_fit():
+    # a band needs MIN_BAND_SAMPLES (18 s at 20 Hz are fewer)
     seed = 2
     factory = factory_calibration(drive_model(seed), seed)
-    if not bench_locus:
-        factory = BandedCorrection([Correction.from_dict({**c.to_dict(), "bench_locus": None}) for c in factory.bands])
-    bands = band_stats_of(seed, hours, float(round(1 / factory.bands[0].w1)))
-    assert 0 < sum(s.n for s in bands.values()) < (MIN_BAND_SAMPLES if bench_locus else LEGACY_MIN_SAMPLES)
+    bands = band_stats_of(seed, 0.005, float(round(1 / factory.bands[0].w1)))
+    assert 0 < sum(s.n for s in bands.values()) < MIN_BAND_SAMPLES
     result = refit_device(bands, factory, factory)
     assert not result.changed and not result.decisions
 
 
-@pytest.mark.parametrize("bench_locus", [True, False])
-def test_bands_the_refit_says_nothing_about_stay_as_the_device_runs_them(bench_locus):
+@pytest.mark.parametrize("regime", ["even", "reverse"])
+def test_a_factory_set_without_its_bench_locus_gets_no_fitted_set(regime):
+    """Without the bench locus the window statistics cannot tell the drift from the field's own harmonics: the older
+    ellipse-plus-density refit made independently simulated drives worse (a reversing one 0.1 deg -> 7 deg), so the
+    drive keeps what it runs (NO_BENCH_LOCUS), however much it sent."""
+    rng = np.random.default_rng(3)
+    phys = fieldsim.draw_drive(rng, event=None, days=1)
+    factory = calibrate(fieldsim.bench_sweep(phys, rng))
+    without = BandedCorrection([Correction.from_dict({**c.to_dict(), "bench_locus": None}) for c in factory.bands])
+    s = fieldsim.field_run(phys, days=0.5, rate_hz=5.0, regime=regime, rng=rng).samples
+    bands = {}
+    for k in range(0, s.t.size - 300, 300):
+        stats = window_stats(s.subset(np.arange(k, k + 300)), normalisation_scale(factory))
+        band = band_of(stats.temp_mean)
+        bands[band] = bands[band].merge(stats) if band in bands else stats
+    assert sum(st.n for st in bands.values()) > 50 * MIN_BAND_SAMPLES
+    assert refit_device(bands, factory, factory).decisions  # with its locus the same drive is refit
+    result = refit_device(bands, without, without)
+    assert not result.changed and not result.decisions and not result.bands
+
+
+def test_bands_the_refit_says_nothing_about_stay_as_the_device_runs_them():
     # a set of only the fitted band would hold that band's correction at every temperature
     seed = 3
     factory = factory_calibration(drive_model(seed), seed)
-    if not bench_locus:
-        factory = BandedCorrection([Correction.from_dict({**c.to_dict(), "bench_locus": None}) for c in factory.bands])
     running = BandedCorrection(
         [Correction.from_dict({**factory.bands[0].to_dict(), "temp_c": t, "bench_locus": None}) for t in (-25, 25, 55)]
     )
