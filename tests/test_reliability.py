@@ -472,7 +472,8 @@ def test_a_step_whose_action_the_database_refused_is_taken_up_by_the_next_refit_
     listener = session.declare_subscriber(keys.every(keys.ALARMS), lambda sample: heard.append(sample))
     service = FleetService(store, session, refit_interval_s=0, monitor_interval_s=0)  # passes called by the test
     try:
-        factory = {**ws.coefficients(DEVICE, 0, 0.0), "basis": "factory"}
+        # a factory set with its bench locus, as the agents announce it (a drive without one is not refit)
+        factory = factory_message(DEVICE, factory_calibration(drive_model(3), 3))
         with store.transaction():
             store.insert_coefficient_set(factory)
             store.mark_published(DEVICE, 0)
