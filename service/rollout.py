@@ -499,7 +499,8 @@ class Rollouts:
             else:
                 result = self.service.fit(device, min_band_samples=spec.change.min_band_samples)
                 if result is None or not result.changed:
-                    reason = "the refit changes nothing"
+                    never = self.service.never_refit(device) if result is None else None
+                    reason = "the refit changes nothing" if never is None else f"not refit: {never}"
                     self._record(rollout, device, "unchanged", now, before=running, reason=reason)
                     return
                 self.service.publish_fit(device, result, reason=why, then=started)

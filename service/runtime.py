@@ -1332,12 +1332,12 @@ class FleetService:
             # sums still mix the drive before and after it, and a set made now would also stand for the step's move
             # (refit: a set fitted after the step has nothing to move). The publication asks for the refit at once.
             return None
-        factory = self._correction(device, 0)
-        if not bench_anchors(factory):
+        if (why := self.never_refit(device)) is not None:
             if device not in self._no_bench_locus_said:  # once a process: the refit passes come back every hour
                 self._no_bench_locus_said.add(device)
-                log.warning("%s: not refit: %s", device, NO_BENCH_LOCUS, extra={"device": device})
+                log.warning("%s: not refit: %s", device, why, extra={"device": device})
             return None
+        factory = self._correction(device, 0)
         axis_steps = self.store.alarms(device, cause="axis_step")
         running = self._correction(device, running_version)
         band_stats = self._band_stats(device)
@@ -1356,6 +1356,10 @@ class FleetService:
             held_watched=self.monitor.watches_held_positions(device),
             before_step=self._set_before_unmeasured_step(device, step_at),
         )
+
+    def never_refit(self, device: str) -> str | None:
+        """Why no refit is made for the device whatever it sends (service.refit.NO_BENCH_LOCUS), or None."""
+        return None if bench_anchors(self._correction(device, 0)) else NO_BENCH_LOCUS
 
     def _set_before_unmeasured_step(self, device: str, step_at: float | None) -> BandedCorrection | None:
         """The set the drive ran before its newest step, when the monitor could not measure that step (the drive

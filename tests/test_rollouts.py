@@ -379,6 +379,33 @@ def test_a_refit_rollout_publishes_each_drives_own_fit_wave_by_wave(fleet, clock
         assert zero_error < errors.get(device, 0.03) / 3, (device, zero_error)
 
 
+def test_a_refit_rollout_says_a_drive_without_a_bench_locus_is_not_refit(fleet, clock):
+    """A drive whose factory set carries no bench locus gets no fitted set (service.refit.NO_BENCH_LOCUS): a refit
+    rollout records it unchanged with that reason, and the drive with its locus beside it gets its fit."""
+    from service.refit import NO_BENCH_LOCUS
+
+    store, service = fleet
+    bare, located = DEVICES[:2]
+    install(store, service, located, shifted(true_bands(located), 0.03))
+    run_on(store, located, 1, hours=2.0)
+    factory = factory_message(bare, factory_calibration(drive_model(1), 1))
+    factory["bands"] = [{k: v for k, v in band.items() if k != "bench_locus"} for band in factory["bands"]]
+    store.set_online(bare, True)
+    store.insert_coefficient_set(factory)
+    store.mark_published(bare, 0)
+    run_on(store, bare, 0, hours=2.0)
+    service.rollouts.create(
+        RolloutSpec(
+            name="method v2", change={"kind": "refit"}, devices=[bare, located], base_per_minute=2, soak_windows=30,
+            abort_criteria=REGRESSED_ABORTS,
+        )
+    )  # fmt: skip
+    result = soak_and_step(store, service, clock)
+    parts = {d["device"]: d for d in result["devices"]}
+    assert parts[bare]["state"] == "unchanged" and parts[bare]["reason"] == f"not refit: {NO_BENCH_LOCUS}", parts
+    assert parts[located]["state"] == "succeeded" and store.published_version(bare) == 0, parts
+
+
 def test_a_set_and_the_rollouts_record_of_it_land_together_or_not_at_all(fleet, clock):
     """The store refuses the rollout's record (a trigger stands in for a disk that fails at that moment): the
     set it would have recorded is not stored or published either, so a restart cannot find a change the
