@@ -23,6 +23,31 @@ def band_stats_of(seed, hours, scale):
     return bands
 
 
+def bands_of_windows(samples: Samples, scale: float, size: int = 300) -> dict:
+    """Windows of `size` samples each, merged by band, as the store sums them."""
+    bands = {}
+    for k in range(0, samples.t.size - size, size):
+        stats = window_stats(samples.subset(np.arange(k, k + size)), scale)
+        band = band_of(stats.temp_mean)
+        bands[band] = bands[band].merge(stats) if band in bands else stats
+    return bands
+
+
+def fits_spied(monkeypatch) -> list:
+    """The statistics service.refit hands its drift fits (fit_drifts_each), call after call, as they are fitted."""
+    from service import refit as refit_module
+
+    fitted = []
+    real_fit_drifts = refit_module.fit_drifts_each
+
+    def spied(fields, *args, **kwargs):
+        fitted.extend(fields)
+        return real_fit_drifts(fields, *args, **kwargs)
+
+    monkeypatch.setattr(refit_module, "fit_drifts_each", spied)
+    return fitted
+
+
 @pytest.mark.parametrize("seed", [3, 11])
 def test_refit_beats_factory_fivefold_across_the_cycle(seed):
     model = drive_model(seed)
@@ -71,11 +96,7 @@ def test_a_factory_set_without_its_bench_locus_gets_no_fitted_set(regime):
     factory = calibrate(fieldsim.bench_sweep(phys, rng))
     without = BandedCorrection([Correction.from_dict({**c.to_dict(), "bench_locus": None}) for c in factory.bands])
     s = fieldsim.field_run(phys, days=0.5, rate_hz=5.0, regime=regime, rng=rng).samples
-    bands = {}
-    for k in range(0, s.t.size - 300, 300):
-        stats = window_stats(s.subset(np.arange(k, k + 300)), normalisation_scale(factory))
-        band = band_of(stats.temp_mean)
-        bands[band] = bands[band].merge(stats) if band in bands else stats
+    bands = bands_of_windows(s, normalisation_scale(factory))
     assert sum(st.n for st in bands.values()) > 50 * MIN_BAND_SAMPLES
     assert refit_device(bands, factory, factory).decisions  # with its locus the same drive is refit
     result = refit_device(bands, without, without)
@@ -380,13 +401,7 @@ def test_a_band_whose_sums_did_not_change_is_not_fitted_again(monkeypatch):
     for stats in windows[:-1]:
         band = band_of(stats.temp_mean)
         bands[band] = bands[band].merge(stats) if band in bands else stats
-    fitted = []
-    real_fit_drifts = refit_module.fit_drifts_each
-    monkeypatch.setattr(
-        refit_module,
-        "fit_drifts_each",
-        lambda fields, *a, **k: fitted.extend(fields) or real_fit_drifts(fields, *a, **k),
-    )
+    fitted = fits_spied(monkeypatch)
     refit_module.FIT_MEMO.clear()
 
     def refit(band_stats):
@@ -421,20 +436,8 @@ def test_band_fits_prefetched_for_several_drives_make_the_same_refits_with_no_fi
         phys = fieldsim.draw_drive(rng, event=None, days=1)
         factory = calibrate(fieldsim.bench_sweep(phys, rng))
         s = fieldsim.field_run(phys, days=0.5, rate_hz=5.0, regime="even", rng=rng).samples
-        bands = {}
-        for k in range(0, s.t.size - 300, 300):
-            part = Samples(t=s.t[k : k + 300], d=s.d[k : k + 300], q=s.q[k : k + 300], temp_c=s.temp_c[k : k + 300])
-            stats = window_stats(part, normalisation_scale(factory))
-            band = band_of(stats.temp_mean)
-            bands[band] = bands[band].merge(stats) if band in bands else stats
-        drives.append((bands, factory))
-    fitted = []
-    real_fit_drifts = refit_module.fit_drifts_each
-    monkeypatch.setattr(
-        refit_module,
-        "fit_drifts_each",
-        lambda fields, *a, **k: fitted.extend(fields) or real_fit_drifts(fields, *a, **k),
-    )
+        drives.append((bands_of_windows(s, normalisation_scale(factory)), factory))
+    fitted = fits_spied(monkeypatch)
 
     def refits():
         return [
