@@ -139,8 +139,7 @@ def refit_device(
     before_step: the set the drive ran before its newest step, when the monitor could not measure that step and the
     drive went back to its factory set (service.runtime.back_to_factory). Past the bands the data since the step
     speak for, the drive runs it moved by the offset change every fitted band agrees on, where they agree on one
-    clear of their errors (offset_move, carried_over_step); otherwise the refit goes on as without it. Sets with a
-    bench locus only (refit_from_bench): the legacy refit has no drift curve to carry.
+    clear of their errors (offset_move, carried_over_step); otherwise the refit goes on as without it.
 
     axis_turn: the axis steps the monitor has named since the bench, summed (their delta_skew): each candidate's zero
     is then the factory's moved by them. A turn of one sensor axis is half a shear, which the windows see, and half a
@@ -464,7 +463,7 @@ def prefetch_band_fits(drives: list[tuple[dict[int, WindowStats], list]], min_sa
     keys, fields, loci, dtemps_of = {}, [], [], []  # keys: insertion-ordered, one fit per content
     for band_stats, anchors in drives:
         if not anchors:
-            continue  # a factory set without its bench locus: the legacy refit fits no drifts
+            continue  # a factory set without its bench locus: such a drive is not refit (NO_BENCH_LOCUS)
         bin_temps = {band: stats.bin_temps() for band, stats in band_stats.items()}
         chosen, dtemps = band_fit_inputs(band_stats, anchors, min_samples, bin_temps)
         for band, (stats, _, locus) in chosen.items():

@@ -1320,22 +1320,23 @@ class FleetService:
         return corr.thermal_lag_s if corr is not None else 0.0
 
     def fit(self, device: str, *, min_band_samples: int | None = None) -> RefitResult | None:
-        """The refit of the device's band sums against the set it runs; None when no set is known yet, or while a
-        step's band memory restart is pending (_memory_restarted_since)."""
+        """The refit of the device's band sums against the set it runs; None when no set is known yet, when the
+        device is never refit (never_refit), or while a step's band memory restart is pending
+        (_memory_restarted_since)."""
         running_version = self.store.published_version(device)
         if running_version is None:
             return None  # no factory set known yet: nothing to anchor a rollout to
+        if (why := self.never_refit(device)) is not None:  # before the reads below, which would be for nothing
+            if device not in self._no_bench_locus_said:  # once a process: the refit passes come back every hour
+                self._no_bench_locus_said.add(device)
+                log.warning("%s: not refit: %s", device, why, extra={"device": device})
+            return None
         newest_step = self._newest_step(device)
         step_at = None if newest_step is None else newest_step["raised_at"]
         if not self._memory_restarted_since(device, newest_step):
             # a step the monitor stored and will publish at the end of its pass, which restarts band memory: the
             # sums still mix the drive before and after it, and a set made now would also stand for the step's move
             # (refit: a set fitted after the step has nothing to move). The publication asks for the refit at once.
-            return None
-        if (why := self.never_refit(device)) is not None:
-            if device not in self._no_bench_locus_said:  # once a process: the refit passes come back every hour
-                self._no_bench_locus_said.add(device)
-                log.warning("%s: not refit: %s", device, why, extra={"device": device})
             return None
         factory = self._correction(device, 0)
         axis_steps = self.store.alarms(device, cause="axis_step")
